@@ -1,0 +1,5 @@
+import sys
+
+from crfdepth.cli import main
+
+sys.exit(main())

@@ -1,0 +1,18 @@
+"""The one exception type crfdepth raises for bad input."""
+
+
+class InputError(ValueError):
+    """Bad input at a public boundary of crfdepth.
+
+    The message names the argument, what was expected and what was received, for
+    instance ``edge_weight: expected 1-D tensor of length 120 (one per edge), got shape
+    (119,)``. Subclasses ``ValueError`` so callers that already catch that keep working.
+    """
+
+
+class ConvergenceError(RuntimeError):
+    """An iterative solve stopped before reaching its tolerance (when asked to raise)."""
+
+
+class ConvergenceWarning(UserWarning):
+    """An iterative solve stopped before reaching its tolerance."""
