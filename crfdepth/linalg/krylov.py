@@ -1,0 +1,170 @@
+"""Batched Krylov iterations on symmetrically scaled systems (DESIGN.md section 4).
+
+These are plain functions of tensors: no autograd, no knowledge of graphs. They solve
+``M y = c`` for a batch of ``G`` independent systems stored as rows of a ``(G, n)``
+tensor, where ``matvec(y)`` applies ``M`` row by row. Each system has its own step sizes
+(so a block of a batch follows exactly the iterates it would follow alone) and its own
+convergence test.
+
+The caller passes the system already scaled by its Jacobi preconditioner,
+``M = D^-1/2 A D^-1/2``, ``c = D^-1/2 b`` and ``y = D^1/2 x``: plain CG on ``M`` is then
+Jacobi-preconditioned CG on ``A`` with one element-wise product less per iteration. The
+convergence test is on the residual of the *original* system,
+``||b - A x|| = ||D^1/2 (c - M y)||``, which is why ``residual_weight = D`` is passed.
+
+Host synchronisation (the only way to stop a loop) happens once every ``check_every``
+iterations; between checks everything stays on the device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+MatVec = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class KrylovResult:
+    """Per-system outcome of a batched Krylov solve; tensors of shape (G,)."""
+
+    iterations: torch.Tensor  # int64: iterations taken (frozen at the check that met rtol)
+    rel_residual: torch.Tensor  # ||b - A x|| / ||b|| by the recurrence at the last check
+    converged: torch.Tensor  # bool
+
+
+def _rowdot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(G, n), (G, n) -> (G, 1) row-wise dot products."""
+    return torch.linalg.vecdot(a, b).unsqueeze(-1)
+
+
+class _Monitor:
+    """Tracks which systems are still iterating; syncs with the host only in `check`."""
+
+    def __init__(self, c: torch.Tensor, residual_weight: torch.Tensor, rtol: float):
+        self.residual_weight = residual_weight
+        b_norm = _rowdot(c * residual_weight, c).sqrt()  # ||b|| = ||D^1/2 c||
+        self.threshold = rtol * b_norm
+        self.b_norm = b_norm
+        g = c.shape[0]
+        self.active = torch.ones(g, 1, dtype=torch.bool, device=c.device)
+        self.iterations = torch.zeros(g, dtype=torch.int64, device=c.device)
+        self.rel_residual = torch.ones(g, dtype=c.dtype, device=c.device)
+
+    def check(self, r: torch.Tensor, iteration: int) -> bool:
+        """Update the active mask from residual ``r`` after ``iteration`` steps; True when all done."""
+        res = _rowdot(r * self.residual_weight, r).clamp_min(0).sqrt()
+        rel = torch.where(self.b_norm > 0, res / self.b_norm.clamp_min(torch.finfo(r.dtype).tiny),
+                          torch.zeros_like(res))
+        # Systems that stopped earlier keep the numbers they stopped with.
+        act = self.active.squeeze(-1)
+        self.rel_residual = torch.where(act, rel.squeeze(-1), self.rel_residual)
+        self.iterations = torch.where(act, torch.full_like(self.iterations, iteration), self.iterations)
+        self.active = self.active & (res > self.threshold) & torch.isfinite(res)
+        return not bool(self.active.any())
+
+    def result(self) -> KrylovResult:
+        converged = self.rel_residual * self.b_norm.squeeze(-1) <= self.threshold.squeeze(-1)
+        return KrylovResult(self.iterations, self.rel_residual, converged & torch.isfinite(self.rel_residual))
+
+
+def conjugate_gradient(
+    matvec: MatVec,
+    c: torch.Tensor,
+    y0: torch.Tensor | None,
+    residual_weight: torch.Tensor,
+    rtol: float,
+    max_iter: int,
+    check_every: int = 8,
+) -> tuple[torch.Tensor, KrylovResult]:
+    """Conjugate Gradient on a batch of SPD systems ``M y = c`` (rows of ``c``).
+
+    Args:
+        matvec: applies the (G independent) SPD matrices to a (G, n) tensor.
+        c: (G, n) right-hand sides.
+        y0: (G, n) initial guess, or None for zero.
+        residual_weight: (G, n) positive weights ``D``; convergence is
+            ``sqrt(sum D r^2) <= rtol * sqrt(sum D c^2)`` per system.
+        rtol: relative tolerance.
+        max_iter: iteration cap.
+        check_every: iterations between convergence checks (host syncs).
+
+    Returns:
+        y (G, n) and a :class:`KrylovResult`.
+    """
+    tiny = torch.finfo(c.dtype).tiny
+    if y0 is None:
+        y = torch.zeros_like(c)
+        r = c.clone()
+    else:
+        y = y0.clone()
+        r = c - matvec(y)
+    monitor = _Monitor(c, residual_weight, rtol)
+    if monitor.check(r, 0) or max_iter == 0:
+        return y, monitor.result()
+    p = r.clone()
+    rr = _rowdot(r, r)
+    for it in range(1, max_iter + 1):
+        q = matvec(p)
+        # Frozen (converged) systems get a zero step and keep their iterate.
+        alpha = rr / _rowdot(p, q).clamp_min(tiny) * monitor.active
+        y.addcmul_(p, alpha)
+        r.addcmul_(q, alpha, value=-1.0)
+        rr_new = _rowdot(r, r)
+        beta = rr_new / rr.clamp_min(tiny)
+        rr = rr_new
+        p.mul_(beta).add_(r)
+        if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
+            break
+    return y, monitor.result()
+
+
+def conjugate_gradient_squared(
+    matvec: MatVec,
+    c: torch.Tensor,
+    y0: torch.Tensor | None,
+    residual_weight: torch.Tensor,
+    rtol: float,
+    max_iter: int,
+    check_every: int = 8,
+) -> tuple[torch.Tensor, KrylovResult]:
+    """Conjugate Gradient Squared (Sonneveld), the paper's solver; same contract as CG.
+
+    CGS does not need symmetry and takes two matvecs per iteration; its residual is not
+    monotone and it can break down or diverge, in float32 in particular. CG is the right
+    method for the SPD systems of crfdepth; CGS is offered to reproduce the paper.
+    """
+    tiny = torch.finfo(c.dtype).tiny
+    if y0 is None:
+        y = torch.zeros_like(c)
+        r = c.clone()
+    else:
+        y = y0.clone()
+        r = c - matvec(y)
+    monitor = _Monitor(c, residual_weight, rtol)
+    if monitor.check(r, 0) or max_iter == 0:
+        return y, monitor.result()
+    r_hat = r.clone()
+    rho = _rowdot(r_hat, r)
+    u = r.clone()
+    p = r.clone()
+    q = torch.zeros_like(r)
+    for it in range(1, max_iter + 1):
+        if it > 1:
+            rho_new = _rowdot(r_hat, r)
+            beta = rho_new / torch.where(rho.abs() > tiny, rho, torch.full_like(rho, tiny))
+            rho = rho_new
+            u = r + beta * q
+            p = u + beta * (q + beta * p)
+        v = matvec(p)
+        sigma = _rowdot(r_hat, v)
+        alpha = rho / torch.where(sigma.abs() > tiny, sigma, torch.full_like(sigma, tiny)) * monitor.active
+        q = u - alpha * v
+        uq = u + q
+        y.addcmul_(uq, alpha)
+        r.addcmul_(matvec(uq), alpha, value=-1.0)
+        if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
+            break
+    return y, monitor.result()
