@@ -1,0 +1,14 @@
+"""Shared pytest fixtures."""
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def kitti_root() -> Path:
+    """The real KITTI sample frames, ``../shared/data/kitti`` next to the repository."""
+    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti"
+    if not root.is_dir():
+        pytest.skip(f"KITTI sample data not found at {root}")
+    return root
