@@ -1,0 +1,3 @@
+from crfdepth.data.kitti import KittiDepthCompletion, KittiRawScans, KittiTestCompletion, KittiValSelection
+from crfdepth.data.sample import Batch, Sample, collate_samples
+from crfdepth.data.transforms import BottomCenterCrop, Compose, HorizontalFlip, SubsampleSparse
