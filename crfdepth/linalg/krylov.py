@@ -37,6 +37,8 @@ class KrylovResult:
 
 def _rowdot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(G, n), (G, n) -> (G, 1) row-wise dot products."""
+    if a.shape[0] == 1:  # one system: a plain dot is half the dispatch cost of vecdot
+        return torch.dot(a.view(-1), b.view(-1)).view(1, 1)
     return torch.linalg.vecdot(a, b).unsqueeze(-1)
 
 
@@ -106,10 +108,12 @@ def conjugate_gradient(
         return y, monitor.result()
     p = r.clone()
     rr = _rowdot(r, r)
+    several = c.shape[0] > 1
     for it in range(1, max_iter + 1):
         q = matvec(p)
-        # Frozen (converged) systems get a zero step and keep their iterate.
-        alpha = rr / _rowdot(p, q).clamp_min(tiny) * monitor.active
+        alpha = rr / _rowdot(p, q).clamp_min(tiny)
+        if several:  # frozen (converged) systems get a zero step and keep their iterate
+            alpha = alpha * monitor.active
         y.addcmul_(p, alpha)
         r.addcmul_(q, alpha, value=-1.0)
         rr_new = _rowdot(r, r)

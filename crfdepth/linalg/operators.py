@@ -84,35 +84,43 @@ class EdgeGraph:
     def degree(self, edge_weight: torch.Tensor) -> torch.Tensor:
         """(N,) weighted degree ``sum_j w_ij``."""
         src, dst = self.edge_index
-        deg = edge_weight.new_zeros(self.num_nodes)
-        deg.index_add_(0, src, edge_weight)
-        deg.index_add_(0, dst, edge_weight)
-        return deg
+        # bincount: an order of magnitude faster than index_add_ for float64 on CPU.
+        deg = torch.bincount(src, weights=edge_weight, minlength=self.num_nodes)
+        deg = deg + torch.bincount(dst, weights=edge_weight, minlength=self.num_nodes)
+        return deg.to(edge_weight.dtype)
+
+    def _csr_pattern(self):
+        """Sorted CSR pattern of ``I - W'`` on the padded (G * n) layout, built once."""
+        if getattr(self, "_pattern", None) is None:
+            src, dst = self.edge_index
+            size = self.num_graphs * self.width
+            if self._pad_index is None:
+                rows, cols = src, dst
+            else:
+                rows, cols = self._pad_index[src], self._pad_index[dst]
+            diag = torch.arange(size, device=src.device)
+            keys = torch.cat([rows * size + cols, cols * size + rows, diag * size + diag])
+            order = torch.argsort(keys)
+            keys = keys[order]
+            row_of = torch.div(keys, size, rounding_mode="floor")
+            crow = torch.zeros(size + 1, dtype=torch.int64, device=keys.device)
+            crow[1:] = torch.cumsum(torch.bincount(row_of, minlength=size), 0)
+            self._pattern = (crow, keys - row_of * size, order, size)
+        return self._pattern
 
     def scaled_matvec(self, edge_weight: torch.Tensor, inv_sqrt_diag: torch.Tensor):
         """Return ``y -> (I - W') y`` on (G, n) rows; ``inv_sqrt_diag`` is (N,)."""
         src, dst = self.edge_index
-        w_scaled = edge_weight * inv_sqrt_diag[src] * inv_sqrt_diag[dst]
-        size = self.num_graphs * self.width
-        if self._pad_index is None:
-            rows, cols = src, dst
-        else:
-            rows, cols = self._pad_index[src], self._pad_index[dst]
-        keys = torch.cat([rows * size + cols, cols * size + rows])
-        order = torch.argsort(keys)
-        keys = keys[order]
-        values = torch.cat([w_scaled, w_scaled])[order]
-        row_of = torch.div(keys, size, rounding_mode="floor")
-        crow = torch.zeros(size + 1, dtype=torch.int64, device=keys.device)
-        crow[1:] = torch.cumsum(torch.bincount(row_of, minlength=size), 0)
+        crow, col, order, size = self._csr_pattern()
+        neg_w = -(edge_weight * inv_sqrt_diag[src] * inv_sqrt_diag[dst])
+        values = torch.cat([neg_w, neg_w, neg_w.new_ones(size)])[order]
         with warnings.catch_warnings():  # "CSR support is in beta": nothing to act on
             warnings.simplefilter("ignore", UserWarning)
-            W = torch.sparse_csr_tensor(crow, keys - row_of * size, values, (size, size),
-                                        check_invariants=False)
+            M = torch.sparse_csr_tensor(crow, col, values, (size, size), check_invariants=False)
         shape = (self.num_graphs, self.width)
 
         def matvec(y: torch.Tensor) -> torch.Tensor:
-            return y - torch.mv(W, y.reshape(-1)).view(shape)
+            return torch.mv(M, y.reshape(-1)).view(shape)
 
         return matvec
 

@@ -85,6 +85,7 @@ def _check_float(name: str, t: torch.Tensor, ref: torch.Tensor, nonneg: bool) ->
     if t.dtype != ref.dtype or t.device != ref.device:
         raise InputError(f"{name}: expected dtype {ref.dtype} on {ref.device} like b, "
                          f"got {t.dtype} on {t.device}")
+    t = t.detach()  # checks must not record autograd history
     finite = torch.isfinite(t)
     if not bool(finite.all()):
         bad = int((~finite).sum())
