@@ -64,7 +64,7 @@ _EPS = 1e-6
 _TINY = 1e-12
 
 
-@dataclass
+@dataclass(frozen=True)
 class SyntheticScene:
     """One rendered frame of the synthetic street.
 
@@ -242,7 +242,7 @@ class _World:
     albedo: np.ndarray  # (n, 3) base colour
     style: np.ndarray  # (n, 4) per-object texture parameters
     ground_y: float  # the ground plane y = ground_y (camera frame, y down)
-    road: dict  # road layout: edges, lane lines, dash phase
+    road: dict  # lane lines: solid "line_r", "line_l", dashed "dividers", "dash_phase"
     sun: np.ndarray  # (3,) unit vector towards the sun
     noise: np.ndarray  # (256, 256) float32 value-noise table
 
@@ -322,8 +322,14 @@ def _build_world(rng: np.random.Generator) -> _World:
           (z_end, z_end + 20.0), col, (3.3, 3.0, 0.5, rng.uniform(0.0, 4.0)))
 
     # Cars: parked in both parking strips, and moving in the driving lanes.
+    placed: list[tuple[float, float, float]] = []  # (x centre, z start, z end)
+
     def car(cx: float, z0: float) -> None:
         length, wid = rng.uniform(3.9, 4.8), rng.uniform(1.7, 1.9)
+        if any(abs(cx - c) < 2.2 and z0 < e + 1.0 and s < z0 + length + 1.0
+               for c, s, e in placed):
+            return  # would overlap another car
+        placed.append((cx, z0, z0 + length))
         col = _CAR_COLOURS[rng.integers(len(_CAR_COLOURS))] * rng.uniform(0.9, 1.05)
         col = np.clip(col, 0, 1)
         top = rng.uniform(1.38, 1.55)
@@ -384,7 +390,7 @@ def _build_world(rng: np.random.Generator) -> _World:
     sun = np.array([math.cos(sun_el) * math.sin(sun_az), -math.sin(sun_el),
                     math.cos(sun_el) * math.cos(sun_az)])
     road = {"line_r": x_line_r, "line_l": x_line_l, "dividers": np.array(dividers),
-            "dash_phase": rng.uniform(0.0, 9.0), "curb_r": x_curb_r, "curb_l": x_curb_l}
+            "dash_phase": rng.uniform(0.0, 9.0)}
     return _World(
         kind=np.array(kind, dtype=np.int64), mat=np.array(mat, dtype=np.int64),
         lo=np.array(lo, dtype=np.float64), hi=np.array(hi, dtype=np.float64),
@@ -719,7 +725,8 @@ def _facade(world, idx, p, n, col):
     band = vertical & (((fy < 0.18) & (floor >= 1)) | (h > top_h - 0.5))  # cornices
     wall[:, band] *= 0.82
     # One random value per window: some reflect more sky, some are lit.
-    rnd = tab[(floor.astype(np.int64) * 7 + idx * 13) & 255, (cell.astype(np.int64) + idx * 31) & 255]
+    rnd = tab[(floor.astype(np.int64) * 7 + idx * 13) & 255,
+              (cell.astype(np.int64) + idx * 31) & 255]
     glass = _rgb(0.10, 0.13, 0.17) + rnd * rnd * _rgb(0.25, 0.25, 0.22)
     out = np.where(window, glass, wall)
     frame = upper & vertical & ((fy < 0.97) | (fy > 2.23) | (fxw < 0.07) | (fxw > ww - 0.07))
