@@ -7,7 +7,8 @@ casting from a pinhole camera:
 
 - ``image``: Lambertian shading from a sun direction, with cast shadows, per-object base
   colours and procedural texture (asphalt noise, lane markings, paving tiles, windows,
-  car lights, foliage), a sky gradient with clouds and a little sensor noise.
+  car lights, foliage), a sky gradient with clouds, a mild optical blur (one ray per pixel
+  would alias) and a little sensor noise.
 - ``depth``: dense ground-truth camera z-depth in metres, **0 where the pixel sees sky**
   (no surface), the same convention as KITTI's ground truth (0 = no value).
 - ``sparse``: a simulated Velodyne HDL-64E-like scan (64 beams by default) with range
@@ -54,10 +55,11 @@ MIN_RANGE_M = 1.0
 # Primitive kinds.
 _PLANE, _BOX, _CYLINDER, _SPHERE = 0, 1, 2, 3
 # Materials.
-(_ROAD, _SIDEWALK, _FACADE, _CAR_BODY, _CAR_CABIN, _WHEEL, _POLE, _SIGN, _TRUNK,
+(_ROAD, _SIDEWALK, _FACADE, _CAR_BODY, _CAR_CABIN, _WHEEL, _SIGN, _POLE, _TRUNK,
  _FOLIAGE) = range(10)
+_N_MATERIALS = 10
 # LiDAR reflectance per material (lane markings get their own value).
-_REFLECTANCE = np.array([0.22, 0.35, 0.3, 0.55, 0.08, 0.1, 0.6, 0.95, 0.3, 0.25])
+_REFLECTANCE = np.array([0.22, 0.35, 0.3, 0.55, 0.08, 0.1, 0.95, 0.6, 0.3, 0.25])
 _MARKING_REFLECTANCE = 0.8
 _NEAR = 0.05  # camera near plane, metres
 _EPS = 1e-6
@@ -118,7 +120,12 @@ def camera_intrinsics(height: int, width: int) -> np.ndarray:
 
     Returns:
         (3, 3) float64 K in pixels.
+
+    Raises:
+        InputError: ``height`` or ``width`` is not a positive integer.
     """
+    _check_int("height", height, 1, 16384)
+    _check_int("width", width, 1, 16384)
     f = KITTI_FOCAL_PX * width / KITTI_CROP_WIDTH
     return np.array([[f, 0.0, 0.4906 * width], [0.0, f, 0.4257 * height], [0.0, 0.0, 1.0]])
 
@@ -129,11 +136,16 @@ def lidar_elevations(beams: int) -> np.ndarray:
     With 64 beams this is the HDL-64E layout: an upper block of 32 beams from +2.0 to
     -8.33 degrees (about 1/3 degree apart) and a lower block of 32 from -8.83 to -24.8
     degrees (about 1/2 degree apart). Fewer (or more) beams sample the same vertical field
-    with the same profile, so 16 beams keep every fourth beam of the 64.
+    with the same profile, so 16 beams sit close to every fourth beam of the 64 and give
+    about a quarter of the returns. A single beam is the top one (+2 degrees).
 
     Returns:
         (beams,) float64, ascending (ring 0 first).
+
+    Raises:
+        InputError: ``beams`` is not an integer in [1, 128].
     """
+    _check_int("beams", beams, 1, 128)
     s = np.linspace(0.0, 1.0, beams) if beams > 1 else np.zeros(1)
     top_down = np.interp(s, [0.0, 31 / 63, 32 / 63, 1.0], [2.0, -8.33, -8.83, -24.8])
     return top_down[::-1].copy()
@@ -248,8 +260,9 @@ class _World:
 
     def __post_init__(self) -> None:
         # Channel-first copies for gathering per-hit values as (3, M).
-        self.centre_t = np.ascontiguousarray((0.5 * (self.lo + self.hi)).T)
-        self.half_t = np.ascontiguousarray(np.maximum(0.5 * (self.hi - self.lo), _TINY).T)
+        self.centre_t = np.ascontiguousarray((0.5 * (self.lo + self.hi)).T, dtype=np.float32)
+        self.half_t = np.ascontiguousarray(np.maximum(0.5 * (self.hi - self.lo), _TINY).T,
+                                           dtype=np.float32)
         self.albedo_t = np.ascontiguousarray(self.albedo.T, dtype=np.float32)
 
 
@@ -392,7 +405,7 @@ def _build_world(rng: np.random.Generator) -> _World:
     road = {"line_r": x_line_r, "line_l": x_line_l, "dividers": np.array(dividers),
             "dash_phase": rng.uniform(0.0, 9.0)}
     return _World(
-        kind=np.array(kind, dtype=np.int64), mat=np.array(mat, dtype=np.int64),
+        kind=np.array(kind, dtype=np.int64), mat=np.array(mat, dtype=np.uint8),
         lo=np.array(lo, dtype=np.float64), hi=np.array(hi, dtype=np.float64),
         albedo=np.array(albedo, dtype=np.float64), style=np.array(style, dtype=np.float64),
         ground_y=g, road=road, sun=sun,
@@ -497,7 +510,7 @@ def _cast(world: _World, shape, o, d, inv, windows):
 def _normals(world: _World, idx: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Unit outward normals (3, M) float32 at hit points p (3, M) of primitives idx (M,)."""
     kind = world.kind[idx]
-    rel = ((p - world.centre_t[:, idx]) / world.half_t[:, idx]).astype(np.float32)
+    rel = (p.astype(np.float32) - world.centre_t[:, idx]) / world.half_t[:, idx]
     n = np.zeros_like(rel)
     m = kind == _BOX
     if m.any():  # the face is on the axis where the point is farthest out (|rel| = 1)
@@ -569,15 +582,17 @@ def _render_camera(world: _World, K, height, width, rng, noise_std):
     depth = np.where(hit, t, 0.0).astype(np.float32)  # camera rays have d_z = 1: t = z
 
     flat = np.flatnonzero(hit)
-    rows, cols = np.divmod(flat, width)
     ih = idx.ravel()[flat]
+    # Hits sorted by material, so that texturing works on contiguous slices.
+    order = np.argsort(world.mat[ih], kind="stable")
+    flat, ih = flat[order], ih[order]
     th = t.ravel()[flat]
-    p = np.empty((3, len(flat)))
+    rows, cols = np.divmod(flat, width)
+    p = np.empty((3, len(flat)), dtype=np.float32)
     p[0] = dx[0, cols] * th
     p[1] = dy[rows, 0] * th
     p[2] = th
     n = _normals(world, ih, p)
-    p = p.astype(np.float32)
     col, n = _albedo(world, ih, p, n)
     lit = _sunlit(world, K, height, width, flat, p, n)
 
@@ -592,10 +607,20 @@ def _render_camera(world: _World, K, height, width, rng, noise_std):
     sky = np.flatnonzero(~hit)
     sr, sc = np.divmod(sky, width)
     image[:, sky] = _sky(world, dx[0, sc].astype(np.float32), dy[sr, 0].astype(np.float32))
+    image = _soften(image.reshape(3, height, width))
     if noise_std > 0:
         image += rng.standard_normal(image.shape, dtype=np.float32) * np.float32(noise_std)
     np.clip(image, 0.0, 1.0, out=image)
-    return np.ascontiguousarray(image.reshape(3, height, width).transpose(1, 2, 0)), depth
+    return np.ascontiguousarray(image.transpose(1, 2, 0)), depth
+
+
+def _soften(img: np.ndarray) -> np.ndarray:
+    """Mild optical blur of a (3, H, W) image: [1, 2, 1] / 4 along both axes (anti-alias)."""
+    out = img.copy()
+    out[:, :, 1:-1] = 0.5 * img[:, :, 1:-1] + 0.25 * (img[:, :, :-2] + img[:, :, 2:])
+    tmp = out.copy()
+    out[:, 1:-1] = 0.5 * tmp[:, 1:-1] + 0.25 * (tmp[:, :-2] + tmp[:, 2:])
+    return out
 
 
 def _sky(world, dx, dy):
@@ -645,36 +670,42 @@ def _rgb(*c) -> np.ndarray:
 
 
 def _albedo(world: _World, idx, p, n):
-    """Textured base colour (3, M) at each hit; foliage also perturbs the normals n."""
+    """Textured base colour (3, M) at each hit; foliage also perturbs the normals n.
+
+    The hits must be sorted by material (``world.mat[idx]`` non-decreasing).
+    """
     tab = world.noise
     mat = world.mat[idx]
     col = world.albedo_t[:, idx]
-    x, y, z = p
+    bounds = np.searchsorted(mat, np.arange(_N_MATERIALS + 1))
 
-    m = mat == _ROAD
-    if m.any():
-        xm, zm = x[m], z[m]
+    def seg(first: int, last: int | None = None) -> slice:
+        return slice(bounds[first], bounds[(first if last is None else last) + 1])
+
+    m = seg(_ROAD)
+    if m.start < m.stop:
+        xm, zm = p[0, m], p[2, m]
         v = 0.82 + 0.22 * _noise(tab, xm * 0.4, zm * 0.15) + 0.12 * _noise(tab, xm * 5 + 50, zm * 5)
-        c = col[:, m] * v
+        c = col[:, m]
+        c *= v
         mark = _road_markings(world, xm, zm)
         c[:, mark] = _rgb(0.86, 0.86, 0.84) * (0.85 + 0.15 * _noise(tab, xm[mark] * 3, zm[mark]))
-        col[:, m] = c
-    m = mat == _SIDEWALK
-    if m.any():
-        xm, zm = x[m], z[m]
+    m = seg(_SIDEWALK)
+    if m.start < m.stop:
+        xm, zm = p[0, m], p[2, m]
         top = n[1, m] < -0.5
         joint = (np.mod(xm, 0.6) < 0.035) | (np.mod(zm, 0.6) < 0.035)
         v = 0.9 + 0.15 * _noise(tab, xm * 2 + 90, zm * 2)
         v = np.where(top, np.where(joint, v * 0.8, v), 1.15)  # paving tiles; curb stone
         col[:, m] *= v
-    m = mat == _FACADE
-    if m.any():
+    m = seg(_FACADE)
+    if m.start < m.stop:
         col[:, m] = _facade(world, idx[m], p[:, m], n[:, m], col[:, m])
-    m = (mat == _CAR_BODY) | (mat == _CAR_CABIN)
-    if m.any():
+    m = seg(_CAR_BODY, _CAR_CABIN)
+    if m.start < m.stop:
         col[:, m] = _car(world, idx[m], mat[m], p[:, m], n[:, m], col[:, m])
-    m = mat == _SIGN
-    if m.any():
+    m = seg(_SIGN)
+    if m.start < m.stop:
         lo, hi = world.lo[idx[m]].T, world.hi[idx[m]].T
         pm = p[:, m]
         border = ((pm[0] - lo[0] < 0.05) | (hi[0] - pm[0] < 0.05)
@@ -683,16 +714,15 @@ def _albedo(world: _World, idx, p, n):
         c = col[:, m]
         c[:, border & front] = 0.9
         c[:, ~front] = 0.5
-        col[:, m] = c
-    m = (mat == _POLE) | (mat == _TRUNK)
-    if m.any():
+    m = seg(_POLE, _TRUNK)
+    if m.start < m.stop:
         ang = np.arctan2(n[0, m], n[2, m])
-        v = 0.8 + 0.35 * _noise(tab, ang * 3 + 7, y[m] * (6.0 * (mat[m] == _TRUNK) + 0.5))
+        v = 0.8 + 0.35 * _noise(tab, ang * 3 + 7, p[1, m] * (6.0 * (mat[m] == _TRUNK) + 0.5))
         col[:, m] *= v
-    m = mat == _FOLIAGE
-    if m.any():
+    m = seg(_FOLIAGE)
+    if m.start < m.stop:
         nm = n[:, m]
-        r = (world.half_t[0, idx[m]]).astype(np.float32)
+        r = world.half_t[0, idx[m]]
         u = np.arctan2(nm[0], nm[2]) * r * 2.5 + idx[m] * 13.0
         w = np.arccos(np.clip(nm[1], -1, 1)) * r * 2.5
         c1 = _noise(tab, u, w)
@@ -701,7 +731,8 @@ def _albedo(world: _World, idx, p, n):
         # Bumpy normals: clumps of leaves catch the sun unevenly.
         nn = nm + 0.8 * np.stack([c1 - 0.5, c2 - 0.5, 0.5 - c1])
         n[:, m] = nn / np.sqrt((nn * nn).sum(axis=0))
-    return np.clip(col, 0.0, 1.0), n
+    np.clip(col, 0.0, 1.0, out=col)
+    return col, n
 
 
 def _facade(world, idx, p, n, col):

@@ -213,3 +213,12 @@ def test_bad_arguments_raise_input_error(kwargs, name):
         make_scene(**kwargs)
     value = next(iter(kwargs.values()))
     assert repr(value) in str(info.value) or str(value) in str(info.value)
+
+
+def test_public_helpers_check_input():
+    with pytest.raises(InputError, match="width"):
+        camera_intrinsics(352, 0)
+    with pytest.raises(InputError, match="beams"):
+        lidar_elevations(0)
+    assert lidar_elevations(16).shape == (16,)
+    assert np.all(np.diff(lidar_elevations(32)) > 0)
