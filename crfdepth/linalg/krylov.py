@@ -107,13 +107,13 @@ def conjugate_gradient(
     if monitor.check(r, 0) or max_iter == 0:
         return y, monitor.result()
     p = r.clone()
+    if c.shape[0] == 1 and c.device.type == "cpu":
+        return _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every)
     rr = _rowdot(r, r)
-    several = c.shape[0] > 1
     for it in range(1, max_iter + 1):
         q = matvec(p)
-        alpha = rr / _rowdot(p, q).clamp_min(tiny)
-        if several:  # frozen (converged) systems get a zero step and keep their iterate
-            alpha = alpha * monitor.active
+        # Frozen (converged) systems get a zero step and keep their iterate.
+        alpha = rr / _rowdot(p, q).clamp_min(tiny) * monitor.active
         y.addcmul_(p, alpha)
         r.addcmul_(q, alpha, value=-1.0)
         rr_new = _rowdot(r, r)
@@ -122,6 +122,36 @@ def conjugate_gradient(
         p.mul_(beta).add_(r)
         if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
             break
+    return y, monitor.result()
+
+
+def _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every):
+    """The CG loop for one system on CPU, with the step sizes as Python floats.
+
+    Reading a CPU scalar costs no device synchronisation, and scalar arithmetic in
+    Python saves several tensor dispatches per iteration: on small graphs (thousands of
+    nodes) the loop is bound by that per-operation overhead, not by arithmetic.
+    """
+    shape = y.shape
+    yv, rv, pv = y.view(-1), r.view(-1), p.view(-1)
+    weight = monitor.residual_weight.view(-1)
+    threshold = float(monitor.threshold)
+    rr = float(torch.dot(rv, rv))
+    it = 0
+    for it in range(1, max_iter + 1):
+        q = matvec(pv.view(shape)).view(-1)
+        pq = float(torch.dot(pv, q))
+        if not pq > 0.0:  # exact convergence (p = 0) or breakdown: nothing left to do
+            break
+        alpha = rr / pq
+        yv.add_(pv, alpha=alpha)
+        rv.add_(q, alpha=-alpha)
+        rr_new = float(torch.dot(rv, rv))
+        pv = torch.add(rv, pv, alpha=rr_new / rr)
+        rr = rr_new
+        if it % check_every == 0 and float(torch.dot(rv * weight, rv)) <= threshold * threshold:
+            break
+    monitor.check(r, it)
     return y, monitor.result()
 
 

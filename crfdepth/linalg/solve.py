@@ -153,7 +153,9 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     b_norm = torch.linalg.vector_norm(b_rows, dim=1)
     budget = max_iter
     for attempt in range(settings.restarts + 1):
-        y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, settings.check_every)
+        with torch.inference_mode():  # skips autograd bookkeeping on every operation
+            y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, settings.check_every)
+        y = y.clone()  # a normal tensor again, usable by autograd
         total += res.iterations
         # True residual of the original system: r = D^1/2 (c - M y).
         true_res = torch.linalg.vector_norm((c - scaled_matvec(y)) / s, dim=1)
