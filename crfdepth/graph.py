@@ -122,7 +122,9 @@ def _check_n_segments(n_segments: object) -> int:
     return int(n_segments)
 
 
-def _labels_tensor(labels: torch.Tensor | np.ndarray, size: tuple[int, int] | None, name: str = "labels") -> torch.Tensor:
+def _labels_tensor(
+    labels: torch.Tensor | np.ndarray, size: tuple[int, int] | None, name: str = "labels"
+) -> torch.Tensor:
     """(H, W) int64 labels, relabelled to consecutive ``0 .. S-1`` if they are not already."""
     if isinstance(labels, np.ndarray):
         labels = torch.from_numpy(np.ascontiguousarray(labels))
