@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.depth import depth_to_3d_v2, depth_to_normals
+from kornia.geometry.depth import depth_to_3d_v2
 
 from crfdepth.errors import InputError
 
@@ -210,15 +210,18 @@ def lidar_normals(
 
 
 def dense_normals(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normals of a dense depth map (e.g. the first-pass CRF solution).
+    """Edge-aware normals of a dense depth map (e.g. the first-pass CRF solution).
 
-    :func:`kornia.geometry.depth.depth_to_normals`: the cross product of the Sobel
-    derivatives of the back-projected point map. On a plane every finite difference of
-    back-projected points lies in the plane, so the normal of a plane is exact (up to
-    rounding) although depth is not linear in the pixel coordinates. kornia's normal
-    points away from the camera; here it is flipped per pixel to face it (``n . p < 0``).
-    Valid where the depth of the pixel and of its 8 neighbours (the Sobel support) is
-    > 0; across depth discontinuities the normal is that of the step, not of either side.
+    Each pixel's normal is the cross product of a horizontal and a vertical difference of
+    back-projected points (:func:`kornia.geometry.depth.depth_to_3d_v2`); for each
+    direction the one-sided difference (forward or backward) with the smaller depth
+    change is used. Centred or Sobel differences (kornia's ``depth_to_normals``) straddle
+    depth discontinuities and give both sides the normal of the step itself, which makes
+    the two sides look alike to the normal potential and smooths across the step; the
+    one-sided choice gives each side its own surface's normal. On a plane every
+    difference of back-projected points lies in the plane, so a plane's normal is exact.
+    Written here because kornia has no edge-aware variant. Normals face the camera
+    (``n . p < 0``). Valid where the depth of the pixel and of its 4 neighbours is > 0.
     Differentiable with respect to ``depth``.
 
     Args:
@@ -229,12 +232,31 @@ def dense_normals(depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, t
         ``normals`` and ``valid`` as for :func:`lidar_normals`.
     """
     batch, K, shape = _as_batch(depth, K, "depth")
-    normals = depth_to_normals(batch[:, None], K)  # (B, 3, H, W), away from the camera
     points = depth_to_3d_v2(batch, K).permute(0, 3, 1, 2)  # (B, 3, H, W)
+
+    def one_sided(diff: torch.Tensor, dim: int) -> torch.Tensor:
+        # diff: differences along ``dim`` (length n - 1); pick per pixel the side whose
+        # depth change is smaller (at the borders the only side there is).
+        n = points.shape[dim]
+        inf = torch.full_like(diff.narrow(dim, 0, 1), float("inf"))
+        zero = torch.zeros_like(diff.narrow(dim, 0, 1))
+        fwd = torch.cat([diff, zero], dim)  # p[k+1] - p[k]
+        bwd = torch.cat([zero, diff], dim)  # p[k] - p[k-1]
+        fwd_z = torch.cat([diff[:, 2:3].abs(), inf[:, :1]], dim)
+        bwd_z = torch.cat([inf[:, :1], diff[:, 2:3].abs()], dim)
+        assert fwd.shape[dim] == n
+        return torch.where(fwd_z <= bwd_z, fwd, bwd)
+
+    du = one_sided(points[..., :, 1:] - points[..., :, :-1], 3)
+    dv = one_sided(points[..., 1:, :] - points[..., :-1, :], 2)
+    normals = torch.cross(du, dv, dim=1)
+    normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
     flip = (normals * points).sum(1, keepdim=True) > 0
     normals = torch.where(flip, -normals, normals)
     missing = (batch <= 0).to(batch.dtype)[:, None]
-    valid = F.max_pool2d(missing, kernel_size=3, stride=1, padding=1)[:, 0] == 0  # (B, H, W)
+    cross_kernel = torch.tensor([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=batch.dtype, device=batch.device)
+    near_missing = F.conv2d(missing, cross_kernel[None, None], padding=1)[:, 0]
+    valid = near_missing == 0  # (B, H, W)
     normals = normals * valid[:, None].to(normals.dtype)
     return _restore(normals, valid, shape)
 

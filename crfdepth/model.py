@@ -1,0 +1,523 @@
+"""The CRF depth model of the paper as a learnable ``nn.Module`` (DESIGN.md sections 2-6).
+
+:class:`CRFDepth` turns an RGB image, a sparse LiDAR depth map and the intrinsics into a
+dense depth map, the posterior standard deviation and the paper's count-based
+uncertainty map. Two graphs are supported:
+
+- ``mode="superpixel"`` (paper): SLIC superpixels, the paper's 4-neighbour edges,
+  optionally followed by a pixel-level refinement started from the superpixel solution;
+- ``mode="pixel"``: the 4-connected pixel grid with the same potentials per pixel.
+
+Inference (DESIGN.md section 3): a first solve with the data, colour and (where LiDAR
+normals exist) normal terms; then 3D points and the missing normals are taken from that
+solution and the full system (with the 3D-distance term) is solved; optionally more
+rounds. Every solve is the differentiable implicit solve of :mod:`crfdepth.linalg`, so
+gradients reach every parameter through all rounds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, Sequence
+
+import torch
+from kornia.geometry.camera import unproject_points
+from kornia.geometry.depth import depth_to_3d_v2
+from torch import nn
+
+from crfdepth.errors import InputError
+from crfdepth.fill import nearest_fill
+from crfdepth.graph import SuperpixelGraph, build_superpixel_graph
+from crfdepth.linalg import SolveInfo, grid_edge_index, solve_grid_laplacian, solve_laplacian
+from crfdepth.normals import aggregate_normals, dense_normals, lidar_normals
+from crfdepth.potentials import (
+    EnergyTerms,
+    colour_affinity,
+    data_confidence,
+    distance_affinity,
+    energy,
+    normal_affinity,
+    system_terms,
+)
+from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+
+Mode = Literal["superpixel", "pixel"]
+POTENTIALS = ("colour", "normal", "distance")
+REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
+
+
+@dataclass
+class CRFOutput:
+    """What :meth:`CRFDepth.forward` returns.
+
+    Attributes:
+        depth: (B, 1, H, W) dense z-depth in metres, > 0.
+        std: (B, 1, H, W) posterior standard deviation in metres (None unless asked).
+        count_uncertainty: (B, 1, H, W) the paper's map from LiDAR counts per node: 1 where
+            the node holds no LiDAR point, 0.5 for one point, 0 for several (pixel mode: 1
+            without LiDAR, 0 with).
+        node_depth: (N,) node depths of the (last) graph solve, all frames concatenated
+            (superpixel mode: the super-resolved point cloud before painting).
+        node_std: (N,) node standard deviations (None unless asked).
+        ptr: (B + 1,) node offsets of the frames in ``node_depth``.
+        graphs: per-frame :class:`~crfdepth.graph.SuperpixelGraph` (superpixel mode) or None.
+        terms: the :class:`~crfdepth.potentials.EnergyTerms` of the last graph solve, for
+            :func:`crfdepth.potentials.energy`.
+        info: diagnostics of every solve, in order.
+    """
+
+    depth: torch.Tensor
+    std: torch.Tensor | None
+    count_uncertainty: torch.Tensor
+    node_depth: torch.Tensor
+    node_std: torch.Tensor | None
+    ptr: torch.Tensor
+    graphs: list[SuperpixelGraph] | None
+    terms: EnergyTerms
+    info: list[SolveInfo] = field(default_factory=list)
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+def _check_unit_interval(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and 0.0 < value < 1.0):
+        raise InputError(f"{name}: expected a number in (0, 1), got {value!r}")
+
+
+def _check_positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
+        raise InputError(f"{name}: expected a finite number > 0, got {value!r}")
+
+
+class CRFDepth(nn.Module):
+    """Gaussian CRF depth completion with learnable potential weights (paper eq. 2).
+
+    Energy (DESIGN.md section 3) on nodes ``i`` and edges ``(i, j)``::
+
+        E(x) = alpha sum w_i (x_i - z_i)^2 + beta sum e_ij (x_i - x_j)^2
+             + gamma sum nr_ij (x_i - x_j)^2 + delta sum dp_ij (x_i - x_j)^2
+             + eps' sum (x_i - x0_i)^2
+
+    with ``w_i = c n_i / (n_i + 1)`` (``c`` the data confidence, ``n_i`` LiDAR pixels in
+    the node), the affinities of :mod:`crfdepth.potentials`, and ``x0`` the nearest-LiDAR
+    fill. ``eps' = eps * mean(alpha, beta, gamma, delta)`` over the potentials that are
+    on: the prior scales with the weights, so multiplying alpha..delta by one factor
+    leaves the depth exactly unchanged; only their ratios matter, and the sigmoid
+    parametrisation keeps each in (0, 1) as in the paper.
+
+    Learnable parameters (``nn.Parameter``, unconstrained underneath): ``alpha, beta,
+    gamma, delta`` through a sigmoid; ``sigma_d, sigma_n, sigma_p``, the data confidence
+    ``c`` and the std scale ``s`` through ``exp``. The predictive standard deviation is
+    ``s * sqrt(diag(A^-1))`` (DESIGN.md section 5); ``s`` is fitted with a Gaussian
+    negative log-likelihood (its gradient comes through ``std`` only).
+
+    Args:
+        mode: "superpixel" (paper) or "pixel".
+        superpixels: SLIC segments for a 1216x352 image (paper: 1200, 2400, 5500).
+        scale_superpixels: scale the segment count with the image area (any image size
+            gets superpixels of the same pixel size); False uses ``superpixels`` as is.
+        potentials: pairwise potentials that are on, a subset of ("colour", "normal",
+            "distance"); the paper's ablation is ("colour",), ("colour", "normal"), all.
+        aggregate: "mean" or "median" of the LiDAR depths in a superpixel.
+        refine: superpixel mode only: follow the superpixel solve with a pixel-level solve
+            whose prior is the painted superpixel solution (DESIGN.md section 6); False
+            keeps the paper's piecewise-constant painting.
+        rounds: solves with the 3D-distance term after the first pass (>= 1).
+        alpha, beta, gamma, delta: initial weights in (0, 1). ``gamma`` defaults low: the
+            normal potential joins *parallel* surfaces across a depth step as readily as
+            one surface (a car's back and the wall behind it), so it is a tie-breaker
+            where colour edges are not depth edges, not a main smoothness term.
+        sigma_d: initial colour scale (RGB in [0, 1]); sigma_n: normal scale; sigma_p:
+            3D-distance scale in metres.
+        confidence: initial data confidence ``c`` > 0.
+        eps: prior weight relative to the mean potential weight (keeps A positive
+            definite; where nothing else informs a node, its depth falls back to x0).
+        refine_prior: weight of the superpixel solution as the refinement's prior, relative
+            to the mean potential weight.
+        std_scale: initial ``s`` > 0.
+        std_samples: samples of the posterior-variance estimate on large graphs
+            (:mod:`crfdepth.uncertainty`); graphs up to 2,500 nodes are exact.
+        rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
+    """
+
+    def __init__(
+        self,
+        mode: Mode = "superpixel",
+        superpixels: int = 5500,
+        scale_superpixels: bool = True,
+        potentials: Sequence[str] = POTENTIALS,
+        aggregate: Literal["mean", "median"] = "mean",
+        refine: bool = True,
+        rounds: int = 1,
+        alpha: float = 0.5,
+        beta: float = 0.5,
+        gamma: float = 0.05,
+        delta: float = 0.25,
+        sigma_d: float = 0.1,
+        sigma_n: float = 0.3,
+        sigma_p: float = 1.0,
+        confidence: float = 100.0,
+        eps: float = 0.1,
+        refine_prior: float = 0.05,
+        std_scale: float = 1.0,
+        std_samples: int = 32,
+        rtol: float = 1e-5,
+        max_iter: int | None = None,
+        method: Literal["cg", "cgs"] = "cg",
+    ) -> None:
+        super().__init__()
+        if mode not in ("superpixel", "pixel"):
+            raise InputError(f"mode: expected 'superpixel' or 'pixel', got {mode!r}")
+        if not isinstance(superpixels, int) or superpixels < 1:
+            raise InputError(f"superpixels: expected a positive int, got {superpixels!r}")
+        unknown = set(potentials) - set(POTENTIALS)
+        if unknown or "colour" not in potentials:
+            raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
+                             f"got {tuple(potentials)!r}")
+        if not isinstance(rounds, int) or rounds < 1:
+            raise InputError(f"rounds: expected an int >= 1, got {rounds!r}")
+        for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
+            _check_unit_interval(name, value)
+        for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
+                            ("confidence", confidence), ("eps", eps), ("refine_prior", refine_prior),
+                            ("std_scale", std_scale)):
+            _check_positive(name, value)
+        self.mode = mode
+        self.superpixels = superpixels
+        self.scale_superpixels = scale_superpixels
+        self.potentials = tuple(p for p in POTENTIALS if p in potentials)
+        self.aggregate = aggregate
+        self.refine = refine
+        self.rounds = rounds
+        self.std_samples = std_samples
+        self.solver = dict(rtol=rtol, max_iter=max_iter, method=method)
+        self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
+        self.raw_beta = nn.Parameter(torch.tensor(_logit(beta)))
+        self.raw_gamma = nn.Parameter(torch.tensor(_logit(gamma)))
+        self.raw_delta = nn.Parameter(torch.tensor(_logit(delta)))
+        self.log_sigma_d = nn.Parameter(torch.tensor(math.log(sigma_d)))
+        self.log_sigma_n = nn.Parameter(torch.tensor(math.log(sigma_n)))
+        self.log_sigma_p = nn.Parameter(torch.tensor(math.log(sigma_p)))
+        self.log_confidence = nn.Parameter(torch.tensor(math.log(confidence)))
+        self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
+        self.register_buffer("eps", torch.tensor(float(eps)))
+        self.register_buffer("refine_prior", torch.tensor(float(refine_prior)))
+
+    # -- constrained parameters ----------------------------------------------------------
+    @property
+    def alpha(self) -> torch.Tensor:
+        return torch.sigmoid(self.raw_alpha)
+
+    @property
+    def beta(self) -> torch.Tensor:
+        return torch.sigmoid(self.raw_beta)
+
+    @property
+    def gamma(self) -> torch.Tensor:
+        return torch.sigmoid(self.raw_gamma)
+
+    @property
+    def delta(self) -> torch.Tensor:
+        return torch.sigmoid(self.raw_delta)
+
+    @property
+    def sigma_d(self) -> torch.Tensor:
+        return self.log_sigma_d.exp()
+
+    @property
+    def sigma_n(self) -> torch.Tensor:
+        return self.log_sigma_n.exp()
+
+    @property
+    def sigma_p(self) -> torch.Tensor:
+        return self.log_sigma_p.exp()
+
+    @property
+    def confidence(self) -> torch.Tensor:
+        return self.log_confidence.exp()
+
+    @property
+    def std_scale(self) -> torch.Tensor:
+        return self.log_std_scale.exp()
+
+    def weights(self) -> dict[str, float]:
+        """The constrained parameter values, for logging and reports."""
+        names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "std_scale")
+        return {n: float(getattr(self, n)) for n in names}
+
+    def _scales(self) -> tuple[torch.Tensor, ...]:
+        """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""
+        alpha = self.alpha
+        beta = self.beta
+        gamma = self.gamma if "normal" in self.potentials else None
+        delta = self.delta if "distance" in self.potentials else None
+        active = [t for t in (alpha, beta, gamma, delta) if t is not None]
+        mean = torch.stack(active).mean()
+        return alpha, beta, gamma, delta, self.eps * mean, mean
+
+    def segments_for(self, height: int, width: int) -> int:
+        """SLIC segments used for an image of this size."""
+        if not self.scale_superpixels:
+            return self.superpixels
+        return max(16, round(self.superpixels * height * width / REFERENCE_AREA))
+
+    # -- forward -------------------------------------------------------------------------
+    def forward(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *,
+                return_std: bool = False) -> CRFOutput:
+        """Complete ``sparse`` into dense depth.
+
+        Args:
+            image: (B, 3, H, W) RGB in [0, 1].
+            sparse: (B, 1, H, W) LiDAR z-depth in metres, 0 = no return; every frame needs
+                at least one LiDAR pixel.
+            K: (B, 3, 3) or (3, 3) intrinsics of the image, pixels.
+            return_std: also compute the posterior standard deviation (extra solves).
+
+        Returns:
+            :class:`CRFOutput`; tensors in the dtype of ``sparse`` on its device.
+        """
+        image, sparse, K = _check_inputs(image, sparse, K)
+        image = image.to(sparse.dtype)
+        K = K.to(sparse.dtype)
+        if self.mode == "pixel":
+            return self._forward_pixel(image, sparse, K, return_std)
+        return self._forward_superpixel(image, sparse, K, return_std)
+
+    # -- superpixel mode -----------------------------------------------------------------
+    def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
+        bsz, _, h, w = sparse.shape
+        dtype, device = sparse.dtype, sparse.device
+        fill = nearest_fill(sparse)
+        n_seg = self.segments_for(h, w)
+        graphs, offsets = [], [0]
+        z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
+        for b in range(bsz):
+            g = build_superpixel_graph(image[b].detach(), sparse[b].detach(), n_seg, self.aggregate)
+            graphs.append(g)
+            flat = g.labels.reshape(-1)
+            # Colour kept differentiable in the image (the graph itself is not).
+            area = g.area.to(dtype)[:, None]
+            col = torch.zeros(g.num_nodes, 3, dtype=dtype, device=device).index_add(
+                0, flat, image[b].reshape(3, -1).T) / area
+            x0 = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
+                0, flat, fill[b, 0].reshape(-1)) / area[:, 0]
+            z.append(g.lidar_depth.to(dtype))
+            count.append(g.lidar_count)
+            colour.append(col)
+            centroid.append(g.centroid.to(dtype))
+            prior.append(x0)
+            if "normal" in self.potentials:
+                pn, pv = lidar_normals(sparse[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
+                nn_, nv = aggregate_normals(pn, pv, g.labels, g.num_nodes)
+                nrm.append(nn_.to(dtype))
+                nrm_ok.append(nv)
+            frame.append(torch.full((g.num_nodes,), b, dtype=torch.long, device=device))
+            edges.append(g.edge_index + offsets[-1])
+            offsets.append(offsets[-1] + g.num_nodes)
+        ptr = torch.tensor(offsets, device=device)
+        z, count, colour = torch.cat(z), torch.cat(count), torch.cat(colour)
+        centroid, prior, frame, edge_index = torch.cat(centroid), torch.cat(prior), torch.cat(frame), torch.cat(edges, 1)
+        src, dst = edge_index
+        alpha, beta, gamma, delta, eps, mean_weight = self._scales()
+        wdata = data_confidence(count, self.confidence)
+        e = colour_affinity(colour[src], colour[dst], self.sigma_d)
+        node_normal = normal_ok = None
+        nr = None
+        if "normal" in self.potentials:
+            node_normal, normal_ok = torch.cat(nrm), torch.cat(nrm_ok)
+            both = (normal_ok[src] & normal_ok[dst]).to(dtype)
+            nr = normal_affinity(node_normal[src], node_normal[dst], self.sigma_n) * both
+        terms = EnergyTerms(z, wdata, prior, edge_index, e, nr, None, alpha, beta,
+                            gamma if gamma is not None else torch.zeros_like(alpha),
+                            torch.zeros_like(alpha), eps)
+        infos: list[SolveInfo] = []
+        x = self._solve_edges(terms, ptr, prior, infos)
+        K_node = K[frame]
+        if "normal" in self.potentials or "distance" in self.potentials:
+            for _ in range(self.rounds):
+                points = unproject_points(centroid, x[:, None], K_node)
+                if "normal" in self.potentials:
+                    fitted = _graph_normals(points.detach(), edge_index, x.shape[0])
+                    normals = torch.where(normal_ok[:, None], node_normal, fitted)
+                    terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
+                if "distance" in self.potentials:
+                    terms.distance = distance_affinity(points[src], points[dst], self.sigma_p)
+                    terms.delta = delta
+                x = self._solve_edges(terms, ptr, x.detach(), infos)
+        labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
+        depth = x[labels][:, None]
+        node_count = torch.where(count == 0, 1.0, torch.where(count == 1, 0.5, 0.0)).to(dtype)
+        count_map = node_count[labels][:, None]
+        node_std = std = None
+        if return_std:
+            b_, d_, ew = system_terms(terms)
+            var = posterior_variance(d_.detach(), edge_index, ew.detach(), ptr=ptr, samples=self.std_samples)
+            node_std = self.std_scale * var.sqrt()
+            std = node_std[labels][:, None]
+        if self.refine:
+            depth = self._refine(image, sparse, K, depth, mean_weight, infos)
+        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos)
+
+    def _solve_edges(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
+        b, d, ew = system_terms(terms)
+        x, info = solve_laplacian(b, d, terms.edge_index, ew, ptr=ptr, x0=x0.detach(), **self.solver)
+        infos.append(info)
+        return x
+
+    def _refine(self, image, sparse, K, coarse, mean_weight, infos) -> torch.Tensor:
+        """Pixel-level solve whose prior and warm start are the painted superpixel depth."""
+        prior_weight = self.refine_prior * mean_weight
+        depth, _, _ = self._pixel_solve(image, sparse, K, coarse, prior_weight, infos, distance_from=coarse)
+        return depth
+
+    # -- pixel mode ----------------------------------------------------------------------
+    def _pixel_terms(self, image, sparse, K, prior, eps, geometry) -> dict:
+        """Per-potential grids of one pixel-level round; edge grids are (B, H, W-1) and (B, H-1, W)."""
+        alpha, beta, gamma, delta, _, _ = self._scales()
+        s = sparse[:, 0]
+        img = image.permute(0, 2, 3, 1)  # (B, H, W, 3)
+        t = dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, eps=eps, z=s, prior=prior[:, 0],
+                 w=data_confidence((s > 0).to(s.dtype), self.confidence),
+                 colour=(colour_affinity(img[:, :, :-1], img[:, :, 1:], self.sigma_d),
+                         colour_affinity(img[:, :-1], img[:, 1:], self.sigma_d)),
+                 normal=None, distance=None)
+        if geometry is not None:
+            if gamma is not None:
+                n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through x1
+                n = n.permute(0, 2, 3, 1)  # (B, H, W, 3)
+                t["normal"] = (normal_affinity(n[:, :, :-1], n[:, :, 1:], self.sigma_n),
+                               normal_affinity(n[:, :-1], n[:, 1:], self.sigma_n))
+            if delta is not None:
+                p = depth_to_3d_v2(geometry[:, 0], K)  # (B, H, W, 3)
+                t["distance"] = (distance_affinity(p[:, :, :-1], p[:, :, 1:], self.sigma_p),
+                                 distance_affinity(p[:, :-1], p[:, 1:], self.sigma_p))
+        return t
+
+    @staticmethod
+    def _grid_system(t: dict):
+        """(b, d, weight_h, weight_v) of ``A x = b`` from :meth:`_pixel_terms`."""
+        wh = t["beta"] * t["colour"][0]
+        wv = t["beta"] * t["colour"][1]
+        for scale, name in (("gamma", "normal"), ("delta", "distance")):
+            if t[name] is not None:
+                wh = wh + t[scale] * t[name][0]
+                wv = wv + t[scale] * t[name][1]
+        d = t["alpha"] * t["w"] + t["eps"]
+        b = t["alpha"] * t["w"] * t["z"] + t["eps"] * t["prior"]
+        return b, d, wh, wv
+
+    def _pixel_solve(self, image, sparse, K, prior, eps, infos, geometry=None):
+        """Pixel-level solve(s); without ``geometry`` a first pass provides it."""
+        rounds = 1
+        if geometry is None:
+            t = self._pixel_terms(image, sparse, K, prior, eps, None)
+            x, info = solve_grid_laplacian(*self._grid_system(t), x0=prior[:, 0].detach(), **self.solver)
+            infos.append(info)
+            if "normal" not in self.potentials and "distance" not in self.potentials:
+                return x[:, None], t
+            geometry, rounds = x[:, None], self.rounds
+        for _ in range(rounds):
+            t = self._pixel_terms(image, sparse, K, prior, eps, geometry)
+            x, info = solve_grid_laplacian(*self._grid_system(t), x0=geometry[:, 0].detach(), **self.solver)
+            infos.append(info)
+            geometry = x[:, None]
+        return x[:, None], t
+
+    def _refine(self, image, sparse, K, coarse, mean_weight, infos) -> torch.Tensor:
+        """Pixel-level solve whose prior, geometry and warm start are the painted superpixel depth."""
+        depth, _ = self._pixel_solve(image, sparse, K, coarse, self.refine_prior * mean_weight, infos, geometry=coarse)
+        return depth
+
+    def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
+        bsz, _, h, w = sparse.shape
+        fill = nearest_fill(sparse)
+        eps = self._scales()[4]
+        infos: list[SolveInfo] = []
+        depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos)
+        std = node_std = None
+        if return_std:
+            _, d, wh, wv = self._grid_system(t)
+            var = grid_posterior_variance(d.detach(), wh.detach(), wv.detach(), samples=self.std_samples)
+            std = self.std_scale * var.sqrt()[:, None]
+            node_std = std.reshape(-1)
+        count_map = (sparse <= 0).to(sparse.dtype)
+        return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
+                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, _grid_energy_terms(t), infos)
+
+
+def _grid_energy_terms(t: dict) -> EnergyTerms:
+    """Pixel-grid terms in edge-list form (:func:`grid_edge_index` order per image)."""
+    bsz, h, w = t["z"].shape
+    n = h * w
+    ei = grid_edge_index(h, w, device=t["z"].device)
+    edge_index = torch.cat([ei + k * n for k in range(bsz)], 1)
+
+    def flat(pair):
+        return None if pair is None else torch.cat([pair[0].reshape(bsz, -1), pair[1].reshape(bsz, -1)], 1).reshape(-1)
+
+    zero = torch.zeros_like(t["alpha"])
+    return EnergyTerms(t["z"].reshape(-1), t["w"].reshape(-1), t["prior"].reshape(-1), edge_index,
+                       flat(t["colour"]), flat(t["normal"]), flat(t["distance"]), t["alpha"], t["beta"],
+                       t["gamma"] if t["gamma"] is not None else zero,
+                       t["delta"] if t["delta"] is not None else zero, t["eps"])
+
+
+def _graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """(N, 3) unit normals of planes fitted to each node's point and its neighbours' points,
+    facing the camera (``n . p < 0``); degenerate fits give the viewing direction."""
+    src, dst = edge_index
+    ones = torch.ones(num_nodes, dtype=points.dtype, device=points.device)
+    cnt = ones.index_add(0, src, ones[dst]).index_add(0, dst, ones[src])
+    total = points.index_add(0, src, points[dst]).index_add(0, dst, points[src])
+    mean = total / cnt[:, None]
+    outer = points[:, :, None] * points[:, None, :]
+    second = outer.index_add(0, src, outer[dst]).index_add(0, dst, outer[src]) / cnt[:, None, None]
+    cov = second - mean[:, :, None] * mean[:, None, :]
+    cov = cov + 1e-9 * torch.eye(3, dtype=points.dtype, device=points.device)
+    _, vecs = torch.linalg.eigh(cov)
+    n = vecs[:, :, 0]
+    view = points / points.norm(dim=1, keepdim=True).clamp_min(1e-9)
+    n = torch.where(((n * points).sum(1, keepdim=True) > 0), -n, n)
+    bad = (cnt < 3) | ~torch.isfinite(n).all(1)
+    return torch.where(bad[:, None], -view, n)
+
+
+def _check_inputs(image, sparse, K):
+    for name, t in (("image", image), ("sparse", sparse), ("K", K)):
+        if not isinstance(t, torch.Tensor):
+            raise InputError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+    if sparse.dim() != 4 or sparse.shape[1] != 1:
+        raise InputError(f"sparse: expected shape (B, 1, H, W), got {tuple(sparse.shape)}")
+    bsz, _, h, w = sparse.shape
+    if image.dim() != 4 or image.shape[1] != 3:
+        raise InputError(f"image: expected shape (B, 3, H, W) (RGB), got {tuple(image.shape)}")
+    if tuple(image.shape[2:]) != (h, w) or image.shape[0] != bsz:
+        raise InputError(f"image: expected batch and size {(bsz, h, w)} like sparse, got "
+                         f"{(image.shape[0], *image.shape[2:])}")
+    if image.device != sparse.device or K.device != sparse.device:
+        raise InputError(f"image, K: expected the device of sparse ({sparse.device}), got {image.device} and {K.device}")
+    if not sparse.is_floating_point():
+        raise InputError(f"sparse: expected floating-point depth in metres, got {sparse.dtype}")
+    if not bool(torch.isfinite(sparse).all()) or bool((sparse < 0).any()):
+        raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
+    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
+        raise InputError(f"image: expected finite RGB values in [0, 1], got range "
+                         f"[{float(image.min()):.3g}, {float(image.max()):.3g}]")
+    if tuple(K.shape) == (3, 3):
+        K = K[None].expand(bsz, 3, 3)
+    if tuple(K.shape) != (bsz, 3, 3):
+        raise InputError(f"K: expected shape (3, 3) or ({bsz}, 3, 3), got {tuple(K.shape)}")
+    if not bool(torch.isfinite(K).all()) or bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
+        raise InputError(f"K: expected finite intrinsics with focal lengths > 0, got fx {K[:, 0, 0].tolist()}, "
+                         f"fy {K[:, 1, 1].tolist()}")
+    empty = (sparse.flatten(1) > 0).sum(1) == 0
+    if bool(empty.any()):
+        raise InputError(f"sparse: frame(s) {torch.nonzero(empty).flatten().tolist()} have no LiDAR pixel; "
+                         f"the CRF needs at least one depth measurement per frame")
+    return image, sparse, K
+
+
+__all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]
