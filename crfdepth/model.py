@@ -18,6 +18,8 @@ gradients reach every parameter through all rounds.
 from __future__ import annotations
 
 import math
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Literal, Sequence
 
@@ -28,7 +30,7 @@ from torch import nn
 
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
-from crfdepth.graph import SuperpixelGraph, build_superpixel_graph
+from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
 from crfdepth.linalg import SolveInfo, grid_edge_index, solve_grid_laplacian, solve_laplacian
 from crfdepth.normals import aggregate_normals, dense_normals, lidar_normals
 from crfdepth.potentials import (
@@ -65,6 +67,10 @@ class CRFOutput:
         terms: the :class:`~crfdepth.potentials.EnergyTerms` of the last graph solve, for
             :func:`crfdepth.potentials.energy`.
         info: diagnostics of every solve, in order.
+        timings: wall-clock seconds per stage (``fill``, ``slic``, ``graph``, ``normals``,
+            ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
+            ran). On CUDA, stages are timed without synchronisation (queued work may be
+            counted in a later stage).
     """
 
     depth: torch.Tensor
@@ -76,6 +82,22 @@ class CRFOutput:
     graphs: list[SuperpixelGraph] | None
     terms: EnergyTerms
     info: list[SolveInfo] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class _Stages:
+    """Wall-clock seconds per pipeline stage (accumulated over the frames of a batch)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
 
 
 def _logit(p: float) -> float:
@@ -290,76 +312,91 @@ class CRFDepth(nn.Module):
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         dtype, device = sparse.dtype, sparse.device
-        fill = nearest_fill(sparse)
+        stage = _Stages()
+        with stage("fill"):
+            fill = nearest_fill(sparse)
         n_seg = self.segments_for(h, w)
         graphs, offsets = [], [0]
         z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
         for b in range(bsz):
-            g = build_superpixel_graph(image[b].detach(), sparse[b].detach(), n_seg, self.aggregate)
-            graphs.append(g)
-            flat = g.labels.reshape(-1)
-            # Colour kept differentiable in the image (the graph itself is not).
-            area = g.area.to(dtype)[:, None]
-            col = torch.zeros(g.num_nodes, 3, dtype=dtype, device=device).index_add(
-                0, flat, image[b].reshape(3, -1).T) / area
-            x0 = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
-                0, flat, fill[b, 0].reshape(-1)) / area[:, 0]
-            z.append(g.lidar_depth.to(dtype))
-            count.append(g.lidar_count)
-            colour.append(col)
-            centroid.append(g.centroid.to(dtype))
-            prior.append(x0)
+            with stage("slic"):
+                labels = slic_segments(image[b].detach(), n_seg)
+            with stage("graph"):
+                g = build_superpixel_graph(image[b].detach(), sparse[b].detach(), aggregate=self.aggregate,
+                                           labels=labels)
+                graphs.append(g)
+                flat = g.labels.reshape(-1)
+                # Colour kept differentiable in the image (the graph itself is not).
+                area = g.area.to(dtype)[:, None]
+                col = torch.zeros(g.num_nodes, 3, dtype=dtype, device=device).index_add(
+                    0, flat, image[b].reshape(3, -1).T) / area
+                x0 = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
+                    0, flat, fill[b, 0].reshape(-1)) / area[:, 0]
+                z.append(g.lidar_depth.to(dtype))
+                count.append(g.lidar_count)
+                colour.append(col)
+                centroid.append(g.centroid.to(dtype))
+                prior.append(x0)
+                frame.append(torch.full((g.num_nodes,), b, dtype=torch.long, device=device))
+                edges.append(g.edge_index + offsets[-1])
+                offsets.append(offsets[-1] + g.num_nodes)
             if "normal" in self.potentials:
-                pn, pv = lidar_normals(sparse[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
-                nn_, nv = aggregate_normals(pn, pv, g.labels, g.num_nodes)
-                nrm.append(nn_.to(dtype))
-                nrm_ok.append(nv)
-            frame.append(torch.full((g.num_nodes,), b, dtype=torch.long, device=device))
-            edges.append(g.edge_index + offsets[-1])
-            offsets.append(offsets[-1] + g.num_nodes)
-        ptr = torch.tensor(offsets, device=device)
-        z, count, colour = torch.cat(z), torch.cat(count), torch.cat(colour)
-        centroid, prior, frame, edge_index = torch.cat(centroid), torch.cat(prior), torch.cat(frame), torch.cat(edges, 1)
-        src, dst = edge_index
-        alpha, beta, gamma, delta, eps, mean_weight = self._scales()
-        wdata = data_confidence(count, self.confidence)
-        e = colour_affinity(colour[src], colour[dst], self.sigma_d)
-        node_normal = normal_ok = None
-        nr = None
-        if "normal" in self.potentials:
-            node_normal, normal_ok = torch.cat(nrm), torch.cat(nrm_ok)
-            both = (normal_ok[src] & normal_ok[dst]).to(dtype)
-            nr = normal_affinity(node_normal[src], node_normal[dst], self.sigma_n) * both
-        terms = EnergyTerms(z, wdata, prior, edge_index, e, nr, None, alpha, beta,
-                            gamma if gamma is not None else torch.zeros_like(alpha),
-                            torch.zeros_like(alpha), eps)
+                with stage("normals"):
+                    pn, pv = lidar_normals(sparse[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
+                    nn_, nv = aggregate_normals(pn, pv, g.labels, g.num_nodes)
+                    nrm.append(nn_.to(dtype))
+                    nrm_ok.append(nv)
+        with stage("potentials"):
+            ptr = torch.tensor(offsets, device=device)
+            z, count, colour = torch.cat(z), torch.cat(count), torch.cat(colour)
+            centroid, prior, frame = torch.cat(centroid), torch.cat(prior), torch.cat(frame)
+            edge_index = torch.cat(edges, 1)
+            src, dst = edge_index
+            alpha, beta, gamma, delta, eps, mean_weight = self._scales()
+            wdata = data_confidence(count, self.confidence)
+            e = colour_affinity(colour[src], colour[dst], self.sigma_d)
+            node_normal = normal_ok = None
+            nr = None
+            if "normal" in self.potentials:
+                node_normal, normal_ok = torch.cat(nrm), torch.cat(nrm_ok)
+                both = (normal_ok[src] & normal_ok[dst]).to(dtype)
+                nr = normal_affinity(node_normal[src], node_normal[dst], self.sigma_n) * both
+            terms = EnergyTerms(z, wdata, prior, edge_index, e, nr, None, alpha, beta,
+                                gamma if gamma is not None else torch.zeros_like(alpha),
+                                torch.zeros_like(alpha), eps)
         infos: list[SolveInfo] = []
-        x = self._solve_edges(terms, ptr, prior, infos)
+        with stage("solve"):
+            x = self._solve_edges(terms, ptr, prior, infos)
         K_node = K[frame]
         if "normal" in self.potentials or "distance" in self.potentials:
             for _ in range(self.rounds):
-                points = unproject_points(centroid, x[:, None], K_node)
-                if "normal" in self.potentials:
-                    fitted = _graph_normals(points.detach(), edge_index, x.shape[0])
-                    normals = torch.where(normal_ok[:, None], node_normal, fitted)
-                    terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
-                if "distance" in self.potentials:
-                    terms.distance = distance_affinity(points[src], points[dst], self.sigma_p)
-                    terms.delta = delta
-                x = self._solve_edges(terms, ptr, x.detach(), infos)
-        labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
-        depth = x[labels][:, None]
-        node_count = torch.where(count == 0, 1.0, torch.where(count == 1, 0.5, 0.0)).to(dtype)
-        count_map = node_count[labels][:, None]
+                with stage("potentials"):
+                    points = unproject_points(centroid, x[:, None], K_node)
+                    if "normal" in self.potentials:
+                        fitted = _graph_normals(points.detach(), edge_index, x.shape[0])
+                        normals = torch.where(normal_ok[:, None], node_normal, fitted)
+                        terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
+                    if "distance" in self.potentials:
+                        terms.distance = distance_affinity(points[src], points[dst], self.sigma_p)
+                        terms.delta = delta
+                with stage("solve"):
+                    x = self._solve_edges(terms, ptr, x.detach(), infos)
+        with stage("painting"):
+            labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
+            depth = x[labels][:, None]
+            node_count = torch.where(count == 0, 1.0, torch.where(count == 1, 0.5, 0.0)).to(dtype)
+            count_map = node_count[labels][:, None]
         node_std = std = None
         if return_std:
-            b_, d_, ew = system_terms(terms)
-            var = posterior_variance(d_.detach(), edge_index, ew.detach(), ptr=ptr, samples=self.std_samples)
-            node_std = self.std_scale * var.sqrt()
-            std = node_std[labels][:, None]
+            with stage("uncertainty"):
+                b_, d_, ew = system_terms(terms)
+                var = posterior_variance(d_.detach(), edge_index, ew.detach(), ptr=ptr, samples=self.std_samples)
+                node_std = self.std_scale * var.sqrt()
+                std = node_std[labels][:, None]
         if self.refine:
-            depth = self._refine(image, sparse, K, depth, mean_weight, infos)
-        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos)
+            with stage("refine"):
+                depth = self._refine(image, sparse, K, depth, mean_weight, infos)
+        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds)
 
     def _solve_edges(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
         b, d, ew = system_terms(terms)
@@ -433,19 +470,24 @@ class CRFDepth(nn.Module):
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
-        fill = nearest_fill(sparse)
+        stage = _Stages()
+        with stage("fill"):
+            fill = nearest_fill(sparse)
         eps = self._scales()[4]
         infos: list[SolveInfo] = []
-        depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos)
+        with stage("solve"):  # potentials, normals and solves of all rounds
+            depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos)
         std = node_std = None
         if return_std:
-            _, d, wh, wv = self._grid_system(t)
-            var = grid_posterior_variance(d.detach(), wh.detach(), wv.detach(), samples=self.std_samples)
-            std = self.std_scale * var.sqrt()[:, None]
-            node_std = std.reshape(-1)
+            with stage("uncertainty"):
+                _, d, wh, wv = self._grid_system(t)
+                var = grid_posterior_variance(d.detach(), wh.detach(), wv.detach(), samples=self.std_samples)
+                std = self.std_scale * var.sqrt()[:, None]
+                node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
         return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
-                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, _grid_energy_terms(t), infos)
+                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, _grid_energy_terms(t), infos,
+                         stage.seconds)
 
 
 def _grid_energy_terms(t: dict) -> EnergyTerms:
