@@ -1,0 +1,148 @@
+"""Colour pictures of depth and uncertainty maps (for the CLI's ``--vis`` and the demo).
+
+Pure functions: they take an (H, W) map (numpy array or torch tensor, metres) and return
+an (H, W, 3) uint8 **RGB** image; nothing is written and the input is never modified.
+Pixels without a value (0, negative, NaN or inf: KITTI's "no measurement") are painted
+``invalid_color`` (black by default), which neither colour map uses.
+
+- :func:`colorize_depth`: OpenCV's TURBO map on *inverse* depth, near = warm (red),
+  far = cold (blue). Inverse depth spreads the near range, where the detail is, and
+  compresses the sky and far background.
+- :func:`colorize_std`: a sequential map (VIRIDIS by default, dark purple = certain,
+  yellow = uncertain), linear in the standard deviation.
+
+To compare several maps (prediction, ground truth, LiDAR) give them the same ``vmin`` and
+``vmax``; the defaults are computed per map.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+from crfdepth.errors import InputError
+
+__all__ = ["colorize_depth", "colorize_std"]
+
+_BLACK = (0, 0, 0)
+
+
+def _as_map(name: str, values) -> np.ndarray:
+    """(H, W) float64 copy of a numpy array or tensor; leading singleton dims dropped."""
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu().numpy()
+    array = np.asarray(values)
+    while array.ndim > 2 and array.shape[0] == 1:
+        array = array[0]
+    if array.ndim != 2 or array.size == 0:
+        raise InputError(f"{name}: expected a non-empty (H, W) map (or (1, H, W), (1, 1, H, W)), "
+                         f"got shape {np.shape(values)}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InputError(f"{name}: expected real values in metres, got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
+def _check_color(invalid_color) -> np.ndarray:
+    colour = np.asarray(invalid_color)
+    if colour.shape != (3,) or not np.all((colour >= 0) & (colour <= 255)):
+        raise InputError(f"invalid_color: expected an (R, G, B) triple in [0, 255], got {invalid_color!r}")
+    return colour.astype(np.uint8)
+
+
+def _check_range(vmin: float, vmax: float, what: str) -> None:
+    if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmax < vmin:
+        raise InputError(f"vmin, vmax: expected finite {what} with vmin <= vmax, got {vmin!r}, {vmax!r}")
+
+
+def _paint(t: np.ndarray, valid: np.ndarray, colormap: int, invalid_color) -> np.ndarray:
+    """Colour map of ``t`` in [0, 1] (1 = top of the map) as RGB; invalid pixels painted."""
+    codes = np.round(np.clip(np.where(valid, t, 0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    rgb = cv2.cvtColor(cv2.applyColorMap(codes, colormap), cv2.COLOR_BGR2RGB)
+    rgb[~valid] = _check_color(invalid_color)
+    return rgb
+
+
+def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, *,
+                   colormap: int = cv2.COLORMAP_TURBO, invalid_color=_BLACK) -> np.ndarray:
+    """Colour picture of a depth map, near = warm.
+
+    The colour is linear in inverse depth: ``t = (1/d - 1/vmax) / (1/vmin - 1/vmax)``,
+    clipped to [0, 1], so ``vmin`` (and nearer) gets the warm end of ``colormap`` (dark
+    red for TURBO) and ``vmax`` (and farther) the cold end (dark blue).
+
+    Args:
+        depth: (H, W) depth in metres (also (1, H, W) or (1, 1, H, W); numpy or torch);
+            0, negative or non-finite = no depth.
+        vmin: nearest depth of the scale, metres > 0; default the smallest valid depth.
+        vmax: farthest depth of the scale, metres >= vmin; default the largest valid depth.
+        colormap: an OpenCV colour map id (``cv2.COLORMAP_*``), low index = far.
+        invalid_color: (R, G, B) of pixels without depth; default black.
+
+    Returns:
+        (H, W, 3) uint8 RGB. An all-invalid map is all ``invalid_color``; a constant map
+        (vmin == vmax) is painted with the warm end.
+
+    Raises:
+        InputError: not a 2-D real map, or vmin/vmax not finite with 0 < vmin <= vmax.
+    """
+    d = _as_map("depth", depth)
+    valid = np.isfinite(d) & (d > 0)
+    # Computed ends never cross a given one (e.g. vmin given beyond the farthest depth).
+    if vmin is None:
+        vmin = float(d[valid].min()) if valid.any() else 1.0
+        vmin = vmin if vmax is None else min(vmin, float(vmax))
+    vmin = float(vmin)
+    if vmax is None:
+        vmax = max(float(d[valid].max()), vmin) if valid.any() else vmin
+    vmax = float(vmax)
+    _check_range(vmin, vmax, "depths in metres")
+    if vmin <= 0:
+        raise InputError(f"vmin: expected a depth > 0 metres, got {vmin!r}")
+    inverse = np.divide(1.0, d, out=np.zeros_like(d), where=valid)
+    span = 1.0 / vmin - 1.0 / vmax
+    t = (inverse - 1.0 / vmax) / span if span > 0 else np.ones_like(d)
+    return _paint(t, valid, colormap, invalid_color)
+
+
+def colorize_std(std, vmin: float | None = 0.0, vmax: float | None = None, *,
+                 percentile: float = 99.0, colormap: int = cv2.COLORMAP_VIRIDIS,
+                 invalid_color=_BLACK) -> np.ndarray:
+    """Colour picture of a standard-deviation (uncertainty) map, certain = dark.
+
+    The colour is linear in the std: ``t = (std - vmin) / (vmax - vmin)``, clipped to
+    [0, 1]; with VIRIDIS, ``vmin`` is dark purple and ``vmax`` (and above) yellow.
+
+    Args:
+        std: (H, W) standard deviation in metres (also (1, H, W) or (1, 1, H, W); numpy or
+            torch); negative or non-finite = no value. 0 is a valid (fully certain) std.
+        vmin: std at the bottom of the scale, metres; default 0; None = the smallest
+            valid std.
+        vmax: std at the top of the scale, metres; default the ``percentile``-th
+            percentile of the valid stds (the posterior std has a long tail in the sky and
+            far background that would otherwise flatten the rest of the picture).
+        percentile: in (0, 100], used when ``vmax`` is None.
+        colormap: an OpenCV colour map id (``cv2.COLORMAP_*``), low index = certain.
+        invalid_color: (R, G, B) of pixels without a value; default black.
+
+    Returns:
+        (H, W, 3) uint8 RGB. A constant map (vmin == vmax) is painted with the low end.
+
+    Raises:
+        InputError: not a 2-D real map, vmin/vmax not finite with vmin <= vmax, or
+            ``percentile`` outside (0, 100].
+    """
+    s = _as_map("std", std)
+    if not 0.0 < float(percentile) <= 100.0:
+        raise InputError(f"percentile: expected a number in (0, 100], got {percentile!r}")
+    valid = np.isfinite(s) & (s >= 0)
+    if vmin is None:
+        vmin = float(s[valid].min()) if valid.any() else 0.0
+    vmin = float(vmin)
+    if vmax is None:  # a computed top never falls below the given bottom
+        vmax = max(float(np.percentile(s[valid], percentile)), vmin) if valid.any() else vmin
+    vmax = float(vmax)
+    _check_range(vmin, vmax, "stds in metres")
+    span = vmax - vmin
+    t = (s - vmin) / span if span > 0 else np.zeros_like(s)
+    return _paint(t, valid, colormap, invalid_color)
