@@ -18,6 +18,7 @@ from crfdepth.errors import InputError
 _COMMANDS = (
     "crfdepth.cli.solver_demo",
     "crfdepth.cli.project",
+    "crfdepth.cli.complete",
 )
 
 
