@@ -10,6 +10,9 @@ Pixels without a value (0, negative, NaN or inf: KITTI's "no measurement") are p
   compresses the sky and far background.
 - :func:`colorize_std`: a sequential map (VIRIDIS by default, dark purple = certain,
   yellow = uncertain), linear in the standard deviation.
+- :func:`draw_points`: sparse LiDAR drawn over the camera image, coloured by depth.
+- :func:`render_point_cloud`: a dense depth map as a coloured 3D point cloud seen from a
+  virtual camera above and behind the real one.
 
 To compare several maps (prediction, ground truth, LiDAR) give them the same ``vmin`` and
 ``vmax``; the defaults are computed per map.
@@ -23,7 +26,7 @@ import torch
 
 from crfdepth.errors import InputError
 
-__all__ = ["colorize_depth", "colorize_std"]
+__all__ = ["colorize_depth", "colorize_std", "draw_points", "render_point_cloud"]
 
 _BLACK = (0, 0, 0)
 
@@ -146,3 +149,85 @@ def colorize_std(std, vmin: float | None = 0.0, vmax: float | None = None, *,
     span = vmax - vmin
     t = (s - vmin) / span if span > 0 else np.zeros_like(s)
     return _paint(t, valid, colormap, invalid_color)
+
+
+def draw_points(rgb: np.ndarray, sparse, vmin: float | None = None, vmax: float | None = None,
+                radius: int = 1) -> np.ndarray:
+    """The camera image with the LiDAR pixels drawn on it, coloured like :func:`colorize_depth`.
+
+    Args:
+        rgb: (H, W, 3) uint8 RGB image.
+        sparse: (H, W) depth in metres, 0 = no LiDAR (numpy or torch).
+        vmin, vmax: depth range of the colours (see :func:`colorize_depth`).
+        radius: points are drawn as (2 radius + 1)-pixel squares.
+
+    Returns:
+        (H, W, 3) uint8 RGB, the image darkened to half so the points stand out.
+    """
+    s = _as_map("sparse", sparse)
+    if rgb.shape != (*s.shape, 3) or rgb.dtype != np.uint8:
+        raise InputError(f"rgb: expected a {s.shape + (3,)} uint8 image like sparse, got {rgb.shape} {rgb.dtype}")
+    colours = colorize_depth(s, vmin, vmax)
+    valid = (np.isfinite(s) & (s > 0)).astype(np.uint8)
+    if radius > 0:
+        size = 2 * radius + 1
+        # Nearest point wins inside a square: dilate inverse depth (max = nearest).
+        inverse = np.where(valid > 0, 1.0 / np.where(valid > 0, s, 1.0), 0.0).astype(np.float32)
+        grown = cv2.dilate(inverse, np.ones((size, size), np.uint8))
+        colours = colorize_depth(np.divide(1.0, grown, out=np.zeros_like(grown), where=grown > 0), vmin, vmax)
+        valid = (grown > 0).astype(np.uint8)
+    out = (rgb // 2).copy()
+    out[valid > 0] = colours[valid > 0]
+    return out
+
+
+def render_point_cloud(depth, rgb: np.ndarray, K: np.ndarray, *, max_depth: float = 80.0,
+                       pitch_deg: float = 12.0, lift_m: float = 4.0, back_m: float = 10.0,
+                       step: int = 1) -> np.ndarray:
+    """A dense depth map as a coloured 3D point cloud seen from above and behind.
+
+    Every ``step``-th pixel with ``0 < depth <= max_depth`` is back-projected with ``K``
+    (camera frame: x right, y down, z forward, metres), then seen by a virtual camera with
+    the same intrinsics, ``lift_m`` above and ``back_m`` behind the real one, pitched down
+    by ``pitch_deg``. Points are splatted with a z-buffer (nearest wins) onto a black
+    canvas of the image's size; gaps of one pixel are closed.
+
+    Args:
+        depth: (H, W) z-depth in metres (numpy or torch).
+        rgb: (H, W, 3) uint8 colours of the pixels.
+        K: (3, 3) intrinsics in pixels.
+
+    Returns:
+        (H, W, 3) uint8 RGB picture.
+    """
+    d = _as_map("depth", depth)
+    h, w = d.shape
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or rgb.shape != (h, w, 3):
+        raise InputError(f"K, rgb: expected (3, 3) and {(h, w, 3)}, got {K.shape} and {rgb.shape}")
+    v, u = np.mgrid[0:h:step, 0:w:step]
+    z = d[::step, ::step]
+    keep = np.isfinite(z) & (z > 0) & (z <= max_depth)
+    u, v, z = u[keep], v[keep], z[keep]
+    colour = rgb[::step, ::step][keep]
+    x = (u - K[0, 2]) * z / K[0, 0]
+    y = (v - K[1, 2]) * z / K[1, 1]
+    p = np.stack([x, y + lift_m, z + back_m], 1)  # virtual camera above (y down) and behind
+    a = np.deg2rad(pitch_deg)
+    rot = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    p = p @ rot.T
+    front = p[:, 2] > 0.5
+    p, colour = p[front], colour[front]
+    pu = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    pv = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (pu >= 0) & (pu < w) & (pv >= 0) & (pv < h)
+    pu, pv, pz, colour = pu[inside], pv[inside], p[inside, 2], colour[inside]
+    order = np.argsort(-pz)  # far first, near last: near points overwrite
+    canvas = np.zeros((h, w, 3), np.uint8)
+    zbuf = np.full((h, w), np.inf)
+    canvas[pv[order], pu[order]] = colour[order]
+    zbuf[pv[order], pu[order]] = pz[order]
+    holes = ~np.isfinite(zbuf)
+    closed = cv2.dilate(canvas, np.ones((2, 2), np.uint8))
+    canvas[holes] = closed[holes]
+    return canvas

@@ -16,7 +16,7 @@ from crfdepth.errors import InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
 _COMMANDS = (
-    "crfdepth.cli.solver_demo",
+    "crfdepth.cli.demo",
     "crfdepth.cli.project",
     "crfdepth.cli.complete",
 )
