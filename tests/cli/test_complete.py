@@ -11,6 +11,7 @@ import datetime
 import os
 import pickle
 import shutil
+import sys
 from pathlib import Path
 
 import cv2
@@ -204,19 +205,26 @@ def test_complete_synthetic_frame(main, synth, tmp_path):
     assert 7.9 < depth[:, :30].mean() < 9.3 and 15.0 < depth[:, 34:].mean() < 20.1
 
 
-def test_complete_folder_std_and_default_vis(main, tmp_path):
-    """--out-std-dir and a bare --vis (pictures in <out-dir>_vis) on a small test-layout folder."""
-    root = tmp_path / "anonymous"
+def _synthetic_folder(root: Path) -> Path:
+    """Two synthetic frames in the test_depth_completion_anonymous layout."""
     for sub in ("image", "velodyne_raw", "intrinsics"):
         (root / sub).mkdir(parents=True)
     for name in ("0000000000", "0000000001"):
-        frame = _synthetic_frame(tmp_path / name)
+        frame = _synthetic_frame(root / "tmp")
         frame["image"].rename(root / "image" / f"{name}.png")
         frame["sparse"].rename(root / "velodyne_raw" / f"{name}.png")
         frame["intrinsics"].rename(root / "intrinsics" / f"{name}.txt")
+    (root / "tmp").rmdir()
+    return root
+
+
+def test_complete_folder_std_and_default_vis(main, tmp_path, capsys):
+    """--out-std-dir and a bare --vis (pictures in <out-dir>_vis) on a small test-layout folder."""
+    root = _synthetic_folder(tmp_path / "anonymous")
     out_dir, std_dir = tmp_path / "submission", tmp_path / "std"
     assert main(["complete", "--input-dir", str(root), "--out-dir", str(out_dir), "--out-std-dir", str(std_dir),
-                 "--vis", *FAST]) == 0
+                 "--vis", *FAST[:-1]]) == 0
+    assert "2/2" not in capsys.readouterr().err  # no progress bar when stderr is not a terminal
     names = ["0000000000.png", "0000000001.png"]
     assert _files(out_dir) == names  # nothing else in the submission folder
     assert _files(std_dir) == names
@@ -229,6 +237,25 @@ def test_complete_folder_std_and_default_vis(main, tmp_path):
     assert np.median(std[sparse > 0]) <= np.median(std)
     picture = cv2.imread(str(tmp_path / "submission_vis" / "0000000000_vis_std.png"), cv2.IMREAD_UNCHANGED)
     assert picture.shape == (H, W, 3) and picture.dtype == np.uint8
+
+
+def test_complete_greyscale_image_warns(main, synth, tmp_path, caplog):
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), cv2.imread(str(synth["image"]), cv2.IMREAD_GRAYSCALE))
+    out = tmp_path / "depth.png"
+    assert main(_one({**synth, "image": grey}, out, "--mode", "pixel")) == 0
+    assert "grey.png is greyscale" in caplog.text
+    assert read_depth_png(out).min() > 0
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_complete_progress_bar_on_a_terminal(main, tmp_path, capsys, monkeypatch, quiet):
+    root = _synthetic_folder(tmp_path / "in")
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # capsys's stream stands in for a terminal
+    argv = ["complete", "--input-dir", str(root), "--out-dir", str(tmp_path / "out"), "--mode", "pixel"]
+    assert main(argv + (["--quiet"] if quiet else [])) == 0
+    err = capsys.readouterr().err
+    assert ("2/2" in err) != quiet
 
 
 def _crop_image(paths, tmp):
