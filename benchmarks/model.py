@@ -3,7 +3,7 @@
 The frame is ``depth_selection/val_selection_cropped`` frame ``--frame`` (default 0) read
 with :class:`crfdepth.data.kitti.KittiValSelection` from ``--kitti-root`` (default
 ``../shared/data/kitti`` next to this repository); when that data is absent the built-in
-synthetic street (``make_scene(0)``, ground truth = its dense depth) is used instead and a
+synthetic street (``make_scene(0)``, ground truth = its KITTI-like ``target``) is used instead and a
 note says so. float32, ``torch.set_num_threads(2)``, inference under ``torch.no_grad()``.
 
 Configurations: superpixel mode with 1200, 2400 and 5500 SLIC segments
@@ -78,7 +78,7 @@ def load_frame(root: Path, index: int, device: str) -> dict:
         print(f"note: no KITTI val_selection_cropped frame under {root} ({err}); "
               f"using the synthetic scene make_scene(0) instead")
         t = make_scene(0).to_tensors()
-        image, sparse, target, K, name = t["image"], t["sparse"], t["depth"], t["K"], "synthetic-seed0"
+        image, sparse, target, K, name = t["image"], t["sparse"], t["target"], t["K"], "synthetic-seed0"
     return dict(image=image[None].float().to(device), sparse=sparse[None].float().to(device),
                 target=target[None].float().to(device), K=K.float().to(device), name=name)
 

@@ -161,7 +161,7 @@ class CRFDepth(nn.Module):
             to the mean potential weight.
         std_scale: initial ``s`` > 0.
         std_samples: samples of the posterior-variance estimate on large graphs
-            (:mod:`crfdepth.uncertainty`); graphs up to 2,500 nodes are exact.
+            (:mod:`crfdepth.uncertainty`); graphs up to 1,000 nodes are exact.
         rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
     """
 
@@ -403,12 +403,6 @@ class CRFDepth(nn.Module):
         x, info = solve_laplacian(b, d, terms.edge_index, ew, ptr=ptr, x0=x0.detach(), **self.solver)
         infos.append(info)
         return x
-
-    def _refine(self, image, sparse, K, coarse, mean_weight, infos) -> torch.Tensor:
-        """Pixel-level solve whose prior and warm start are the painted superpixel depth."""
-        prior_weight = self.refine_prior * mean_weight
-        depth, _, _ = self._pixel_solve(image, sparse, K, coarse, prior_weight, infos, distance_from=coarse)
-        return depth
 
     # -- pixel mode ----------------------------------------------------------------------
     def _pixel_terms(self, image, sparse, K, prior, eps, geometry) -> dict:

@@ -47,7 +47,7 @@ def posterior_variance(
     *,
     ptr: torch.Tensor | None = None,
     samples: int = 48,
-    exact_max_nodes: int = 2500,
+    exact_max_nodes: int = 1000,
     seed: int | None = 0,
     rtol: float = 1e-4,
 ) -> torch.Tensor:

@@ -34,11 +34,10 @@ from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.visualize import colorize_depth, colorize_std, draw_points, render_point_cloud
 
 logger = logging.getLogger(__name__)
-
-EVAL_MAX_DEPTH_M = 80.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -70,11 +69,7 @@ def _frames(args):
 
         scene = make_scene(args.seed, beams=args.beams)
         t = scene.to_tensors()
-        target = t["depth"].clone()
-        first_row = int(torch.nonzero(t["sparse"][0].sum(1) > 0)[0])
-        target[:, :first_row] = 0.0
-        target[target > EVAL_MAX_DEPTH_M] = 0.0
-        yield scene.name, t["image"][None], t["sparse"][None], t["K"][None], target[None]
+        yield scene.name, t["image"][None], t["sparse"][None], t["K"][None], t["target"][None]
         return
     from crfdepth.data.kitti import KittiValSelection
 

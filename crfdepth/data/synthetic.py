@@ -49,6 +49,8 @@ LIDAR_IN_CAMERA_M = (0.06, -0.08, -0.27)
 """Position of the LiDAR origin in the camera frame (x right, y down, z forward), metres:
 0.06 m to the right, 0.08 m above and 0.27 m behind the camera, like KITTI's Velodyne
 seen from the left colour camera."""
+EVAL_MAX_DEPTH_M = 80.0
+"""Farthest ground truth used for metrics, metres (KITTI's annotations end near 80 m)."""
 MIN_RANGE_M = 1.0
 """Returns closer than this are discarded (the sensor's blind zone)."""
 
@@ -100,14 +102,30 @@ class SyntheticScene:
         Returns:
             ``{"image": (3, H, W) float32 in [0, 1], "sparse": (1, H, W) float32 metres
             (0 = no return), "depth": (1, H, W) float32 metres (0 = sky), "K": (3, 3)
-            float32 pixels}``. New tensors; the scene's arrays are not shared.
+            float32 pixels, "target": (1, H, W) float32 metres, :meth:`target`}``. New
+            tensors; the scene's arrays are not shared.
         """
         return {
             "image": torch.tensor(self.image.transpose(2, 0, 1), dtype=torch.float32),
             "sparse": torch.tensor(self.sparse[None], dtype=torch.float32),
             "depth": torch.tensor(self.depth[None], dtype=torch.float32),
             "K": torch.tensor(self.K, dtype=torch.float32),
+            "target": torch.tensor(self.target()[None], dtype=torch.float32),
         }
+
+    def target(self, max_depth: float = EVAL_MAX_DEPTH_M) -> np.ndarray:
+        """(H, W) float32 ground truth restricted like KITTI's: metres, 0 = not evaluated.
+
+        The dense ``depth`` reaches the horizon; KITTI's ground truth (accumulated LiDAR)
+        covers only the image below the top scan line and up to about 80 m. Metrics on
+        this scene use ``depth`` there: rows below the first row holding a LiDAR return,
+        depths in (0, ``max_depth``].
+        """
+        target = self.depth.copy()
+        rows = np.flatnonzero((self.sparse > 0).any(axis=1))
+        target[: rows[0] if rows.size else target.shape[0]] = 0.0
+        target[target > max_depth] = 0.0
+        return target
 
 
 def camera_intrinsics(height: int, width: int) -> np.ndarray:

@@ -170,7 +170,7 @@ def test_depth_ground_objects_and_sky(scene):
 
 def test_to_tensors(scene):
     t = scene.to_tensors()
-    assert set(t) == {"image", "sparse", "depth", "K"}
+    assert set(t) == {"image", "sparse", "depth", "K", "target"}
     assert t["image"].shape == (3, 352, 1216) and t["image"].dtype == torch.float32
     assert t["sparse"].shape == (1, 352, 1216) and t["depth"].shape == (1, 352, 1216)
     assert t["K"].shape == (3, 3) and t["K"].dtype == torch.float32
@@ -178,6 +178,15 @@ def test_to_tensors(scene):
     np.testing.assert_array_equal(t["sparse"][0].numpy(), scene.sparse)
     t["sparse"].fill_(-1.0)  # tensors do not share memory with the scene
     assert (scene.sparse >= 0).all()
+
+
+def test_target_is_the_depth_below_the_first_scan_line_up_to_80_m(scene):
+    target = scene.target()
+    first = int(np.flatnonzero((scene.sparse > 0).any(axis=1))[0])
+    assert not target[:first].any() and target.max() <= 80.0
+    kept = target > 0
+    np.testing.assert_array_equal(target[kept], scene.depth[kept])
+    assert kept.mean() > 0.5  # most of the image below the scan lines is evaluated
 
 
 def test_non_kitti_size():
