@@ -191,6 +191,13 @@ class CRFDepth(nn.Module):
         method: Literal["cg", "cgs"] = "cg",
     ) -> None:
         super().__init__()
+        # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
+        self.config = dict(mode=mode, superpixels=superpixels, scale_superpixels=scale_superpixels,
+                           potentials=list(potentials), aggregate=aggregate, refine=refine, rounds=rounds,
+                           alpha=alpha, beta=beta, gamma=gamma, delta=delta, sigma_d=sigma_d, sigma_n=sigma_n,
+                           sigma_p=sigma_p, confidence=confidence, eps=eps, refine_prior=refine_prior,
+                           std_scale=std_scale, std_samples=std_samples, rtol=rtol, max_iter=max_iter,
+                           method=method)
         if mode not in ("superpixel", "pixel"):
             raise InputError(f"mode: expected 'superpixel' or 'pixel', got {mode!r}")
         if not isinstance(superpixels, int) or superpixels < 1:

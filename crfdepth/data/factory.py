@@ -1,0 +1,43 @@
+"""Datasets by layout name: one entry point for the trainer, ``crfdepth evaluate`` and benchmarks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from torch.utils.data import Dataset
+
+from crfdepth.errors import InputError
+
+Layout = Literal["depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic"]
+LAYOUTS = ("depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic")
+
+
+def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> Dataset:
+    """The dataset of ``layout`` under ``root``; ``options`` go to its constructor.
+
+    ``layout``:
+
+    - ``"depth_completion"``: :class:`~crfdepth.data.kitti.KittiDepthCompletion` (``split``, ``raw_root``, ...);
+    - ``"val_selection"``: :class:`~crfdepth.data.kitti.KittiValSelection` (``depth_selection/val_selection_cropped``);
+    - ``"test_selection"``: :class:`~crfdepth.data.kitti.KittiTestCompletion` (no target);
+    - ``"raw"`` / ``"object"``: :class:`~crfdepth.data.kitti.KittiRawScans` with held-out LiDAR
+      targets (``holdout``, ``holdout_fraction``, ``keep_every_ring``, ``keep_fraction``, ``seed``);
+    - ``"synthetic"``: :class:`~crfdepth.data.synthetic.SyntheticScenes` (``count``, ``seed``,
+      ``beams``); ``root`` is ignored.
+    """
+    from crfdepth.data import kitti, synthetic
+
+    if layout == "synthetic":
+        return synthetic.SyntheticScenes(**options)
+    if layout not in LAYOUTS:
+        raise InputError(f"layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
+    if root is None:
+        raise InputError(f"root: a data folder is needed for layout {layout!r}")
+    if layout == "depth_completion":
+        return kitti.KittiDepthCompletion(root, **options)
+    if layout == "val_selection":
+        return kitti.KittiValSelection(root, **options)
+    if layout == "test_selection":
+        return kitti.KittiTestCompletion(root, **options)
+    return kitti.KittiRawScans(root, layout=layout, **options)
