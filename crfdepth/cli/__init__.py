@@ -19,6 +19,7 @@ _COMMANDS = (
     "crfdepth.cli.demo",
     "crfdepth.cli.project",
     "crfdepth.cli.complete",
+    "crfdepth.cli.evaluate",
 )
 
 

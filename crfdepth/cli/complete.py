@@ -35,6 +35,14 @@ lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. Then the model is 
 ``--out-std-dir`` and ``--vis`` folders created if missing (parents included; they must
 be writable). Each PNG is written atomically, so a failed run leaves no partial file.
 
+The model (:func:`build_model`): without ``--checkpoint``, ``CRFDepth`` with its initial
+weights and the options given. ``--checkpoint`` is read by
+:func:`crfdepth.checkpoint.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
+:func:`crfdepth.checkpoint.save_model`, or a bare state dict, which gets the default
+configuration): the checkpoint's configuration defines the model, and the model options
+given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
+override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.
+
 Folder mode checks the layout and the model first, then each frame as it comes (the
 checks above, naming the frame); it stops at the first bad frame with exit status 2. The
 frames written before it stay (the message says how many), so a run can be resumed after
@@ -49,7 +57,6 @@ import os
 import secrets
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import cv2
@@ -57,6 +64,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from crfdepth.checkpoint import load_model
 from crfdepth.data.kitti import KittiTestCompletion, KittiValSelection
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
@@ -123,23 +131,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="write colour pictures <stem>_vis_depth.png and <stem>_vis_std.png into "
                              "DIR (created if missing); without DIR: next to --out, or into "
                              "<out-dir>_vis")
-    model = parser.add_argument_group("model")
+    add_model_arguments(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+def add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """The "model" option group (``--mode`` ... ``--checkpoint``, ``--device``, ``--dtype``),
+    shared by ``complete`` and ``evaluate``; :func:`build_model` reads it."""
+    model = parser.add_argument_group(
+        "model", "With --checkpoint, the checkpoint's configuration defines the model and the "
+                 "options --mode, --superpixels, --potentials and --no-refine, where given, override it.")
     model.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
-                       help="graph nodes (default: the model's, superpixel)")
+                       help="graph nodes (default: the checkpoint's, else superpixel)")
     model.add_argument("--superpixels", type=_positive_int, default=None, metavar="N",
-                       help="SLIC segments for a 1216x352 image (default: the model's, 5500)")
+                       help="SLIC segments for a 1216x352 image (default: the checkpoint's, else 5500)")
     model.add_argument("--potentials", type=_potentials, default=None, metavar="LIST",
-                       help="comma list of colour,normal,distance; colour required (default: all)")
+                       help="comma list of colour,normal,distance; colour required (default: the "
+                            "checkpoint's, else all)")
     model.add_argument("--no-refine", action="store_true",
                        help="superpixel mode: keep the piecewise-constant painting, no pixel refinement")
     model.add_argument("--checkpoint", metavar="CKPT",
-                       help="weights: a CRFDepth state_dict (torch.save) or a Lightning .ckpt "
-                            "(state_dict with a 'model.' prefix)")
+                       help="trained model: a Lightning .ckpt of train/ (configuration in "
+                            "hyper_parameters['crf']), a crfdepth model file (crfdepth.checkpoint."
+                            "save_model) or a bare CRFDepth state_dict (default configuration); "
+                            "default: the initial weights of CRFDepth")
     model.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="default: cpu")
     model.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                        help="default: float32")
-    parser.set_defaults(func=run)
-    return parser
 
 
 # --------------------------------------------------------------------------- output checks
@@ -198,68 +217,44 @@ def _write_rgb_png(path: Path, rgb: np.ndarray) -> None:
 # --------------------------------------------------------------------------- model
 
 
-def _load_state_dict(path: str) -> dict[str, torch.Tensor]:
-    """State dict of ``--checkpoint``: a plain ``model.state_dict()`` or a Lightning checkpoint.
-
-    A Lightning ``.ckpt`` holds ``{"state_dict": {...}}`` with the model's keys under a
-    ``model.`` prefix; those keys are taken and the prefix is stripped (other keys of the
-    LightningModule are ignored). Loaded with ``weights_only=True`` (no code runs).
-    """
-    file = Path(path)
-    if not file.exists():
-        raise FileNotFoundError(f"--checkpoint: no such file: {file}")
-    try:
-        with warnings.catch_warnings():  # e.g. "pickle protocol 4": the error below says it all
-            warnings.simplefilter("ignore", UserWarning)
-            loaded = torch.load(file, weights_only=True, map_location="cpu")
-    except Exception as exc:  # unpickling errors come in many types; all mean "not a checkpoint"
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"--checkpoint: {file} is not a torch state dict or Lightning checkpoint "
-                         f"({first[:160]})") from None
-    if isinstance(loaded, dict) and isinstance(loaded.get("state_dict"), dict):
-        loaded = loaded["state_dict"]
-    if not isinstance(loaded, dict) or not loaded or not all(
-            isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in loaded.items()):
-        raise InputError(f"--checkpoint: {file} does not hold a state dict (a mapping of parameter "
-                         f"names to tensors); got {type(loaded).__name__}")
-    if any(k.startswith("model.") for k in loaded):
-        loaded = {k[len("model."):]: v for k, v in loaded.items() if k.startswith("model.")}
-    return loaded
-
-
-def build_model(args: argparse.Namespace) -> CRFDepth:
-    """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
-
-    Options left unset keep the model's own defaults. Raises InputError for a CUDA request
-    without CUDA and for a checkpoint that does not fit (file and keys named).
-    """
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: CUDA is not available in this PyTorch installation/machine; "
-                         "use --device cpu")
+def _model_overrides(args: argparse.Namespace) -> dict:
+    """CRFDepth keyword arguments given explicitly on the command line."""
     kwargs = {}
     if args.mode is not None:
         kwargs["mode"] = args.mode
     if args.superpixels is not None:
         kwargs["superpixels"] = args.superpixels
     if args.potentials is not None:
-        kwargs["potentials"] = args.potentials
+        kwargs["potentials"] = list(args.potentials)
     if args.no_refine:
         kwargs["refine"] = False
-    model = CRFDepth(**kwargs)
+    return kwargs
+
+
+def build_model(args: argparse.Namespace) -> CRFDepth:
+    """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
+
+    Without ``--checkpoint``: ``CRFDepth(**options)``, options left unset keeping the
+    model's defaults. With it: :func:`crfdepth.checkpoint.load_model` rebuilds the model
+    from the checkpoint's configuration (the default one for a bare state dict), and the
+    explicit options (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
+    override that configuration. Raises InputError for a CUDA request without CUDA and for
+    a checkpoint that cannot be read or does not fit (file and problem named, prefixed
+    ``--checkpoint:``); FileNotFoundError for a missing checkpoint.
+    """
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: CUDA is not available in this PyTorch installation/machine; "
+                         "use --device cpu")
+    overrides = _model_overrides(args)
+    if args.checkpoint is not None:
+        try:
+            model = load_model(args.checkpoint, overrides=overrides)
+        except (InputError, FileNotFoundError) as exc:
+            raise type(exc)(f"--checkpoint: {exc}") from None
+    else:
+        model = CRFDepth(**overrides)
     if model.mode == "pixel" and (args.superpixels is not None or args.no_refine):
         logger.warning("--superpixels and --no-refine only apply to --mode superpixel; ignored")
-    if args.checkpoint is not None:
-        state = _load_state_dict(args.checkpoint)
-        expected = model.state_dict()
-        missing = sorted(set(expected) - set(state))
-        unexpected = sorted(set(state) - set(expected))
-        wrong = sorted(k for k in set(expected) & set(state) if state[k].shape != expected[k].shape)
-        if missing or unexpected or wrong:
-            details = "; ".join(f"{label} ({len(keys)}): {', '.join(keys[:5])}{' ...' if len(keys) > 5 else ''}"
-                                for label, keys in (("missing keys", missing), ("unexpected keys", unexpected),
-                                                    ("wrong shapes", wrong)) if keys)
-            raise InputError(f"--checkpoint: {args.checkpoint} does not match CRFDepth ({details})")
-        model.load_state_dict(state)
     dtype = torch.float64 if args.dtype == "float64" else torch.float32
     return model.to(device=args.device, dtype=dtype).eval()
 

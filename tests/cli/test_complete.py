@@ -394,7 +394,7 @@ def test_complete_checkpoint_loads(main, synth, tmp_path):
     modified = complete("--checkpoint", tmp_path / "modified.pt")
     assert np.abs(modified - default).max() > 0.1  # metres: the weights changed the result
 
-    lightning = {"epoch": 3, "global_step": 120,
+    lightning = {"epoch": 3, "global_step": 120, "hyper_parameters": {"crf": CRFDepth().config},
                  "state_dict": {f"model.{k}": v for k, v in state.items()} | {"loss.scale": torch.ones(1)}}
     torch.save(lightning, tmp_path / "last.ckpt")
     np.testing.assert_array_equal(complete("--checkpoint", tmp_path / "last.ckpt"), modified)

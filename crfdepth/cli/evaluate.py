@@ -1,0 +1,376 @@
+"""``crfdepth evaluate``: KITTI metrics of a trained model over a dataset (DESIGN.md section 7).
+
+::
+
+    crfdepth evaluate --checkpoint last.ckpt --layout val_selection \\
+        --data depth_selection/val_selection_cropped [--limit N] [--save-png] [--out-dir DIR]
+
+Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
+:func:`crfdepth.checkpoint.load_model`; without it, the model's initial weights) over the
+frames of ``crfdepth.data.build_dataset(--layout, --data, ...)`` under
+``torch.no_grad()`` and compares the float depth with the ground truth of each frame.
+The metrics are KITTI's (:func:`crfdepth.metrics.depth_metrics`): over the pixels with
+ground truth > 0, RMSE and MAE in mm, iRMSE and iMAE in 1/km, REL and delta < 1.25,
+computed **per frame, then averaged over frames** (the devkit's convention). The
+prediction is evaluated before PNG quantisation (1/256 m).
+
+Output: a table on stdout (the per-frame mean of each metric, the number of frames and
+of ground-truth pixels) and, in ``--out-dir`` (default ``./evaluation``, created if
+missing):
+
+- ``per_frame.csv``: one row per frame: ``name`` and every metric (``rmse`` ... ``delta1``
+  in the units above, ``pixels`` the frame's ground-truth pixels);
+- ``summary.json``: the mean metrics and their units, frames, pixels, the checkpoint
+  path, layout, data root and dataset options, the model configuration
+  (``CRFDepth.config``), the learned weights (``CRFDepth.weights()``), dtype and device;
+- with ``--save-png``: ``depth/<frame name>.png``, the prediction as a KITTI depth PNG
+  (uint16, metres * 256, clipped below at 1/256 m), named like the frames (for
+  ``val_selection``, the ``velodyne_raw`` file names the benchmark devkit expects).
+
+Every check that needs no computation comes first (options, data folder and layout,
+checkpoint, output folder), so bad input exits with status 2 and a one-line message
+before anything is written. The CSV and JSON are written atomically at the end, so a run
+that fails midway leaves neither (PNGs written before the failure stay). Frames with
+ground truth but no ground-truth pixel (possible after a crop) are skipped with a
+warning and listed in the summary. The ``test_selection`` layout has no ground truth:
+for benchmark submissions use ``crfdepth complete --input-dir DIR --out-dir OUT``.
+
+Needs no Lightning: a machine with the crfdepth library alone can evaluate a ``.ckpt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+import math
+import os
+import secrets
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+from tqdm import tqdm
+
+from crfdepth.cli.complete import add_model_arguments, build_model
+from crfdepth.data.factory import LAYOUTS, build_dataset
+from crfdepth.data.sample import collate_samples
+from crfdepth.errors import InputError
+from crfdepth.io.kitti import write_depth_png
+from crfdepth.metrics import METRICS, UNITS, depth_metrics
+
+logger = logging.getLogger(__name__)
+
+CSV_NAME = "per_frame.csv"
+JSON_NAME = "summary.json"
+PNG_FOLDER = "depth"
+_MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
+_LABELS = {"rmse": "RMSE", "mae": "MAE", "irmse": "iRMSE", "imae": "iMAE", "rel": "REL", "delta1": "d<1.25"}
+_DECIMALS = {"rmse": 2, "mae": 2, "irmse": 3, "imae": 3, "rel": 4, "delta1": 4}
+
+# Dataset options: command-line flag -> (build_dataset keyword, layouts that take it).
+_DATASET_OPTIONS = {
+    "--split": ("split", ("depth_completion",)),
+    "--holdout": ("holdout", ("raw", "object")),
+    "--holdout-fraction": ("holdout_fraction", ("raw", "object")),
+    "--keep-every-ring": ("keep_every_ring", ("raw", "object")),
+    "--seed": ("seed", ("raw", "object", "synthetic")),
+}
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``evaluate`` sub-command on ``subparsers`` (sets ``func=run``)."""
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="KITTI metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)",
+        description="Run a checkpoint (or the initial weights) over a dataset with ground truth and "
+                    "report the KITTI depth-completion metrics (per-frame mean; RMSE/MAE in mm, "
+                    "iRMSE/iMAE in 1/km). For test-set submissions use 'crfdepth complete "
+                    "--input-dir'.",
+    )
+    data = parser.add_argument_group("data")
+    data.add_argument("--layout", required=True, choices=LAYOUTS,
+                      help="dataset layout (crfdepth.data.build_dataset); test_selection has no "
+                           "ground truth and is refused")
+    data.add_argument("--data", metavar="DIR",
+                      help="dataset folder (not needed for --layout synthetic)")
+    data.add_argument("--split", choices=("train", "val"), default=None,
+                      help="depth_completion: split (default: the dataset's, train)")
+    data.add_argument("--holdout", choices=("fraction", "rings"), default=None,
+                      help="raw / object: how LiDAR points are held out as targets (default: fraction)")
+    data.add_argument("--holdout-fraction", type=_fraction, default=None, metavar="F",
+                      help="raw / object with --holdout fraction: share of points held out (default 0.2)")
+    data.add_argument("--keep-every-ring", type=_positive_int, default=None, metavar="N",
+                      help="raw / object with --holdout rings: keep every N-th laser ring as input "
+                           "(default 4)")
+    data.add_argument("--seed", type=_non_negative_int, default=None, metavar="S",
+                      help="raw / object: hold-out seed; synthetic: first scene (default 0)")
+    data.add_argument("--limit", type=_positive_int, default=None, metavar="N",
+                      help="evaluate only the first N frames")
+    data.add_argument("--batch-size", type=_positive_int, default=1, metavar="B",
+                      help="frames per forward pass (frames of a batch must have the same size; "
+                           "default 1)")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out-dir", default="evaluation", metavar="DIR",
+                     help=f"folder for {CSV_NAME}, {JSON_NAME} and {PNG_FOLDER}/ (created if missing; "
+                          f"default ./evaluation)")
+    out.add_argument("--save-png", action="store_true",
+                     help=f"also write each prediction to {PNG_FOLDER}/<frame name>.png (KITTI uint16, "
+                          f"metres * 256)")
+    out.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_model_arguments(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+# --------------------------------------------------------------------------- setup
+
+
+def _dataset_options(args: argparse.Namespace) -> dict[str, Any]:
+    """build_dataset keywords from the options given; an option of another layout is an error."""
+    options = {}
+    for flag, (keyword, layouts) in _DATASET_OPTIONS.items():
+        value = getattr(args, flag[2:].replace("-", "_"))
+        if value is None:
+            continue
+        if args.layout not in layouts:
+            raise InputError(f"{flag}: only applies to --layout {' / '.join(layouts)}, got --layout {args.layout}")
+        options[keyword] = value
+    return options
+
+
+def _open_dataset(args: argparse.Namespace, options: dict[str, Any]):
+    if args.layout == "test_selection":
+        raise InputError("--layout test_selection: the KITTI test frames have no ground truth, so there is "
+                         "nothing to evaluate; for a benchmark submission run 'crfdepth complete "
+                         "--input-dir DIR --out-dir OUT'")
+    if args.layout == "synthetic":
+        if args.data is not None:
+            logger.warning("--data %s is not used by --layout synthetic; ignored", args.data)
+        root = None
+    else:
+        if args.data is None:
+            raise InputError(f"--data: a dataset folder is needed for --layout {args.layout}")
+        root = Path(args.data)
+    try:
+        dataset = build_dataset(args.layout, root, **options)
+    except (InputError, FileNotFoundError) as exc:
+        where = f"--data {root} (--layout {args.layout})" if root is not None else f"--layout {args.layout}"
+        raise type(exc)(f"{where}: {exc}") from None
+    if len(dataset) == 0:
+        raise InputError(f"--data {root} (--layout {args.layout}): no frames to evaluate")
+    if args.limit is not None and args.limit < len(dataset):
+        dataset = Subset(dataset, range(args.limit))
+    return dataset, root
+
+
+def _check_out_dir(args: argparse.Namespace, root: Path | None) -> Path:
+    """The output folder: not a file, not the data folder, writable where it exists."""
+    out_dir = Path(args.out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out-dir: expected a folder, got a file: {out_dir}")
+    if root is not None and os.path.realpath(out_dir) == os.path.realpath(root):
+        raise InputError(f"--out-dir: {out_dir} is the --data folder; refusing to write there")
+    existing = next((p for p in (out_dir, *out_dir.parents) if p.exists()), Path("."))
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out-dir: cannot create or write {out_dir} ({existing} is not writable)")
+    return out_dir
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
+    """Per-frame metrics rows (in dataset order) and the names of skipped frames."""
+    param = next(model.parameters())
+    loader = DataLoader(dataset, batch_size=args.batch_size, shuffle=False, collate_fn=collate_samples)
+    rows: list[dict[str, Any]] = []
+    skipped: list[str] = []
+    progress = tqdm(total=len(dataset), unit="frame", desc="evaluate",
+                    disable=args.quiet or not sys.stderr.isatty())
+    done = 0
+    try:
+        with torch.no_grad():
+            for batch in _batches(loader, len(dataset), args.batch_size):
+                where = f"frame(s) {done + 1}-{done + len(batch)} of {len(dataset)} ({', '.join(batch.names)})"
+                if not bool(batch.has_target.all()):
+                    missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
+                    raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
+                                     f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
+                batch = batch.to(device=param.device, dtype=param.dtype)
+                depth = model(batch.image, batch.sparse, batch.K).depth
+                counts = (batch.target > 0).flatten(1).sum(1)
+                keep = counts > 0
+                for name in (n for n, k in zip(batch.names, keep.tolist()) if not k):
+                    logger.warning("%s has no ground-truth pixel (> 0); skipped", name)
+                    skipped.append(name)
+                if bool(keep.any()):
+                    try:
+                        per_frame = depth_metrics(depth[keep], batch.target[keep])
+                    except InputError as exc:
+                        raise InputError(f"{where}: {exc}") from None
+                    names = [n for n, k in zip(batch.names, keep.tolist()) if k]
+                    for i, name in enumerate(names):
+                        row: dict[str, Any] = {"name": name}
+                        row.update({m: float(per_frame[m][i]) for m in METRICS})
+                        row["pixels"] = int(per_frame["pixels"][i])
+                        rows.append(row)
+                if png_dir is not None:
+                    _write_pngs(depth, batch.names, png_dir, where)
+                done += len(batch)
+                progress.update(len(batch))
+    finally:
+        progress.close()
+    return rows, skipped
+
+
+def _batches(loader: DataLoader, total: int, batch_size: int):
+    """The loader's batches; a frame that fails to load is named in the error."""
+    iterator = iter(loader)
+    for start in range(0, total, batch_size):
+        try:
+            yield next(iterator)
+        except (InputError, FileNotFoundError) as exc:
+            end = min(start + batch_size, total)
+            raise type(exc)(f"frame(s) {start + 1}-{end} of {total}: {exc}") from None
+
+
+def _write_pngs(depth: torch.Tensor, names: list[str], png_dir: Path, where: str) -> None:
+    for name, frame in zip(names, depth[:, 0].double().cpu().numpy()):
+        if not np.all(np.isfinite(frame)):
+            raise InputError(f"{where}: the model returned {int(np.sum(~np.isfinite(frame)))} non-finite "
+                             f"depth value(s) for {name}; PNG not written")
+        write_depth_png(png_dir / f"{name}.png", np.maximum(frame, _MIN_DEPTH))
+
+
+# --------------------------------------------------------------------------- output
+
+
+def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    means = {m: float(np.mean([r[m] for r in rows])) for m in METRICS}
+    return {"metrics": means, "frames": len(rows), "pixels": int(sum(r["pixels"] for r in rows))}
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    """The stdout table: one line per metric (per-frame mean, KITTI units), frames, pixels."""
+    lines = [f"KITTI depth-completion metrics, mean over {summary['frames']} frame(s) "
+             f"(per-frame metrics over {summary['pixels']:,} ground-truth pixels):"]
+    for m in METRICS:
+        value = summary["metrics"][m]
+        lines.append(f"  {_LABELS[m]:<7}{value:>12.{_DECIMALS[m]}f}  {UNITS[m]}".rstrip())
+    return "\n".join(lines)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    temporary = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    try:
+        with open(temporary, "x", encoding="utf-8", newline="") as handle:
+            handle.write(text)
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def _csv_text(rows: list[dict[str, Any]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=["name", *METRICS, "pixels"], lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
+    return buffer.getvalue()
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate as ``args`` asks; print the table; write the CSV and JSON; return 0.
+
+    Bad input raises InputError / FileNotFoundError / PermissionError naming the option
+    or file, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
+    """
+    options = _dataset_options(args)
+    dataset, root = _open_dataset(args, options)
+    model = build_model(args)
+    out_dir = _check_out_dir(args, root)
+    png_dir = None
+    if args.save_png:
+        png_dir = out_dir / PNG_FOLDER
+        png_dir.mkdir(parents=True, exist_ok=True)
+
+    start = time.perf_counter()
+    rows, skipped = _evaluate(model, dataset, args, png_dir)
+    seconds = time.perf_counter() - start
+    if not rows:
+        raise InputError(f"none of the {len(dataset)} frame(s) has a ground-truth pixel; nothing to evaluate")
+
+    summary = _summary(rows)
+    with torch.no_grad():  # plain numbers (no autograd warning from float() of a parameter)
+        weights = model.weights()
+    summary.update({
+        "units": dict(UNITS),
+        "averaging": "per-frame metrics over ground-truth pixels (> 0), then the mean over frames (KITTI)",
+        "skipped": skipped,
+        "checkpoint": str(Path(args.checkpoint).resolve()) if args.checkpoint is not None else None,
+        "layout": args.layout,
+        "data_root": str(root.resolve()) if root is not None else None,
+        "dataset_options": options,
+        "limit": args.limit,
+        "model_config": dict(model.config),
+        "weights": weights,
+        "dtype": args.dtype,
+        "device": args.device,
+        "seconds": seconds,
+        "png_dir": str(png_dir.resolve()) if png_dir is not None else None,
+    })
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _atomic_write_text(out_dir / CSV_NAME, _csv_text(rows))
+    _atomic_write_text(out_dir / JSON_NAME, json.dumps(summary, indent=2) + "\n")
+
+    source = args.checkpoint if args.checkpoint is not None else "initial weights (no --checkpoint)"
+    data = f"{args.layout} {root}" if root is not None else args.layout
+    print(f"crfdepth evaluate: {source} on {data}, {model.mode} mode, {args.dtype}")
+    print(format_table(summary))
+    if skipped:
+        print(f"skipped {len(skipped)} frame(s) without ground-truth pixels (listed in {JSON_NAME})")
+    print(f"wrote {out_dir / CSV_NAME} and {out_dir / JSON_NAME}"
+          + (f"; predictions in {png_dir}/" if png_dir is not None else ""))
+    logger.info("evaluated %d frame(s) in %.1f s (%.2f s/frame)", len(rows), seconds, seconds / len(rows))
+    return 0
