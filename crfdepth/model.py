@@ -275,7 +275,7 @@ class CRFDepth(nn.Module):
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
         names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "std_scale")
-        return {n: float(getattr(self, n)) for n in names}
+        return {n: float(getattr(self, n).detach()) for n in names}
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
         """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""
