@@ -1,0 +1,250 @@
+"""The Lightning data module: training and validation frames of any crfdepth layout.
+
+Datasets come from :func:`crfdepth.data.build_dataset` (one entry point for the trainer,
+``crfdepth evaluate`` and the benchmarks), so validation sees exactly the frames and the
+preprocessing that ``crfdepth evaluate --layout <layout> --data <root>`` sees: each
+dataset's own default transform (the KITTI bottom-centre crop where it has one), nothing
+else. Training adds a random horizontal flip (``K`` follows) after that transform.
+
+Train / validation split, per layout:
+
+- ``synthetic``: two sets of built-in scenes with disjoint seeds (by default training
+  scenes ``seed 0 .. count-1`` and validation scenes from seed 1000).
+- ``depth_completion``: ``train_options: {split: train}`` and ``val_options: {split: val}``
+  (the defaults for this layout), or validate on another layout with ``val_layout`` /
+  ``val_root`` (e.g. ``val_selection``).
+- ``raw`` / ``object`` (LiDAR held out of each scan as the target): one folder, split by
+  frame name: ``val_names_contain`` (a substring or a list; e.g. a drive name, so whole
+  drives are held out) or ``val_fraction`` (the last fraction of the frames in name order,
+  which also keeps drives together as far as possible).
+
+Whatever the split, a frame never appears in both sets: frames whose names are in both
+raise an error.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from typing import Any
+
+import lightning.pytorch as pl
+from torch.utils.data import DataLoader, Dataset, Subset
+
+from crfdepth.data import HorizontalFlip, build_dataset, collate_samples
+from crfdepth.data.factory import LAYOUTS
+from crfdepth.data.sample import Sample
+from crfdepth.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Default validation options of the synthetic layout: scenes from seed 1000 on.
+SYNTHETIC_VAL_SEED = 1000
+
+
+class TransformedDataset(Dataset):
+    """``dataset`` with ``transform`` applied to every sample (after the dataset's own).
+
+    Args:
+        dataset: a map-style dataset of :class:`~crfdepth.data.sample.Sample`.
+        transform: callable ``Sample -> Sample`` (e.g. ``HorizontalFlip``).
+    """
+
+    def __init__(self, dataset: Dataset, transform: Callable[[Sample], Sample]) -> None:
+        self.dataset = dataset
+        self.transform = transform
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int) -> Sample:
+        return self.transform(self.dataset[index])
+
+    @property
+    def names(self) -> list[str]:
+        return dataset_names(self.dataset)
+
+
+def dataset_names(dataset: Dataset) -> list[str]:
+    """Sample names of a crfdepth dataset (or a ``Subset`` of one), in dataset order."""
+    if isinstance(dataset, Subset):
+        names = dataset_names(dataset.dataset)
+        return [names[i] for i in dataset.indices]
+    names = getattr(dataset, "names", None)
+    if names is None:
+        return [dataset[i].name for i in range(len(dataset))]
+    return list(names)
+
+
+class CRFDataModule(pl.LightningDataModule):
+    """Training and validation frames for :class:`~train.module.CRFDepthModule`.
+
+    Args:
+        layout: dataset layout of :func:`crfdepth.data.build_dataset`: "synthetic",
+            "raw", "object", "depth_completion", "val_selection" (or "test_selection",
+            which has no target and cannot be trained on).
+        root: data folder of ``layout`` (ignored for "synthetic"); relative paths are
+            relative to the working directory.
+        train_options: keyword options of the training dataset's constructor (e.g.
+            ``{count: 16, seed: 0}`` for synthetic, ``{holdout_fraction: 0.2}`` for raw).
+            None = the dataset defaults (depth_completion: ``{split: train}``).
+        val_options: options of the validation dataset. None = ``train_options`` for the
+            same layout and root, except synthetic (``seed: 1000``) and depth_completion
+            (``split: val``); the dataset defaults for another ``val_layout`` /
+            ``val_root``.
+        val_layout: layout of the validation data; None = ``layout``.
+        val_root: folder of the validation data; None = ``root``.
+        val_names_contain: raw/object split: validation frames are those whose name
+            contains this string (or any string of a list), e.g. ``drive_0001``; the
+            others are the training frames.
+        val_fraction: raw/object split: the last ``val_fraction`` of the frames (in name
+            order, at least one) are the validation frames. At most one of
+            ``val_names_contain`` and ``val_fraction``.
+        flip: probability of the horizontal-flip augmentation of training frames
+            (``crfdepth.data.HorizontalFlip``); 0 = none.
+        batch_size: frames per batch (all frames of a dataset must share one size: the
+            KITTI layouts crop to 1216 x 352).
+        val_batch_size: frames per validation batch; None = ``batch_size``.
+        num_workers: ``DataLoader`` worker processes (0 = load in the main process).
+        shuffle: shuffle the training frames each epoch.
+
+    Raises:
+        InputError: unknown layout, a split option that does not apply, a split that
+            leaves no training or no validation frame, or frames in both sets. Raised in
+            :meth:`setup` (like a dataset that finds no frame under ``root``, whose error
+            names the root and the layout).
+    """
+
+    def __init__(
+        self,
+        layout: str = "synthetic",
+        root: str | None = None,
+        train_options: dict[str, Any] | None = None,
+        val_options: dict[str, Any] | None = None,
+        val_layout: str | None = None,
+        val_root: str | None = None,
+        val_names_contain: str | list[str] | None = None,
+        val_fraction: float | None = None,
+        flip: float = 0.5,
+        batch_size: int = 1,
+        val_batch_size: int | None = None,
+        num_workers: int = 0,
+        shuffle: bool = True,
+    ) -> None:
+        super().__init__()
+        for name, value in (("layout", layout), ("val_layout", val_layout)):
+            if value is not None and value not in LAYOUTS:
+                raise InputError(f"{name}: expected one of {', '.join(LAYOUTS)}, got {value!r}")
+        if val_names_contain is not None and val_fraction is not None:
+            raise InputError("val_names_contain, val_fraction: give at most one of the two split options")
+        if val_fraction is not None and not 0.0 < float(val_fraction) < 1.0:
+            raise InputError(f"val_fraction: expected a value in (0, 1), got {val_fraction!r}")
+        if not 0.0 <= float(flip) <= 1.0:
+            raise InputError(f"flip: expected a probability in [0, 1], got {flip!r}")
+        for name, value in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
+        if not isinstance(num_workers, int) or num_workers < 0:
+            raise InputError(f"num_workers: expected an integer >= 0, got {num_workers!r}")
+        self.save_hyperparameters()
+        self.layout = layout
+        self.root = root
+        self.train_options = dict(train_options or {})
+        self.val_options = None if val_options is None else dict(val_options)
+        self.val_layout = val_layout or layout
+        self.val_root = root if val_root is None else val_root
+        if isinstance(val_names_contain, str):
+            val_names_contain = [val_names_contain]
+        self.val_names_contain = None if val_names_contain is None else list(val_names_contain)
+        self.val_fraction = val_fraction
+        self.flip = float(flip)
+        self.batch_size = batch_size
+        self.val_batch_size = val_batch_size or batch_size
+        self.num_workers = num_workers
+        self.shuffle = shuffle
+        self.train_set: Dataset | None = None
+        self.val_set: Dataset | None = None
+
+    # -- datasets -------------------------------------------------------------------------
+    def _split_by_name(self) -> bool:
+        return self.val_names_contain is not None or self.val_fraction is not None
+
+    def _resolved_val_options(self) -> dict[str, Any]:
+        if self.val_options is not None:
+            return dict(self.val_options)
+        options = dict(self.train_options)
+        if self.val_layout != self.layout or self.val_root != self.root:
+            return {}
+        if self.layout == "synthetic" and not self._split_by_name():
+            options["seed"] = SYNTHETIC_VAL_SEED
+        elif self.layout == "depth_completion" and not self._split_by_name():
+            options["split"] = "val"
+        return options
+
+    def _build(self, layout: str, root: str | None, options: dict[str, Any], role: str) -> Dataset:
+        try:
+            return build_dataset(layout, root, **options)
+        except FileNotFoundError as exc:
+            raise InputError(f"{role} data (layout {layout!r}, root {root}): {exc}") from exc
+        except InputError as exc:
+            raise InputError(f"{role} data (layout {layout!r}, root {root}): {exc}") from exc
+        except TypeError as exc:  # an option the dataset does not take
+            raise InputError(f"{role}_options for layout {layout!r}: {exc}") from exc
+
+    def build_datasets(self) -> tuple[Dataset, Dataset]:
+        """(train, validation) datasets, before the training augmentation."""
+        train_options = dict(self.train_options)
+        if self.layout == "depth_completion" and "split" not in train_options:
+            train_options["split"] = "train"
+        train = self._build(self.layout, self.root, train_options, "train")
+        val = self._build(self.val_layout, self.val_root, self._resolved_val_options(), "val")
+        if self._split_by_name():
+            if self.layout not in ("raw", "object") or self.val_layout != self.layout or self.val_root != self.root:
+                raise InputError("val_names_contain / val_fraction: the split by frame name applies to one "
+                                 f"raw or object folder (layout {self.layout!r}, val_layout {self.val_layout!r})")
+            names = dataset_names(train)
+            if self.val_names_contain is not None:
+                is_val = [any(s in n for s in self.val_names_contain) for n in names]
+                what = f"val_names_contain={self.val_names_contain!r}"
+            else:
+                n_val = max(1, math.ceil(float(self.val_fraction) * len(names)))
+                is_val = [i >= len(names) - n_val for i in range(len(names))]
+                what = f"val_fraction={self.val_fraction}"
+            train_idx = [i for i, v in enumerate(is_val) if not v]
+            val_idx = [i for i, v in enumerate(is_val) if v]
+            if not val_idx or not train_idx:
+                raise InputError(f"{what}: the split of the {len(names)} frames under {self.root} leaves "
+                                 f"{len(train_idx)} training and {len(val_idx)} validation frames; both need one")
+            train, val = Subset(train, train_idx), Subset(val, val_idx)
+        both = set(dataset_names(train)) & set(dataset_names(val))
+        if both:
+            shown = ", ".join(sorted(both)[:3])
+            raise InputError(f"data: {len(both)} frame(s) are in both the training and the validation set "
+                             f"(e.g. {shown}); use val_names_contain / val_fraction (raw, object), disjoint "
+                             f"synthetic seeds, or another val_layout / val_root")
+        return train, val
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        train, val = self.build_datasets()
+        if self.flip > 0:
+            train = TransformedDataset(train, HorizontalFlip(p=self.flip))
+        self.train_set, self.val_set = train, val
+        log.info("data: %d training frames (%s), %d validation frames (%s)",
+                 len(train), self.layout, len(val), self.val_layout)
+
+    # -- loaders --------------------------------------------------------------------------
+    def _loader(self, dataset: Dataset, batch_size: int, shuffle: bool) -> DataLoader:
+        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=self.num_workers,
+                          collate_fn=collate_samples, persistent_workers=self.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_set, self.batch_size, self.shuffle)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_set, self.val_batch_size, False)
+
+
+__all__ = ["CRFDataModule", "TransformedDataset", "dataset_names"]
