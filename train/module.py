@@ -1,0 +1,229 @@
+"""The Lightning module that learns the CRF's potential weights (DESIGN.md sections 3, 5, 7).
+
+:class:`CRFDepthModule` wraps one :class:`crfdepth.model.CRFDepth` as ``self.model`` and
+fits its few parameters (alpha..delta, the sigmas, the data confidence and, with a
+negative log-likelihood term, the std scale) with Adam, by backpropagating a depth loss on
+the target pixels through the CRF's implicit solves.
+
+Checkpoint contract (read by :func:`crfdepth.checkpoint.load_model` and
+``crfdepth evaluate``): state-dict keys are ``model.<parameter>``, and
+``checkpoint["hyper_parameters"]["crf"]`` holds the complete ``CRFDepth`` constructor
+arguments (``CRFDepth(**crf)`` rebuilds the model; the defaults are written out when the
+config gave none). All hyperparameters are plain Python values, so
+``torch.load(path, weights_only=True)`` reads the checkpoint.
+
+Logged (``self.log``; TensorBoard by default):
+
+- ``train/loss`` (the objective), ``train/depth_loss`` (L2 in m^2 or L1 in m) and, with
+  ``nll_weight > 0``, ``train/nll``; per step and per epoch.
+- ``val/rmse`` ``val/mae`` (mm), ``val/irmse`` ``val/imae`` (1/km), ``val/rel``,
+  ``val/delta1`` and ``val/loss`` (the training objective): computed per image, averaged
+  over all validation images of the epoch (across DDP processes too).
+- ``weights/<name>`` for every value of ``CRFDepth.weights()``, each epoch.
+- When the sanity check before training covers the whole validation set
+  (``trainer.num_sanity_val_steps: -1``), its metrics and the initial weights are logged
+  at step 0: the validation curve then starts at the untrained model.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from typing import Any, Literal
+
+import lightning.pytorch as pl
+import torch
+
+from crfdepth.data.sample import Batch
+from crfdepth.errors import InputError
+from crfdepth.metrics import METRICS, format_metrics
+from crfdepth.model import CRFDepth
+from train.metrics import DepthMetrics
+
+log = logging.getLogger(__name__)
+
+#: Constrained weight name -> the free parameter of ``CRFDepth`` underneath it.
+PARAMETERS = {
+    "alpha": "raw_alpha", "beta": "raw_beta", "gamma": "raw_gamma", "delta": "raw_delta",
+    "sigma_d": "log_sigma_d", "sigma_n": "log_sigma_n", "sigma_p": "log_sigma_p",
+    "confidence": "log_confidence", "std_scale": "log_std_scale",
+}
+
+
+def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l1"] = "l2") -> torch.Tensor:
+    """Per-image depth loss over the target pixels.
+
+    Args:
+        depth: (B, 1, H, W) predicted depth in metres.
+        target: (B, 1, H, W) ground truth in metres, 0 = none.
+        kind: "l2" (mean squared error, m^2) or "l1" (mean absolute error, m).
+
+    Returns:
+        (B,) mean over each image's target pixels; 0 for an image without any (and no
+        gradient from it).
+    """
+    valid = target > 0
+    err = torch.where(valid, depth - target, torch.zeros_like(depth))
+    err = err.square() if kind == "l2" else err.abs()
+    return err.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+
+
+def gaussian_nll(depth: torch.Tensor, std: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-image Gaussian negative log-likelihood of the targets (DESIGN.md section 5).
+
+    ``log std + (x - t)^2 / (2 std^2)`` (the constant ``log sqrt(2 pi)`` left out),
+    averaged over each image's target pixels. ``depth`` is used as given: detach it to
+    fit only the std.
+
+    Args:
+        depth: (B, 1, H, W) predicted depth ``x`` in metres.
+        std: (B, 1, H, W) predicted standard deviation in metres, > 0.
+        target: (B, 1, H, W) ground truth ``t`` in metres, 0 = none.
+
+    Returns:
+        (B,) per-image NLL; 0 for an image without target pixels.
+    """
+    valid = target > 0
+    std = torch.where(valid, std, torch.ones_like(std)).clamp_min(1e-6)
+    nll = std.log() + torch.where(valid, depth - target, torch.zeros_like(depth)).square() / (2.0 * std.square())
+    nll = torch.where(valid, nll, torch.zeros_like(nll))
+    return nll.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+
+
+class CRFDepthModule(pl.LightningModule):
+    """Learn the weights of a :class:`~crfdepth.model.CRFDepth` from depth targets.
+
+    Objective per batch (mean over the images that have target pixels)::
+
+        loss = depth_loss(x, t) + nll_weight * NLL(t | x.detach(), std)
+
+    ``depth_loss`` is the per-image mean over target pixels (``t > 0``) of
+    ``(x - t)^2`` (``"l2"``, m^2) or ``|x - t|`` (``"l1"``, m). The NLL term sees the
+    depth detached, so it fits the std scale ``s`` only (the std's only learnable factor;
+    DESIGN.md section 5) and the depth loss alone decides the potential weights. With
+    ``nll_weight = 0`` the std is not computed and ``s`` stays frozen.
+
+    Args:
+        crf: ``CRFDepth`` constructor arguments (e.g. ``{mode: pixel}``); None = all
+            defaults. Stored complete in the hyperparameters (see module docstring).
+        loss: "l2" or "l1".
+        nll_weight: weight of the Gaussian NLL term (>= 0).
+        lr: Adam learning rate on the free (unconstrained) parameters: logits of
+            alpha..delta, logs of the sigmas, confidence and std scale.
+        freeze: names of weights to keep at their initial value (any of alpha, beta,
+            gamma, delta, sigma_d, sigma_n, sigma_p, confidence, std_scale).
+
+    Batches are :class:`~crfdepth.data.sample.Batch` objects; Lightning moves them to the
+    device through ``Batch.to`` (its default ``transfer_batch_to_device``).
+
+    Parameters the model does not use (the weights of potentials that are off; the std
+    scale without NLL) are frozen too, so every trainable parameter gets a gradient each
+    step (as DDP requires).
+    """
+
+    def __init__(
+        self,
+        crf: dict[str, Any] | None = None,
+        loss: Literal["l2", "l1"] = "l2",
+        nll_weight: float = 0.0,
+        lr: float = 0.05,
+        freeze: list[str] | None = None,
+    ) -> None:
+        super().__init__()
+        if loss not in ("l2", "l1"):
+            raise InputError(f"loss: expected 'l2' or 'l1', got {loss!r}")
+        if not isinstance(nll_weight, (int, float)) or nll_weight < 0:
+            raise InputError(f"nll_weight: expected a number >= 0, got {nll_weight!r}")
+        if not isinstance(lr, (int, float)) or lr <= 0:
+            raise InputError(f"lr: expected a learning rate > 0, got {lr!r}")
+        unknown = set(freeze or ()) - set(PARAMETERS)
+        if unknown:
+            raise InputError(f"freeze: expected names among {', '.join(PARAMETERS)}, got {sorted(unknown)}")
+        self.model = CRFDepth(**(crf or {}))
+        self.save_hyperparameters()
+        # Self-describing checkpoints: the complete constructor arguments, plain values.
+        self.hparams["crf"] = copy.deepcopy(self.model.config)
+        self.loss_kind = loss
+        self.nll_weight = float(nll_weight)
+        self.lr = float(lr)
+        frozen = set(freeze or ())
+        if self.nll_weight == 0:
+            frozen.add("std_scale")
+        if "normal" not in self.model.potentials:
+            frozen.update(("gamma", "sigma_n"))
+        if "distance" not in self.model.potentials:
+            frozen.update(("delta", "sigma_p"))
+        for name in frozen:
+            getattr(self.model, PARAMETERS[name]).requires_grad_(False)
+        self.frozen = tuple(n for n in PARAMETERS if n in frozen)
+        self.val_metrics = DepthMetrics(extra=("loss",))
+
+    # -- steps ----------------------------------------------------------------------------
+    def forward(self, batch: Batch, return_std: bool = False):
+        """The CRF on a :class:`~crfdepth.data.sample.Batch`: a ``CRFOutput``."""
+        return self.model(batch.image, batch.sparse, batch.K, return_std=return_std)
+
+    def _objective(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor], Any]:
+        """Per-image losses of a batch: ``(loss (B,), parts, output)``."""
+        want_std = self.nll_weight > 0
+        out = self(batch, return_std=want_std)
+        parts = {"depth_loss": depth_loss(out.depth, batch.target, self.loss_kind)}
+        loss = parts["depth_loss"]
+        if want_std:
+            parts["nll"] = gaussian_nll(out.depth.detach(), out.std, batch.target)
+            loss = loss + self.nll_weight * parts["nll"]
+        return loss, parts, out
+
+    def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
+        loss, parts, out = self._objective(batch)
+        has = (batch.target.flatten(1) > 0).any(1)
+        if not bool(has.any()):  # nothing to learn from; keep the graph for DDP
+            return out.depth.sum() * 0.0
+        n = int(has.sum())
+        self.log("train/loss", loss[has].mean(), on_step=True, on_epoch=True, prog_bar=True, batch_size=n)
+        for name, value in parts.items():
+            self.log(f"train/{name}", value[has].mean(), on_step=True, on_epoch=True, batch_size=n)
+        return loss[has].mean()
+
+    def validation_step(self, batch: Batch, batch_idx: int) -> None:
+        loss, _, out = self._objective(batch)
+        self.val_metrics.update(out.depth, batch.target, loss=loss)
+
+    def on_validation_epoch_end(self) -> None:
+        values = {f"val/{k}": v.float() for k, v in self.val_metrics.compute().items()}
+        self.val_metrics.reset()
+        if self.trainer.sanity_checking:
+            # Lightning drops what is logged during the sanity check. When it covered the
+            # whole validation set it is the validation of the untrained model: log it at
+            # step 0 ourselves.
+            if sum(self.trainer.num_sanity_val_batches) >= sum(self.trainer.num_val_batches):
+                metrics = {k: float(v) for k, v in values.items()}
+                metrics.update({f"weights/{k}": v for k, v in self._weights().items()})
+                for logger in self.loggers:
+                    logger.log_metrics(metrics, step=0)
+                log.info("validation before training: %s", _describe(metrics))
+            return
+        rmse = values.pop("val/rmse")
+        self.log("val/rmse", rmse, prog_bar=True, sync_dist=True)  # identical on every process
+        self.log_dict(values, sync_dist=True)
+        values["val/rmse"] = rmse
+        log.info("validation: %s", _describe({k: float(v) for k, v in values.items()}))
+
+    def on_train_epoch_end(self) -> None:
+        self.log_dict({f"weights/{k}": v for k, v in self._weights().items()}, sync_dist=True)
+
+    def _weights(self) -> dict[str, float]:
+        with torch.no_grad():
+            return self.model.weights()
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        return torch.optim.Adam(params, lr=self.lr)
+
+
+def _describe(metrics: dict[str, float]) -> str:
+    text = format_metrics({k[len("val/"):]: v for k, v in metrics.items() if k[len("val/"):] in METRICS})
+    return f"{text} | loss {metrics['val/loss']:.4g}"
+
+
+__all__ = ["CRFDepthModule", "PARAMETERS", "depth_loss", "gaussian_nll"]
