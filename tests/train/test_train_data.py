@@ -116,3 +116,11 @@ def test_bad_dataset_option_is_named():
     dm = CRFDataModule(train_options={"cuont": 2})
     with pytest.raises(InputError, match="cuont"):
         dm.setup("fit")
+
+
+def test_same_frames_in_two_layouts_are_refused(kitti_root):
+    # The shared depth-completion frames are the val_selection frames, cropped.
+    dm = CRFDataModule(layout="depth_completion", root=str(kitti_root / "depth_completion"),
+                       val_layout="val_selection", val_root=str(kitti_root / "depth_selection"))
+    with pytest.raises(InputError, match=r"2 frame\(s\) are in both"):
+        dm.setup("fit")

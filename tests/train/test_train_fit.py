@@ -66,6 +66,25 @@ def test_debug_run_on_synthetic_scenes_lowers_validation_loss(tmp_path, configs,
     assert "last.ckpt" in names and any(n.startswith("epoch") for n in names)
 
 
+@pytest.mark.slow
+def test_synthetic_config_as_shipped_fits_the_std_scale(tmp_path, configs, train_cli):
+    """synthetic.yaml itself (superpixels, NLL term, loader workers) on smaller scenes."""
+    size = "height: 176, width: 608"
+    run = train_cli(["fit", "--config", str(configs / "synthetic.yaml"), "--trainer.max_epochs", "2",
+                     "--data.train_options", f"{{count: 3, {size}}}",
+                     "--data.val_options", f"{{count: 1, seed: 1000, {size}}}"], tmp_path, timeout=300)
+    assert run.returncode == 0, run.output[-5000:]
+    scalars = run.scalars()
+    scale0, scale1 = _first_last(scalars, "weights/std_scale")
+    nll = [v for _, v in scalars["train/nll_epoch"]]
+    print(f"\nsynthetic.yaml, superpixels + NLL ({run.seconds:.1f} s): std_scale {scale0:.3f} -> {scale1:.3f}, "
+          f"train NLL per epoch {[round(v, 2) for v in nll]}")
+    assert scale0 == pytest.approx(1.0) and abs(scale1 - scale0) > 0.05
+    assert nll[-1] < nll[0]
+    ckpt = torch.load(run.checkpoints()[-1], weights_only=True)
+    assert ckpt["hyper_parameters"]["crf"]["mode"] == "superpixel" and ckpt["hyper_parameters"]["nll_weight"] > 0
+
+
 # ----------------------------------------------------------------------------- real frames
 
 
