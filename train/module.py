@@ -180,9 +180,10 @@ class CRFDepthModule(pl.LightningModule):
         if not bool(has.any()):  # nothing to learn from; keep the graph for DDP
             return out.depth.sum() * 0.0
         n = int(has.sum())
-        self.log("train/loss", loss[has].mean(), on_step=True, on_epoch=True, prog_bar=True, batch_size=n)
+        log_args = dict(on_step=True, on_epoch=True, batch_size=n, sync_dist=True)  # mean over processes
+        self.log("train/loss", loss[has].mean(), prog_bar=True, **log_args)
         for name, value in parts.items():
-            self.log(f"train/{name}", value[has].mean(), on_step=True, on_epoch=True, batch_size=n)
+            self.log(f"train/{name}", value[has].mean(), **log_args)
         return loss[has].mean()
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
