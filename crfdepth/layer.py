@@ -1,0 +1,424 @@
+"""The CRF as a refinement layer on top of any depth network (DESIGN.md sections 3-5).
+
+A network predicts a dense depth ``y``, a per-pixel confidence ``c >= 0`` and guidance
+features ``f``; the layer returns the minimiser of the Gaussian CRF energy
+
+    E(x) = sum_i c_i (x_i - y_i)^2                       the network's depth, weighted
+         + lambda sum_{i: z_i > 0} (x_i - z_i)^2        the sparse LiDAR (optional)
+         + sum_{(i,j)} w_ij (x_i - x_j)^2               4-connected pixel edges
+         + eps sum_i (x_i - y_i)^2                      small prior, keeps A positive definite
+
+with ``w_ij = s exp(-||P f_i - P f_j||^2)``, ``P`` a learnable linear projection of the
+features (a 1x1 convolution) and ``s > 0`` an edge scale. The minimiser solves the sparse
+SPD system ``A x = b`` of DESIGN.md section 3 with
+
+    A = diag(c + eps + lambda m) + L(w),    b = (c + eps) y + lambda m z,    m = [z > 0],
+
+by :func:`crfdepth.linalg.solve_grid_laplacian` (Jacobi-preconditioned CG, warm start
+from ``y``) and is differentiated by one adjoint solve (DESIGN.md section 4), so gradients
+reach ``y``, ``c``, ``f``, ``z``, ``P``, ``s`` and ``lambda`` and memory does not grow
+with the iteration count. The predictive standard deviation is
+``sigma * sqrt(diag(A^-1))`` (DESIGN.md section 5, :func:`grid_posterior_variance`), with
+a learnable scale ``sigma``; the variance itself carries no gradient, only ``sigma`` does.
+
+Superpixel mode (``labels`` given): the same energy restricted to depth maps that are
+constant on each segment (a Galerkin restriction). Node ``s`` gets
+``d_s = sum_{i in s} (c_i + eps + lambda m_i)`` and ``b_s = sum_{i in s} ((c_i + eps) y_i
++ lambda m_i z_i)``; two adjacent segments get the sum of the pixel-edge weights ``w_ij``
+across their common boundary. The solution (by :func:`crfdepth.linalg.solve_laplacian`)
+minimises the pixel energy over piecewise-constant maps exactly, and is painted back to
+pixels. All sums are ``index_add`` and stay differentiable.
+
+:func:`crf_refine` is the pure function, :class:`CRFRefine` the ``nn.Module`` owning
+``P``, ``s``, ``lambda`` and ``sigma``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from crfdepth.errors import InputError
+from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
+from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+
+__all__ = ["CRFRefine", "RefineOutput", "crf_refine"]
+
+
+@dataclass
+class RefineOutput:
+    """Result of :func:`crf_refine` / :class:`CRFRefine`.
+
+    Attributes:
+        depth: (B, 1, H, W) refined depth in metres, dtype and device of the input depth.
+        std: (B, 1, H, W) predictive standard deviation in metres, or None unless asked.
+        info: :class:`crfdepth.linalg.SolveInfo` of the solve (one entry per image).
+    """
+
+    depth: torch.Tensor
+    std: torch.Tensor | None
+    info: SolveInfo
+
+
+# ----------------------------------------------------------------------------------------
+# input checks (all before any solve)
+# ----------------------------------------------------------------------------------------
+
+def _shape(t) -> str:
+    return f"shape {tuple(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
+
+
+def _check_map(name: str, t, ref: torch.Tensor | None, channels: int | None, *,
+               nonneg: bool = False) -> torch.Tensor:
+    """A finite (B, C, H, W) floating tensor with the batch/size/dtype/device of ``ref``."""
+    if not isinstance(t, torch.Tensor) or t.dim() != 4:
+        want = f"(B, {channels}, H, W)" if channels else "(B, C, H, W)"
+        raise InputError(f"{name}: expected a {want} tensor, got {_shape(t)}")
+    if not t.is_floating_point():
+        raise InputError(f"{name}: expected a floating-point tensor, got dtype {t.dtype}")
+    if channels is not None and t.shape[1] != channels:
+        raise InputError(f"{name}: expected {channels} channel(s), (B, {channels}, H, W), got {_shape(t)}")
+    if ref is not None:
+        b, _, h, w = ref.shape
+        if t.shape[0] != b or tuple(t.shape[2:]) != (h, w):
+            raise InputError(f"{name}: expected batch {b} and size {h}x{w} like depth {tuple(ref.shape)}, "
+                             f"got {_shape(t)}")
+        if t.dtype != ref.dtype or t.device != ref.device:
+            raise InputError(f"{name}: expected dtype {ref.dtype} on {ref.device} like depth, "
+                             f"got {t.dtype} on {t.device}")
+    v = t.detach()
+    finite = torch.isfinite(v)
+    if not bool(finite.all()):
+        raise InputError(f"{name}: expected finite values, got {int((~finite).sum())} NaN/inf entries")
+    if nonneg and bool((v < 0).any()):
+        raise InputError(f"{name}: expected values >= 0, got minimum {float(v.min()):.4g} "
+                         f"({int((v < 0).sum())} negative entries)")
+    return t
+
+
+def _check_scalar(name: str, value, ref: torch.Tensor, *, positive: bool) -> torch.Tensor:
+    """A float or 0-d/1-element tensor, > 0 (or >= 0), as a 0-d tensor like ``ref``."""
+    if isinstance(value, torch.Tensor):
+        if value.numel() != 1:
+            raise InputError(f"{name}: expected a scalar (one element), got {_shape(value)}")
+        if value.device != ref.device:
+            raise InputError(f"{name}: expected device {ref.device} like depth, got {value.device}")
+        t = value.reshape(()).to(ref.dtype)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        t = torch.tensor(float(value), dtype=ref.dtype, device=ref.device)
+    else:
+        raise InputError(f"{name}: expected a number or a one-element tensor, got {type(value).__name__}")
+    v = float(t.detach())
+    if not math.isfinite(v) or (v <= 0 if positive else v < 0):
+        raise InputError(f"{name}: expected a finite value {'> 0' if positive else '>= 0'}, got {v:g}")
+    return t
+
+
+def _check_projection(projection_weight, channels: int, ref: torch.Tensor) -> torch.Tensor:
+    p = projection_weight
+    if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or (p.dim() == 4 and tuple(p.shape[2:]) == (1, 1))):
+        raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {_shape(p)}")
+    if p.shape[1] != channels:
+        raise InputError(f"projection_weight: expected C = {channels} input channels (features has "
+                         f"{channels}), got {_shape(p)}")
+    if p.dtype != ref.dtype or p.device != ref.device:
+        raise InputError(f"projection_weight: expected dtype {ref.dtype} on {ref.device} like depth, "
+                         f"got {p.dtype} on {p.device}")
+    if not bool(torch.isfinite(p.detach()).all()):
+        raise InputError("projection_weight: expected finite values, got NaN/inf")
+    return p.reshape(p.shape[0], channels)
+
+
+def _check_labels(labels, depth: torch.Tensor) -> torch.Tensor:
+    b, _, h, w = depth.shape
+    if not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w) \
+            or labels.dtype not in (torch.int64, torch.int32):
+        raise InputError(f"labels: expected a ({b}, {h}, {w}) int64 tensor of segment indices, got "
+                         f"{_shape(labels)}{'' if not isinstance(labels, torch.Tensor) else f' {labels.dtype}'}")
+    if labels.device != depth.device:
+        raise InputError(f"labels: expected device {depth.device} like depth, got {labels.device}")
+    if labels.numel() and int(labels.min()) < 0:
+        raise InputError(f"labels: expected segment indices >= 0, got minimum {int(labels.min())}")
+    return labels.long()
+
+
+# ----------------------------------------------------------------------------------------
+# the pure function
+# ----------------------------------------------------------------------------------------
+
+def crf_edge_weights(features: torch.Tensor, projection: torch.Tensor,
+                     edge_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel-grid edge weights ``s exp(-||P f_i - P f_j||^2)`` (no input checks).
+
+    Args:
+        features: (B, C, H, W); projection: (E, C); edge_scale: 0-d tensor > 0.
+
+    Returns:
+        ``weight_h`` (B, H, W-1) between (r, c) and (r, c+1), ``weight_v`` (B, H-1, W)
+        between (r, c) and (r+1, c).
+    """
+    emb = torch.einsum("ec,bchw->behw", projection, features)
+    dh = (emb[..., :, 1:] - emb[..., :, :-1]).pow(2).sum(1)
+    dv = (emb[..., 1:, :] - emb[..., :-1, :]).pow(2).sum(1)
+    return edge_scale * torch.exp(-dh), edge_scale * torch.exp(-dv)
+
+
+def crf_refine(
+    depth: torch.Tensor,
+    confidence: torch.Tensor,
+    features: torch.Tensor,
+    projection_weight: torch.Tensor,
+    *,
+    sparse: torch.Tensor | None = None,
+    sparse_weight: float | torch.Tensor | None = None,
+    edge_scale: float | torch.Tensor = 1.0,
+    prior_weight: float = 1e-3,
+    labels: torch.Tensor | None = None,
+    return_std: bool = False,
+    std_scale: float | torch.Tensor = 1.0,
+    std_samples: int = 16,
+    seed: int | None = 0,
+    rtol: float = 1e-5,
+    max_iter: int | None = None,
+    on_nonconvergence: str = "warn",
+) -> RefineOutput:
+    """Refine a network's dense depth with a Gaussian CRF (energy in the module docstring).
+
+    Nothing is modified in place; the result is differentiable in ``depth``,
+    ``confidence``, ``features``, ``sparse``, ``projection_weight``, ``edge_scale``,
+    ``sparse_weight`` and (through ``std``) ``std_scale``.
+
+    Args:
+        depth: (B, 1, H, W) the network's dense depth in metres (any finite value; it is
+            the data term's target and the CG warm start, not a "missing" marker).
+        confidence: (B, 1, H, W) data weight ``c_i >= 0`` per pixel, unit-free (relative
+            to the edge weights, which are at most ``edge_scale``); 0 = trust the
+            neighbours only.
+        features: (B, C, H, W) guidance features, finite; edge weights are computed from
+            their projection.
+        projection_weight: (E, C) or (E, C, 1, 1) the projection ``P`` (e.g. the weight of
+            an ``nn.Conv2d(C, E, 1, bias=False)``).
+        sparse: optional (B, 1, H, W) LiDAR z-depth in metres, 0 = no return.
+        sparse_weight: ``lambda >= 0``, weight of each LiDAR pixel; required with ``sparse``.
+        edge_scale: ``s > 0``, the largest edge weight.
+        prior_weight: ``eps > 0``, added to the confidence everywhere so that ``A`` is
+            positive definite; small against ``c`` and ``s``.
+        labels: optional (B, H, W) int64 segment index per pixel (e.g. SLIC superpixels of
+            each frame, :func:`crfdepth.graph.slic_segments`): solve on the segment graph
+            and paint back (piecewise-constant output). Labels need not be consecutive.
+        return_std: also return ``std_scale * sqrt(diag(A^-1))`` (extra solves, no
+            gradient except to ``std_scale``).
+        std_scale: ``sigma > 0``, metres per unit of ``sqrt(diag(A^-1))``.
+        std_samples, seed: samples and seed of the variance estimate
+            (:func:`crfdepth.uncertainty.grid_posterior_variance`; superpixel graphs of up
+            to 1,000 segments are exact).
+        rtol, max_iter, on_nonconvergence: settings of the CG solve
+            (:func:`crfdepth.linalg.solve_grid_laplacian`).
+
+    Returns:
+        :class:`RefineOutput` with ``depth`` (B, 1, H, W) metres, ``std`` or None, ``info``.
+
+    Raises:
+        InputError: before any solve, for a non-tensor or wrongly shaped argument,
+            mismatched batch, size, dtype or device, NaN/inf in any tensor, negative
+            ``confidence`` or ``sparse``, ``sparse`` without ``sparse_weight``, or
+            non-positive scales; the message names the argument.
+    """
+    _check_map("depth", depth, None, 1)
+    _check_map("confidence", confidence, depth, 1, nonneg=True)
+    _check_map("features", features, depth, None)
+    projection = _check_projection(projection_weight, features.shape[1], depth)
+    scale = _check_scalar("edge_scale", edge_scale, depth, positive=True)
+    eps = _check_scalar("prior_weight", prior_weight, depth, positive=True)
+    if sparse is not None:
+        _check_map("sparse", sparse, depth, 1, nonneg=True)
+        if sparse_weight is None:
+            raise InputError("sparse_weight: expected a number >= 0 when sparse is given, got None")
+        lam = _check_scalar("sparse_weight", sparse_weight, depth, positive=False)
+    sigma = _check_scalar("std_scale", std_scale, depth, positive=True) if return_std else None
+    if labels is not None:
+        labels = _check_labels(labels, depth)
+
+    y = depth[:, 0]
+    data_w = confidence[:, 0] + eps
+    d = data_w
+    b = data_w * y
+    if sparse is not None:
+        z = sparse[:, 0]
+        m = (z.detach() > 0).to(depth.dtype)
+        d = d + lam * m
+        b = b + lam * m * z
+    weight_h, weight_v = crf_edge_weights(features, projection, scale)
+    settings = dict(rtol=rtol, max_iter=max_iter, on_nonconvergence=on_nonconvergence)
+
+    if labels is None:
+        x, info = solve_grid_laplacian(b, d, weight_h, weight_v, x0=y.detach(), **settings)
+        std = None
+        if return_std:
+            var = grid_posterior_variance(d.detach(), weight_h.detach(), weight_v.detach(),
+                                          samples=std_samples, seed=seed, rtol=max(rtol, 1e-4))
+            std = (sigma * var.sqrt())[:, None]
+        return RefineOutput(x[:, None], std, info)
+
+    return _refine_segments(labels, y, d, b, weight_h, weight_v, sigma, return_std, std_samples, seed,
+                            settings)
+
+
+def _refine_segments(labels, y, d, b, weight_h, weight_v, sigma, return_std, std_samples, seed,
+                     settings) -> RefineOutput:
+    """The energy restricted to piecewise-constant maps on ``labels`` (module docstring)."""
+    bsz, h, w = y.shape
+    # Consecutive node indices per frame, offset into one block-diagonal system.
+    nodes, sizes = [], []
+    offset = 0
+    for k in range(bsz):
+        _, inv = torch.unique(labels[k], return_inverse=True)
+        n_k = int(inv.max()) + 1
+        nodes.append(inv + offset)
+        sizes.append(n_k)
+        offset += n_k
+    node = torch.stack(nodes)  # (B, H, W) global node index
+    n = offset
+    ptr = torch.tensor([0] + sizes, device=y.device).cumsum(0)
+    flat = node.reshape(-1)
+    d_s = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, d.reshape(-1))
+    b_s = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, b.reshape(-1))
+    area = torch.bincount(flat, minlength=n).to(y.dtype)
+    x0 = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, y.detach().reshape(-1)) / area
+
+    # Pixel edges that cross a segment boundary, summed per pair of segments.
+    u = torch.cat([node[:, :, :-1].reshape(-1), node[:, :-1, :].reshape(-1)])
+    v = torch.cat([node[:, :, 1:].reshape(-1), node[:, 1:, :].reshape(-1)])
+    wts = torch.cat([weight_h.reshape(-1), weight_v.reshape(-1)])
+    cross = u != v
+    lo = torch.minimum(u[cross], v[cross])
+    hi = torch.maximum(u[cross], v[cross])
+    keys, inv = torch.unique(lo * n + hi, return_inverse=True)
+    edge_index = torch.stack([keys // n, keys % n])
+    edge_weight = torch.zeros(keys.numel(), dtype=y.dtype, device=y.device).index_add(0, inv, wts[cross])
+
+    x, info = solve_laplacian(b_s, d_s, edge_index, edge_weight, ptr=ptr, x0=x0, **settings)
+    out = x[node][:, None]
+    std = None
+    if return_std:
+        var = posterior_variance(d_s.detach(), edge_index, edge_weight.detach(), ptr=ptr,
+                                 samples=std_samples, seed=seed, rtol=max(settings["rtol"], 1e-4))
+        std = (sigma * var.sqrt())[node][:, None]
+    return RefineOutput(out, std, info)
+
+
+# ----------------------------------------------------------------------------------------
+# the module
+# ----------------------------------------------------------------------------------------
+
+class CRFRefine(nn.Module):
+    """Learnable CRF refinement layer; ``forward`` calls :func:`crf_refine`.
+
+    Parameters (all learnable): ``projection`` the 1x1 convolution ``P`` (C -> embed_dim,
+    no bias), ``log_edge_scale`` (``s = exp``), ``log_sparse_weight`` (``lambda = exp``)
+    and ``log_std_scale`` (``sigma = exp``). ``lambda`` gets a gradient only when
+    ``sparse`` is passed, ``sigma`` only through ``std``.
+
+    Args:
+        in_channels: C, channels of the guidance features.
+        embed_dim: E, dimension of the projected features.
+        edge_scale: initial ``s`` > 0.
+        sparse_weight: initial ``lambda`` > 0.
+        prior_weight: fixed ``eps`` > 0 (see :func:`crf_refine`).
+        std_scale: initial ``sigma`` > 0.
+        superpixels: None (pixel grid, default) or the number of SLIC segments per frame;
+            then ``forward`` needs ``image`` (B, 3, H, W) RGB in [0, 1] (segmented with
+            :func:`crfdepth.graph.slic_segments`, no gradient) or precomputed ``labels``,
+            and the output is piecewise constant on the segments.
+        init_scale: standard deviation of the initial projection weights (small, so that
+            edges start close to ``s``: a smooth prior that the training sharpens).
+        std_samples, rtol, max_iter: as in :func:`crf_refine`.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        embed_dim: int = 8,
+        *,
+        edge_scale: float = 1.0,
+        sparse_weight: float = 10.0,
+        prior_weight: float = 1e-3,
+        std_scale: float = 1.0,
+        superpixels: int | None = None,
+        init_scale: float = 0.1,
+        std_samples: int = 16,
+        rtol: float = 1e-5,
+        max_iter: int | None = None,
+    ) -> None:
+        super().__init__()
+        for name, value in (("in_channels", in_channels), ("embed_dim", embed_dim)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise InputError(f"{name}: expected a positive int, got {value!r}")
+        for name, value in (("edge_scale", edge_scale), ("sparse_weight", sparse_weight),
+                            ("prior_weight", prior_weight), ("std_scale", std_scale),
+                            ("init_scale", init_scale)):
+            if not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise InputError(f"{name}: expected a finite number > 0, got {value!r}")
+        if superpixels is not None and (not isinstance(superpixels, int) or superpixels < 1):
+            raise InputError(f"superpixels: expected None or a positive int, got {superpixels!r}")
+        self.projection = nn.Conv2d(in_channels, embed_dim, 1, bias=False)
+        nn.init.normal_(self.projection.weight, std=init_scale)
+        self.log_edge_scale = nn.Parameter(torch.tensor(math.log(edge_scale)))
+        self.log_sparse_weight = nn.Parameter(torch.tensor(math.log(sparse_weight)))
+        self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
+        self.prior_weight = float(prior_weight)
+        self.superpixels = superpixels
+        self.std_samples = std_samples
+        self.rtol = rtol
+        self.max_iter = max_iter
+
+    @property
+    def edge_scale(self) -> torch.Tensor:
+        return self.log_edge_scale.exp()
+
+    @property
+    def sparse_weight(self) -> torch.Tensor:
+        return self.log_sparse_weight.exp()
+
+    @property
+    def std_scale(self) -> torch.Tensor:
+        return self.log_std_scale.exp()
+
+    def forward(self, depth: torch.Tensor, confidence: torch.Tensor, features: torch.Tensor,
+                sparse: torch.Tensor | None = None, *, image: torch.Tensor | None = None,
+                labels: torch.Tensor | None = None, return_std: bool = False) -> RefineOutput:
+        """Refine ``depth``; arguments as in :func:`crf_refine`.
+
+        ``image`` (B, 3, H, W) RGB in [0, 1] is used only with ``superpixels`` set and no
+        ``labels``. Parameters are cast to ``depth``'s dtype (the module may stay float32
+        while the inputs are float64).
+        """
+        if labels is None and self.superpixels is not None:
+            labels = self._segment(image, depth)
+        dtype = depth.dtype if isinstance(depth, torch.Tensor) and depth.is_floating_point() else None
+        cast = (lambda t: t.to(dtype)) if dtype is not None else (lambda t: t)
+        return crf_refine(
+            depth, confidence, features, cast(self.projection.weight),
+            sparse=sparse, sparse_weight=cast(self.sparse_weight) if sparse is not None else None,
+            edge_scale=cast(self.edge_scale), prior_weight=self.prior_weight, labels=labels,
+            return_std=return_std, std_scale=cast(self.std_scale), std_samples=self.std_samples,
+            rtol=self.rtol, max_iter=self.max_iter,
+        )
+
+    def _segment(self, image, depth) -> torch.Tensor:
+        from crfdepth.graph import slic_segments
+
+        if not isinstance(depth, torch.Tensor) or depth.dim() != 4:
+            raise InputError(f"depth: expected a (B, 1, H, W) tensor, got {_shape(depth)}")
+        b, _, h, w = depth.shape
+        if not isinstance(image, torch.Tensor) or tuple(image.shape) != (b, 3, h, w):
+            raise InputError(f"image: expected a ({b}, 3, {h}, {w}) RGB tensor in [0, 1] (superpixels="
+                             f"{self.superpixels} needs it, or pass labels), got {_shape(image)}")
+        return torch.stack([slic_segments(image[k], self.superpixels) for k in range(b)]).to(depth.device)
+
+    def extra_repr(self) -> str:
+        return (f"edge_scale={float(self.edge_scale.detach()):.3g}, sparse_weight={float(self.sparse_weight.detach()):.3g}, "
+                f"prior_weight={self.prior_weight:g}, superpixels={self.superpixels}")
