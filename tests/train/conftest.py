@@ -1,9 +1,8 @@
 """Fixtures of the trainer tests: run ``python -m train`` and read what it logged.
 
-The folder is named like the ``train`` package it tests. Under pytest's default
-``prepend`` import mode ``tests/`` is put on ``sys.path``, where ``tests/train`` (no
-``__init__.py``) would make ``import train`` a namespace package without the real
-package's ``__init__``. Putting the repository root first makes the regular package win.
+The folder is named like the ``train`` package it tests; ``pythonpath = ["."]`` in
+pyproject.toml puts the repository root first on ``sys.path`` so that ``import train``
+finds the package, not this folder.
 """
 
 from __future__ import annotations
@@ -18,8 +17,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 CONFIGS = ROOT / "configs"
 
