@@ -1,0 +1,266 @@
+"""One call from your own sensors to dense depth: :func:`complete_depth` (DESIGN.md section 1).
+
+Takes a camera image and either a sparse depth map or a raw LiDAR point cloud with its
+calibration, projects the cloud (z-buffer, nearest point wins), runs
+:class:`crfdepth.model.CRFDepth` and returns depth (and std) at the image's own
+resolution. Any image size works: the superpixel count scales with the image area (the
+model's ``scale_superpixels``), so a 640x480 phone frame gets superpixels of the same
+pixel size as a KITTI frame.
+
+With lens ``distortion`` the image is undistorted with ``cv2.undistort(image, K,
+distortion)`` (new camera matrix = ``K``, so the undistorted image keeps the same
+intrinsics; pixels that map from outside the raw image become black) and the points are
+projected with that same ``K`` and no distortion.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import warnings
+
+import cv2
+import numpy as np
+import torch
+
+from crfdepth.errors import InputError
+from crfdepth.io.rig import RigCalibration, check_intrinsics, check_rigid
+
+__all__ = ["complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
+
+logger = logging.getLogger(__name__)
+
+# A projected LiDAR map whose median depth exceeds this is in the wrong unit (millimetres).
+MAX_PLAUSIBLE_MEDIAN_DEPTH_M = 1000.0
+# More columns than this is taken for a transposed (3|4, N) array rather than extra fields.
+MAX_POINT_COLUMNS = 16
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
+    """(H, W, 3) float32 RGB in [0, 1], whether the input was a tensor, and its device."""
+    is_tensor = isinstance(image, torch.Tensor)
+    device = image.device if is_tensor else None
+    if is_tensor:
+        array = image.detach().cpu()
+        if array.ndim == 3 and array.shape[0] == 3 and array.shape[-1] != 3:
+            array = array.permute(1, 2, 0)
+        array = array.numpy()
+    elif isinstance(image, np.ndarray):
+        array = image
+    else:
+        raise InputError(f"image: expected a numpy array (H, W, 3) or a tensor (3, H, W) / (H, W, 3), got "
+                         f"{type(image).__name__}")
+    if array.ndim != 3 or array.shape[2] != 3:
+        expected = "(3, H, W) or (H, W, 3) tensor" if is_tensor else "(H, W, 3) RGB array"
+        raise InputError(f"image: expected a {expected}, got shape {tuple(image.shape)}")
+    if array.dtype == np.uint8:
+        return array.astype(np.float32) / 255.0, is_tensor, device
+    if not np.issubdtype(array.dtype, np.floating):
+        raise InputError(f"image: expected uint8 (0-255) or float in [0, 1], got dtype {array.dtype}")
+    if not np.all(np.isfinite(array)) or array.min() < 0 or array.max() > 1:
+        raise InputError(f"image: expected float RGB in [0, 1], got values in [{np.nanmin(array):.4g}, "
+                         f"{np.nanmax(array):.4g}]{' with NaN/inf' if not np.all(np.isfinite(array)) else ''} "
+                         f"(divide a 0-255 float image by 255)")
+    return array.astype(np.float32), is_tensor, device
+
+
+def _sparse_to_numpy(sparse, size: tuple[int, int]) -> np.ndarray:
+    array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
+    if array.ndim == 3 and array.shape[0] == 1:
+        array = array[0]
+    if array.shape != size:
+        raise InputError(f"sparse: expected an (H, W) = {size} depth map in metres (the image's size), got shape "
+                         f"{array.shape}")
+    if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
+        raise InputError(f"sparse: expected depth in metres as numbers, got dtype {array.dtype}")
+    array = array.astype(np.float32)
+    if not np.all(np.isfinite(array)) or array.min() < 0:
+        raise InputError("sparse: expected finite depth >= 0 metres (0 = no LiDAR point), got NaN, inf or "
+                         "negative values")
+    if not np.any(array > 0):
+        raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
+    return array
+
+
+def prepare_points(points) -> np.ndarray:
+    """(N, 3) float64 x y z of a point cloud, rows with NaN/inf dropped (with a warning).
+
+    Args:
+        points: (N, 3+) array or tensor, LiDAR frame, metres; columns after the third
+            (intensity, ring, time...) are ignored. Not modified. More than
+            ``MAX_POINT_COLUMNS`` (16) columns is refused as a probably transposed array.
+
+    Raises:
+        InputError: not 2-D, fewer than 3 columns, not real numbers, or no finite row.
+    """
+    array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+    if array.ndim != 2 or not 3 <= array.shape[1] <= MAX_POINT_COLUMNS:
+        raise InputError(f"points: expected an (N, 3) or (N, 4) array (x y z [intensity], metres; further "
+                         f"columns, up to {MAX_POINT_COLUMNS} in all, are ignored), got shape {array.shape}"
+                         + (" (transpose it: the points go in rows)" if array.ndim == 2 and array.shape[0] in (3, 4)
+                            else ""))
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        raise InputError(f"points: expected real coordinates, got dtype {array.dtype}")
+    xyz = array[:, :3].astype(np.float64)
+    finite = np.isfinite(xyz).all(axis=1)
+    dropped = int(xyz.shape[0] - finite.sum())
+    if dropped:
+        warnings.warn(f"points: dropped {dropped} of {xyz.shape[0]} point(s) with NaN or infinite coordinates "
+                      f"(no-return placeholders of an organised cloud?)", UserWarning, stacklevel=3)
+        xyz = xyz[finite]
+    if xyz.shape[0] == 0:
+        raise InputError(f"points: no point with finite coordinates (got {array.shape[0]} row(s))")
+    return xyz
+
+
+def no_points_message(points: np.ndarray, calibration: RigCalibration, image_size: tuple[int, int]) -> str:
+    """Explain why no point of ``points`` lands in the image, with the usual causes."""
+    T = calibration.T_cam_lidar
+    cam = points[:, :3] @ T[:3, :3].T + T[:3, 3]
+    front = int(np.sum(cam[:, 2] > 0))
+    median_range = float(np.median(np.linalg.norm(points[:, :3], axis=1)))
+    causes = ["T_cam_lidar given in the opposite direction (it must map LiDAR points into the camera frame; "
+              "try its inverse)",
+              "point coordinates in millimetres instead of metres" + (
+                  f" (median range here {median_range:.4g}: that looks like millimetres)" if median_range > 500 else ""),
+              "the calibration of another camera, or K for another image size",
+              "camera axes not x right, y down, z forward (e.g. a ROS body-frame transform)"]
+    height, width = image_size
+    return (f"no point lands in the {width}x{height} (WxH) image: {points.shape[0]} point(s), {front} in front of "
+            f"the camera (z > 0), 0 inside the image. Usual causes: " + "; ".join(f"({i + 1}) {c}" for i, c in
+                                                                                enumerate(causes)))
+
+
+def points_to_sparse(points, calibration: RigCalibration, image_size: tuple[int, int]) -> np.ndarray:
+    """Project a point cloud into an (H, W) float32 sparse depth map (metres, 0 = no point).
+
+    NaN rows are dropped with a warning (:func:`prepare_points`); KITTI calibrations use
+    the exact KITTI projection (:meth:`RigCalibration.project`). Raises InputError with
+    :func:`no_points_message` when no point lands in the image.
+    """
+    xyz = prepare_points(points)
+    sparse = calibration.project(xyz, image_size)
+    if not np.any(sparse > 0):
+        raise InputError(no_points_message(xyz, calibration, image_size))
+    median = float(np.median(sparse[sparse > 0]))
+    if median > MAX_PLAUSIBLE_MEDIAN_DEPTH_M:
+        raise InputError(f"points: the median projected depth is {median:.4g} m (> {MAX_PLAUSIBLE_MEDIAN_DEPTH_M:g} "
+                         f"m); the point coordinates look like millimetres: divide them by 1000")
+    return sparse
+
+
+# --------------------------------------------------------------------------- model
+
+
+def _model_on(model, device: str | torch.device):
+    from crfdepth.model import CRFDepth
+
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device: CUDA is not available in this PyTorch installation/machine; use device='cpu'")
+    if model is None:
+        return CRFDepth().to(device).eval()
+    if not isinstance(model, torch.nn.Module):
+        raise InputError(f"model: expected a crfdepth.model.CRFDepth (or None for the default), got "
+                         f"{type(model).__name__}")
+    param = next(model.parameters(), None)
+    if param is not None and param.device != device and not (device.index is None and param.device.type == device.type):
+        model = copy.deepcopy(model).to(device)  # the caller's model is left where it is
+    return model
+
+
+def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
+                   calibration: RigCalibration | None = None, distortion=None, model=None,
+                   device: str | torch.device = "cpu", return_std: bool = True):
+    """Dense depth (and std) for one camera image from sparse LiDAR or a raw point cloud.
+
+    Give the camera either as ``K`` (+ ``T_cam_lidar`` for points, + optional
+    ``distortion``) or as one ``calibration`` (:func:`crfdepth.io.rig.load_any_calibration`:
+    a rig YAML/JSON or KITTI calibration; KITTI keeps the exact KITTI projection
+    ``P_rect R_rect T_velo_to_cam``), not both. Give the LiDAR either as ``sparse`` or as
+    ``points``, not both.
+
+    Args:
+        image: RGB as a numpy (H, W, 3) uint8 (0-255) or float array in [0, 1], or a
+            tensor (3, H, W) / (H, W, 3) of the same kinds. Any size.
+        sparse: (H, W) sparse z-depth in metres (0 = no point), numpy or tensor.
+        points: (N, 3) or (N, 4) point cloud in the LiDAR frame, metres (extra columns,
+            e.g. intensity, are ignored); rows with NaN/inf are dropped with a warning
+            giving the count.
+        T_cam_lidar: (4, 4) rigid transform mapping LiDAR points into the camera frame
+            (x right, y down, z forward), metres; required with ``points`` and ``K``.
+        K: (3, 3) pinhole intrinsics of ``image`` (pixels), or 9 numbers row-major.
+        calibration: a :class:`~crfdepth.io.rig.RigCalibration` instead of ``K`` /
+            ``T_cam_lidar`` / ``distortion``; its ``image_size``, when set, must equal the
+            image's.
+        distortion: OpenCV coefficients k1 k2 p1 p2 [k3 ...] of the raw image, or None.
+            When given, the image is undistorted (module docstring) and the output is
+            the depth of the undistorted image.
+        model: a :class:`~crfdepth.model.CRFDepth` (e.g. from
+            :func:`crfdepth.checkpoint.load_model`); None = ``CRFDepth()`` with its
+            initial weights. Used in its current train/eval mode, under ``no_grad``; a
+            model on another device is copied there (the caller's model is not moved).
+        device: "cpu", "cuda" or a torch.device for the computation.
+        return_std: also return the posterior standard deviation.
+
+    Returns:
+        ``(depth, std)``: (H, W) float32 z-depth in metres, > 0 everywhere, and the
+        posterior std in metres (None when ``return_std`` is False). numpy arrays for a
+        numpy image; tensors on the image tensor's device for a tensor image.
+
+    Raises:
+        InputError: bad shapes/dtypes/values (message names the argument), a
+            non-rigid ``T_cam_lidar``, implausible ``K``, an image size different from
+            the calibration's, or no point landing in the image (the message gives the
+            point counts and the usual causes).
+    """
+    rgb, is_tensor, out_device = _image_to_numpy(image)
+    size = rgb.shape[:2]
+    if calibration is not None:
+        if K is not None or T_cam_lidar is not None or distortion is not None:
+            raise InputError("calibration: give either calibration or K / T_cam_lidar / distortion, not both")
+        if not isinstance(calibration, RigCalibration):
+            raise InputError(f"calibration: expected a crfdepth.io.rig.RigCalibration (load_any_calibration), got "
+                             f"{type(calibration).__name__}")
+        if calibration.image_size is not None and tuple(calibration.image_size) != size:
+            raise InputError(f"image: {size[1]}x{size[0]} (WxH) but the calibration ({calibration.source}) is for "
+                             f"{calibration.image_size[1]}x{calibration.image_size[0]}; resize/crop the image back "
+                             f"or use the calibration of this image size (K scales with the image)")
+        check_intrinsics(calibration.K, f"K ({calibration.source})", size)
+    else:
+        if K is None:
+            raise InputError("K: required (the 3x3 intrinsics of the image), or pass calibration=")
+        Kn = check_intrinsics(K.detach().cpu().numpy() if isinstance(K, torch.Tensor) else K, "K", size)
+        if points is not None and T_cam_lidar is None:
+            raise InputError("T_cam_lidar: required with points (4x4 LiDAR -> camera transform, metres)")
+        T = np.eye(4) if T_cam_lidar is None else check_rigid(
+            T_cam_lidar.detach().cpu().numpy() if isinstance(T_cam_lidar, torch.Tensor) else T_cam_lidar)
+        calibration = RigCalibration(K=Kn, T_cam_lidar=T, distortion=distortion, image_size=size, source="arguments")
+    if (sparse is None) == (points is None):
+        raise InputError("sparse / points: give exactly one of them (a sparse depth map or a point cloud)")
+    if calibration.distortion is not None:
+        rgb = cv2.undistort(rgb, calibration.K, calibration.distortion)
+        if sparse is not None:
+            logger.warning("distortion: the image is undistorted but a given sparse map is used as is; it must "
+                           "already be projected with K and no distortion")
+    if points is not None:
+        sparse_np = points_to_sparse(points, calibration, size)
+    else:
+        sparse_np = _sparse_to_numpy(sparse, size)
+
+    model = _model_on(model, device)
+    param = next(model.parameters())
+    dev, dtype = param.device, param.dtype
+    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None].to(dev, dtype)
+    sparse_t = torch.from_numpy(sparse_np)[None, None].to(dev, dtype)
+    K_t = torch.from_numpy(calibration.K)[None].to(dev, dtype)
+    with torch.no_grad():
+        out = model(image_t, sparse_t, K_t, return_std=return_std)
+    depth = out.depth[0, 0].float()
+    std = out.std[0, 0].float() if return_std else None
+    if is_tensor:
+        return depth.to(out_device), (std.to(out_device) if std is not None else None)
+    return depth.cpu().numpy(), (std.cpu().numpy() if std is not None else None)
