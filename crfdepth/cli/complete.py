@@ -5,6 +5,17 @@ One frame::
     crfdepth complete --image RGB.png --sparse SPARSE.png --intrinsics K.txt \\
         --out DEPTH.png [--out-std STD.png] [--vis [DIR]]
 
+One frame from a raw point cloud and a calibration (instead of --sparse/--intrinsics)::
+
+    crfdepth complete --image RGB.png --points CLOUD --calib CALIB --out DEPTH.png [--camera 2]
+
+``CLOUD`` is a ``.bin`` (KITTI), ``.npy``, ``.ply`` or ``.pcd`` file
+(:func:`crfdepth.io.pointcloud.read_points`); ``CALIB`` a rig YAML/JSON file or any KITTI
+calibration (:func:`crfdepth.io.rig.load_any_calibration`; ``--camera`` picks the KITTI
+camera). The cloud is projected by :func:`crfdepth.api.points_to_sparse` (KITTI: the
+exact KITTI projection) and the image undistorted when the calibration has
+``distortion`` (:mod:`crfdepth.api`).
+
 A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous`` layout
 (``image/``, ``velodyne_raw/``, ``intrinsics/``; DESIGN.md section 7)::
 
@@ -64,10 +75,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from crfdepth.api import complete_depth
 from crfdepth.checkpoint import load_model
 from crfdepth.data.kitti import KittiTestCompletion, KittiValSelection
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
+from crfdepth.io.pointcloud import read_points
+from crfdepth.io.rig import load_any_calibration
 from crfdepth.model import POTENTIALS, CRFDepth
 from crfdepth.visualize import colorize_depth, colorize_std
 
@@ -115,6 +129,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     one.add_argument("--sparse", metavar="SPARSE.png",
                      help="sparse LiDAR depth, KITTI 16-bit PNG (metres * 256, 0 = no point)")
     one.add_argument("--intrinsics", metavar="K.txt", help="3x3 camera matrix as 9 numbers, row-major")
+    one.add_argument("--points", metavar="CLOUD",
+                     help="instead of --sparse/--intrinsics: LiDAR point cloud (.bin KITTI, .npy, .ply, .pcd; "
+                          "x y z in metres in the LiDAR frame), projected with --calib")
+    one.add_argument("--calib", metavar="CALIB",
+                     help="with --points: rig calibration YAML/JSON (K, T_cam_lidar, optional distortion and "
+                          "image_size) or a KITTI calibration (raw day folder, calib_*.txt, object calib file)")
+    one.add_argument("--camera", type=int, choices=(0, 1, 2, 3), default=2,
+                     help="with a KITTI --calib: camera index (default: 2, left colour)")
     one.add_argument("--out", metavar="DEPTH.png", help="output depth PNG (its folder must exist)")
     one.add_argument("--out-std", metavar="STD.png",
                      help="also write the posterior std (metres * 256) to this PNG")
@@ -306,7 +328,55 @@ def _write_outputs(depth: np.ndarray, std: np.ndarray | None, out: Path, out_std
         _write_rgb_png(vis_dir / f"{stem}{_VIS_SUFFIXES[1]}", colorize_std(std))
 
 
+def _run_points(args: argparse.Namespace) -> int:
+    """One frame from ``--image``, ``--points`` and ``--calib`` (see the module docstring)."""
+    missing = [flag for flag, value in (("--image", args.image), ("--points", args.points),
+                                        ("--calib", args.calib), ("--out", args.out)) if value is None]
+    if missing:
+        raise InputError(f"point-cloud mode needs --image, --points, --calib and --out; missing {', '.join(missing)}")
+    stray = [flag for flag, value in (("--sparse", args.sparse), ("--intrinsics", args.intrinsics),
+                                      ("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir))
+             if value is not None]
+    if stray:
+        raise InputError(f"{', '.join(stray)}: cannot be combined with --points/--calib (the cloud and the "
+                         f"calibration replace --sparse and --intrinsics; one frame only)")
+    out = _check_output_file(args.out, "--out")
+    out_std = _check_output_file(args.out_std, "--out-std") if args.out_std is not None else None
+    if out_std is not None and _same_file(out, out_std):
+        raise InputError(f"--out-std: must differ from --out, got {out_std} for both")
+    inputs = {"--image": Path(args.image), "--points": Path(args.points), "--calib": Path(args.calib)}
+    for flag, path in ((f, p) for f, p in (("--out", out), ("--out-std", out_std)) if p is not None):
+        for source, src_path in inputs.items():
+            if _same_file(path, src_path):
+                raise InputError(f"{flag}: {path} is the {source} input; refusing to overwrite it")
+    rgb = read_rgb(args.image)
+    try:
+        points = read_points(args.points)
+    except InputError as exc:
+        raise InputError(f"--points: {exc}") from None
+    try:
+        calibration = load_any_calibration(args.calib, camera=args.camera)
+    except InputError as exc:
+        raise InputError(f"--calib: {exc}") from None
+    model = build_model(args)
+    vis_dir = None
+    if args.vis is not None:
+        vis_dir = _make_output_dir(args.vis, "--vis") if args.vis else out.parent
+    start = time.perf_counter()
+    try:
+        depth, std = complete_depth(rgb, points=points, calibration=calibration, model=model,
+                                    device=args.device, return_std=out_std is not None or vis_dir is not None)
+    except InputError as exc:
+        raise InputError(f"--points {args.points} with --calib {args.calib}: {exc}") from None
+    _write_outputs(depth.astype(np.float64), None if std is None else std.astype(np.float64), out, out_std,
+                   vis_dir, out.stem)
+    logger.info("completed %s in %.2f s -> %s", args.points, time.perf_counter() - start, out)
+    return 0
+
+
 def _run_one(args: argparse.Namespace) -> int:
+    if args.points is not None or args.calib is not None:
+        return _run_points(args)
     missing = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse),
                                         ("--intrinsics", args.intrinsics), ("--out", args.out)) if value is None]
     if missing:
@@ -363,7 +433,8 @@ def _run_folder(args: argparse.Namespace) -> int:
     if args.out_dir is None:
         raise InputError("--input-dir needs --out-dir (the folder for the output PNGs)")
     stray = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse),
-                                      ("--intrinsics", args.intrinsics), ("--out", args.out),
+                                      ("--intrinsics", args.intrinsics), ("--points", args.points),
+                                      ("--calib", args.calib), ("--out", args.out),
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
