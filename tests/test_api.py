@@ -15,6 +15,8 @@ Measured here (CPU, default CRFDepth, RMSE in mm):
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -270,3 +272,14 @@ def test_distortion_undistorts_image_and_keeps_K():
     bent, _ = complete_depth(small.image, points=small.points, T_cam_lidar=small.T_cam_lidar, K=small.K,
                              distortion=[-0.3, 0.1, 0.0, 0.0, 0.0], return_std=False)
     assert bent.shape == plain.shape and (bent > 0).all() and not np.allclose(bent, plain, atol=1e-3)
+
+
+def test_inverted_transform_of_a_full_scan_warns(kitti):
+    """A 360-degree scan still lands points with the inverse transform; a warning says so."""
+    rig = kitti["rig"]
+    inverted = RigCalibration(rig.K, np.linalg.inv(rig.T_cam_lidar))
+    with pytest.warns(UserWarning, match=r"may be inverted: \d+ point\(s\) land in the image, but \d+"):
+        points_to_sparse(kitti["points"], inverted, (375, 1242))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        points_to_sparse(kitti["points"], rig, (375, 1242))  # the right transform: no warning

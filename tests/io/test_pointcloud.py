@@ -105,7 +105,8 @@ def test_bad_files(tmp_path, case, expected):
         write_pcd(path, POINTS)
         path.write_bytes(path.read_bytes().replace(b"DATA binary", b"DATA binary_compressed"))
     elif case == "ply no z":
-        path.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n")
+        path.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                        "end_header\n1 2\n")
     elif case == "ply big endian":
         write_ply(path, POINTS)
         path.write_bytes(path.read_bytes().replace(b"binary_little_endian", b"binary_big_endian"))
