@@ -188,8 +188,16 @@ def crf_refine(
     """Refine a network's dense depth with a Gaussian CRF (energy in the module docstring).
 
     Nothing is modified in place; the result is differentiable in ``depth``,
-    ``confidence``, ``features``, ``sparse``, ``projection_weight``, ``edge_scale``,
-    ``sparse_weight`` and (through ``std``) ``std_scale``.
+    ``confidence``, ``features``, ``sparse`` (its values at the LiDAR pixels; which pixels
+    hold LiDAR is not differentiable), ``projection_weight``, ``edge_scale``,
+    ``sparse_weight`` and (through ``std``) ``std_scale``. Multiplying ``confidence``,
+    ``prior_weight``, ``sparse_weight`` and ``edge_scale`` by one constant leaves the depth
+    unchanged (only their ratios matter) and divides the variance by it.
+
+    Cost: one CG solve forward and one backward on the ``B x H x W`` grid; at 1216x352 with
+    a warm start from ``depth`` about 0.4 s each on one CPU core (24 iterations in that
+    measurement; fewer confident pixels need more). ``return_std`` adds ``std_samples``
+    solves (about 7 s for 16 samples at 1216x352 on one core).
 
     Args:
         depth: (B, 1, H, W) the network's dense depth in metres (any finite value; it is
