@@ -121,7 +121,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="complete sparse LiDAR into dense depth (one frame or a KITTI folder)",
         description="Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
                     "metres * 256) with the CRF model, for one frame (--image, --sparse, "
-                    "--intrinsics, --out) or every frame of a val_selection_cropped / "
+                    "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
+                    "cloud) or every frame of a val_selection_cropped / "
                     "test_depth_completion_anonymous folder (--input-dir, --out-dir).",
     )
     one = parser.add_argument_group("one frame")
