@@ -1,0 +1,28 @@
+"""crfdepth: dense, calibrated depth from a camera image and sparse LiDAR with a learnable CRF.
+
+Start with :class:`crfdepth.CRFDepth` (the model), :func:`crfdepth.complete_depth` (arrays in,
+arrays out, any rig) or the ``crfdepth`` command. The library does not need Lightning; the
+trainer lives in the separate ``train`` package.
+"""
+
+from crfdepth.api import complete_depth
+from crfdepth.checkpoint import load_model, save_model
+from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
+from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
+from crfdepth.model import CRFDepth, CRFOutput
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CRFDepth",
+    "CRFOutput",
+    "ConvergenceError",
+    "ConvergenceWarning",
+    "InputError",
+    "SolveInfo",
+    "complete_depth",
+    "load_model",
+    "save_model",
+    "solve_grid_laplacian",
+    "solve_laplacian",
+]
