@@ -119,7 +119,8 @@ def _check_scalar(name: str, value, ref: torch.Tensor, *, positive: bool) -> tor
 
 def _check_projection(projection_weight, channels: int, ref: torch.Tensor) -> torch.Tensor:
     p = projection_weight
-    if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or (p.dim() == 4 and tuple(p.shape[2:]) == (1, 1))):
+    is_1x1 = isinstance(p, torch.Tensor) and p.dim() == 4 and tuple(p.shape[2:]) == (1, 1)
+    if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or is_1x1):
         raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {_shape(p)}")
     if p.shape[1] != channels:
         raise InputError(f"projection_weight: expected C = {channels} input channels (features has "
@@ -136,8 +137,8 @@ def _check_labels(labels, depth: torch.Tensor) -> torch.Tensor:
     b, _, h, w = depth.shape
     if not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w) \
             or labels.dtype not in (torch.int64, torch.int32):
-        raise InputError(f"labels: expected a ({b}, {h}, {w}) int64 tensor of segment indices, got "
-                         f"{_shape(labels)}{'' if not isinstance(labels, torch.Tensor) else f' {labels.dtype}'}")
+        got = _shape(labels) + (f" {labels.dtype}" if isinstance(labels, torch.Tensor) else "")
+        raise InputError(f"labels: expected a ({b}, {h}, {w}) int64 tensor of segment indices, got {got}")
     if labels.device != depth.device:
         raise InputError(f"labels: expected device {depth.device} like depth, got {labels.device}")
     if labels.numel() and int(labels.min()) < 0:
@@ -428,5 +429,6 @@ class CRFRefine(nn.Module):
         return torch.stack([slic_segments(image[k], self.superpixels) for k in range(b)]).to(depth.device)
 
     def extra_repr(self) -> str:
-        return (f"edge_scale={float(self.edge_scale.detach()):.3g}, sparse_weight={float(self.sparse_weight.detach()):.3g}, "
-                f"prior_weight={self.prior_weight:g}, superpixels={self.superpixels}")
+        scale, lam = float(self.edge_scale.detach()), float(self.sparse_weight.detach())
+        return (f"edge_scale={scale:.3g}, sparse_weight={lam:.3g}, prior_weight={self.prior_weight:g}, "
+                f"superpixels={self.superpixels}")

@@ -22,7 +22,8 @@ def test_notebooks_present_and_stripped():
         nbformat.validate(nb)
         for cell in nb.cells:
             if cell.cell_type == "code":
-                assert cell.outputs == [] and cell.execution_count is None, f"{path.name}: outputs not stripped"
+                stripped = cell.outputs == [] and cell.execution_count is None
+                assert stripped, f"{path.name}: outputs not stripped"
 
 
 @pytest.mark.slow
