@@ -21,6 +21,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 
@@ -99,13 +100,16 @@ class EdgeGraph:
             else:
                 rows, cols = self._pad_index[src], self._pad_index[dst]
             diag = torch.arange(size, device=src.device)
-            keys = torch.cat([rows * size + cols, cols * size + rows, diag * size + diag])
-            order = torch.argsort(keys)
-            keys = keys[order]
-            row_of = torch.div(keys, size, rounding_mode="floor")
+            all_rows = torch.cat([rows, cols, diag])
+            all_cols = torch.cat([cols, rows, diag])
+            keys = all_rows * size + all_cols
+            if keys.device.type == "cpu":  # NumPy's stable sort: ~10x faster than torch.argsort here
+                order = torch.from_numpy(np.argsort(keys.numpy(), kind="stable"))
+            else:
+                order = torch.argsort(keys)
             crow = torch.zeros(size + 1, dtype=torch.int64, device=keys.device)
-            crow[1:] = torch.cumsum(torch.bincount(row_of, minlength=size), 0)
-            self._pattern = (crow, keys - row_of * size, order, size)
+            crow[1:] = torch.cumsum(torch.bincount(all_rows, minlength=size), 0)
+            self._pattern = (crow, all_cols[order], order, size)
         return self._pattern
 
     def scaled_matvec(self, edge_weight: torch.Tensor, inv_sqrt_diag: torch.Tensor):
@@ -122,6 +126,7 @@ class EdgeGraph:
         def matvec(y: torch.Tensor) -> torch.Tensor:
             return torch.mv(M, y.reshape(-1)).view(shape)
 
+        matvec.flat = lambda v: torch.mv(M, v)  # (G * n,) -> (G * n,), no reshapes
         return matvec
 
     def weight_grad(self, lam: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
