@@ -8,6 +8,7 @@ trainer lives in the separate ``train`` package.
 from crfdepth.api import complete_depth
 from crfdepth.checkpoint import load_model, save_model
 from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
+from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
 from crfdepth.model import CRFDepth, CRFOutput
 
@@ -16,11 +17,13 @@ __version__ = "0.1.0"
 __all__ = [
     "CRFDepth",
     "CRFOutput",
+    "CRFRefine",
     "ConvergenceError",
     "ConvergenceWarning",
     "InputError",
     "SolveInfo",
     "complete_depth",
+    "crf_refine",
     "load_model",
     "save_model",
     "solve_grid_laplacian",
