@@ -1,0 +1,485 @@
+"""Accuracy, uncertainty and speed of crfdepth on the real KITTI sample frames (issue 6).
+
+Frames come from ``--kitti-root`` (default ``../shared/data/kitti`` next to this
+repository), through :func:`crfdepth.data.factory.build_dataset`, all 1216 x 352:
+
+- protocol **a**: official depth-completion input and semi-dense ground truth
+  (``depth_selection/val_selection_cropped``, 2 frames: drive 0001 frame 5, cameras 2/3);
+- protocol **b**: raw Velodyne scans (``raw/``: drives 0001 and 0060; ``object/training``)
+  with a random 20% of the points held out as the target (``holdout="fraction"``);
+- protocol **c**: the same scans keeping every 4th laser ring (16 beams) as the input,
+  the other rings as the target (``holdout="rings", keep_every_ring=4``).
+
+Targets in b and c are raw LiDAR points (sparse, noisy), not KITTI's semi-dense
+annotation; each frame's input and target pixels are disjoint.
+
+Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
+
+- ``nn``: nearest-LiDAR fill (:func:`crfdepth.fill.nearest_fill`);
+- ``inpaint``: OpenCV ``cv2.inpaint`` (Telea, radius 5) of the sparse map as float32
+  metres (OpenCV 5 takes 1-channel float32), clipped to the input's depth range (Telea
+  overshoots below 0 near the image border otherwise);
+- ``default``: ``CRFDepth()`` (superpixel 5500, all potentials, pixel refinement), default weights;
+- ``learned``: the same model with its weights fitted (Adam, L2 on target pixels, the std
+  scale left alone) on frames **outside** the evaluated set: the object frames for a and
+  for the raw drives of b/c, the raw drives for the object frames of b/c (2-fold by source,
+  each fit with the evaluated protocol's hold-out scheme). Which fit served which frames is
+  in the output (``fit``);
+- ``pixel``: ``CRFDepth(mode="pixel")``;
+- ``sp-c``, ``sp-cn``, ``sp-cnd``: the paper's Table 1 ablation (colour; + normal; +
+  3D distance), superpixel 5500, piecewise-constant painting (``refine=False``);
+  ``sp-c+r``, ``sp-cn+r``: the same with the pixel refinement (``sp-cnd+r`` is ``default``);
+- ``sp1200``, ``sp2400``: the paper's Table 2 segment counts, all potentials, no
+  refinement (5500 is ``sp-cnd``).
+
+Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, averaged
+over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), DESIGN.md section 7.
+
+Uncertainty (DESIGN.md section 5), for ``default`` and ``learned``: sparsification curves
+of the posterior std and of the paper's count map (:func:`sparsification`; ties in the
+count map, which has 3 levels, are removed in random order in expectation), and
+:func:`ause` per image, averaged; ``ause_random`` is the AUSE of a random order, for scale.
+
+Speed: median over frames of the wall clock of one forward (batch 1, ``no_grad``,
+``torch.set_num_threads(--threads)``); for ``default``/``learned`` the ``uncertainty`` stage
+is subtracted (their forwards also return the std). On CUDA clocks are read after a
+synchronise (untested: this was written on a CPU-only machine).
+
+Sub-sampling study: RMSE of ``default`` and ``nn`` on protocol b for ``keep_fraction``
+in ``--fractions`` (the target is the same pixels for every fraction), table and PNG.
+
+Outputs under ``--out-dir`` (default ``./accuracy_results``): ``results.md`` (the printed
+tables and verdicts), ``results.jsonl`` (one JSON line per method and protocol, one per
+sub-sampling point), ``subsampling.png``, ``sparsification.png``.
+
+    python benchmarks/accuracy.py [--kitti-root PATH] [--protocols a b c] [--methods ...]
+        [--max-frames N] [--fit-steps 16] [--fit-frames 4] [--fractions 0.2 0.4 0.6 0.8 1.0]
+        [--no-subsample] [--device cpu|cuda] [--threads 1] [--quick] [--out-dir DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from crfdepth.data.factory import build_dataset
+from crfdepth.fill import nearest_fill
+from crfdepth.metrics import METRICS, average_metrics, depth_metrics
+from crfdepth.model import CRFDepth
+
+DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
+SPARSIFY_STEPS = 100  # fractions removed: 0, 0.01, ..., 0.99
+TARGET_GAIN_C = 0.20  # learned must beat NN on protocol c by >= 20% RMSE
+
+# protocol -> (title, [(group, layout, sub-folder, dataset options)])
+PROTOCOLS = {
+    "a": ("(a) val_selection_cropped: official input, semi-dense ground truth",
+          [("val", "val_selection", "depth_selection/val_selection_cropped", {})]),
+    "b": ("(b) raw scans, 20% of the LiDAR points held out as target",
+          [("raw", "raw", "raw", dict(holdout="fraction", holdout_fraction=0.2)),
+           ("object", "object", "object/training", dict(holdout="fraction", holdout_fraction=0.2))]),
+    "c": ("(c) raw scans, every 4th ring kept (16 beams), other rings as target",
+          [("raw", "raw", "raw", dict(holdout="rings", keep_every_ring=4)),
+           ("object", "object", "object/training", dict(holdout="rings", keep_every_ring=4))]),
+}
+# (protocol, evaluated group) -> (training group, hold-out protocol of the fit)
+FIT_SOURCE = {("a", "val"): ("object", "b"), ("b", "raw"): ("object", "b"), ("b", "object"): ("raw", "b"),
+              ("c", "raw"): ("object", "c"), ("c", "object"): ("raw", "c")}
+CRF_METHODS = {
+    "default": dict(),
+    "learned": dict(),
+    "pixel": dict(mode="pixel"),
+    "sp-c": dict(potentials=("colour",), refine=False),
+    "sp-cn": dict(potentials=("colour", "normal"), refine=False),
+    "sp-cnd": dict(refine=False),
+    "sp-c+r": dict(potentials=("colour",)),
+    "sp-cn+r": dict(potentials=("colour", "normal")),
+    "sp1200": dict(superpixels=1200, refine=False),
+    "sp2400": dict(superpixels=2400, refine=False),
+}
+METHODS = ("nn", "inpaint", *CRF_METHODS)
+WITH_STD = ("default", "learned")
+
+
+# -- uncertainty -------------------------------------------------------------------------
+def sparsification(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> np.ndarray:
+    """RMSE (same unit as ``error``) of the pixels left after removing the most uncertain.
+
+    Args:
+        error: (N,) prediction minus truth at the evaluated pixels.
+        uncertainty: (N,) predicted uncertainty (std, count map, ...); larger = removed first.
+        steps: the curve is sampled at removed fractions ``0, 1/steps, ..., (steps-1)/steps``.
+
+    Returns:
+        (steps,) RMSE after removing ``floor(f N)`` pixels. Pixels of equal uncertainty are
+        removed in random order *in expectation*: within a tie the removed squared error
+        is interpolated linearly, so a coarse map (the 3-level count map) is neither
+        favoured nor penalised by the sort order.
+    """
+    sq = np.asarray(error, dtype=np.float64) ** 2
+    u = np.asarray(uncertainty, dtype=np.float64)
+    if sq.shape != u.shape or sq.ndim != 1 or sq.size == 0:
+        raise ValueError(f"error, uncertainty: expected equal (N,) arrays, N > 0, got {sq.shape}, {u.shape}")
+    order = np.argsort(-u, kind="stable")
+    u_sorted, sq_sorted = u[order], sq[order]
+    # Cumulative removed squared error at the end of every tie group.
+    ends = np.flatnonzero(np.r_[u_sorted[1:] != u_sorted[:-1], True]) + 1
+    positions = np.r_[0, ends]
+    removed = np.r_[0.0, np.cumsum(sq_sorted)[ends - 1]]
+    n = sq.size
+    k = np.floor(np.arange(steps) / steps * n)
+    kept = n - k
+    left = np.maximum(sq.sum() - np.interp(k, positions, removed), 0.0)
+    return np.sqrt(left / kept)
+
+
+def ause(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> dict[str, float]:
+    """Area under the sparsification error (DESIGN.md section 5) of one image.
+
+    ``ause``: area between the curve of ``uncertainty`` and the oracle curve (ordered by
+    ``|error|``) over the removed fraction 0..(steps-1)/steps, trapezoid rule, in the unit
+    of ``error``; 0 for an oracle-ordered uncertainty. ``ause_random``: the same for a
+    random order (flat curve at the full RMSE), for scale.
+    """
+    curve = sparsification(error, uncertainty, steps)
+    oracle = sparsification(error, np.abs(error), steps)
+    f = np.arange(steps) / steps
+    flat = np.full_like(oracle, oracle[0])
+    return {"ause": float(np.trapezoid(curve - oracle, f)), "ause_random": float(np.trapezoid(flat - oracle, f)),
+            "curve": curve, "oracle": oracle}
+
+
+# -- data --------------------------------------------------------------------------------
+def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: int | None,
+               keep_fraction: float = 1.0) -> list:
+    """Samples of one frame group, evenly spaced down to ``max_frames``."""
+    if layout in ("raw", "object"):
+        options = dict(options, keep_fraction=keep_fraction)
+    ds = build_dataset(layout, root / folder, **options)
+    idx = list(range(len(ds)))
+    if max_frames is not None and len(idx) > max_frames:
+        idx = sorted({round(i * (len(ds) - 1) / max(max_frames - 1, 1)) for i in range(max_frames)})
+    return [ds[i] for i in idx]
+
+
+def batch(s, device: str):
+    return s.image[None].to(device), s.sparse[None].to(device), s.target[None].to(device), s.K.to(device)
+
+
+# -- methods -----------------------------------------------------------------------------
+def inpaint(sparse: torch.Tensor) -> torch.Tensor:
+    """cv2.inpaint (Telea, radius 5) of a (1, 1, H, W) sparse map in metres, float32."""
+    import cv2
+
+    d = sparse[0, 0].detach().cpu().numpy().astype(np.float32)
+    valid = d > 0
+    out = cv2.inpaint(d, (~valid).astype(np.uint8), 5, cv2.INPAINT_TELEA)
+    out = np.clip(out, d[valid].min(), d[valid].max())
+    return torch.from_numpy(out)[None, None].to(sparse)
+
+
+def fit_weights(frames: Sequence, steps: int, lr: float, device: str) -> tuple[CRFDepth, list[float]]:
+    """``CRFDepth()`` with weights fitted by Adam on the mean squared error (m^2) over target
+    pixels, one frame per step, cycling; the std scale is not trained. Returns the model
+    and the loss of every step."""
+    model = CRFDepth().to(device)
+    params = [p for n, p in model.named_parameters() if n != "log_std_scale"]
+    opt = torch.optim.Adam(params, lr=lr)
+    losses = []
+    for step in range(steps):
+        image, sparse, target, K = batch(frames[step % len(frames)], device)
+        out = model(image, sparse, K)
+        mask = target > 0
+        loss = ((out.depth - target)[mask] ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    return model, losses
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def predict(method: str, model: CRFDepth | None, image, sparse, K, device: str):
+    """(depth (1, 1, H, W), std or None, count map or None, seconds)."""
+    sync(device)
+    t = time.perf_counter()
+    std = count = None
+    with torch.no_grad():
+        if method == "nn":
+            depth = nearest_fill(sparse)
+        elif method == "inpaint":
+            depth = inpaint(sparse)
+        else:
+            out = model(image, sparse, K, return_std=method in WITH_STD)
+            depth, std, count = out.depth, out.std, out.count_uncertainty
+    sync(device)
+    seconds = time.perf_counter() - t
+    if model is not None and method in WITH_STD:
+        seconds -= out.timings.get("uncertainty", 0.0)
+    return depth.clamp_min(1e-3), std, count, seconds
+
+
+# -- evaluation --------------------------------------------------------------------------
+def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) -> tuple[list[dict], dict]:
+    """Rows (one per method) of protocol ``key`` and its mean sparsification curves."""
+    title, groups = PROTOCOLS[key]
+    per = {m: dict(metrics=[], seconds=[], unc={}) for m in args.methods}
+    curves: dict = {}
+    fit_note = {}
+    for group, layout, folder, options in groups:
+        frames = load_group(args.kitti_root, layout, folder, options, args.max_frames)
+        models = {m: CRFDepth(**CRF_METHODS[m]).to(args.device) for m in args.methods
+                  if m in CRF_METHODS and m != "learned"}
+        if "learned" in args.methods:
+            source = FIT_SOURCE[(key, group)]
+            models["learned"] = get_fit(source, args, fits, log)
+            fit_note[group] = f"{group} frames: fit on {source[0]} frames, protocol-{source[1]} hold-out"
+        log(f"  protocol {key}, {group}: {len(frames)} frame(s)")
+        for s in frames:
+            image, sparse, target, K = batch(s, args.device)
+            mask = (target > 0)[0, 0]
+            for m in args.methods:
+                depth, std, count, seconds = predict(m, models.get(m), image, sparse, K, args.device)
+                per[m]["metrics"].append(depth_metrics(depth, target))
+                per[m]["seconds"].append(seconds)
+                if std is None:
+                    continue
+                err = (depth[0, 0][mask] - target[0, 0][mask]).double().cpu().numpy() * 1000.0  # mm
+                for name, u in (("std", std), ("count", count)):
+                    a = ause(err, u[0, 0][mask].double().cpu().numpy())
+                    per[m]["unc"].setdefault(name, []).append(a)
+    rows = []
+    h, w = frames[0].size
+    for m in args.methods:
+        stacked = {k: torch.cat([d[k] for d in per[m]["metrics"]]) for k in per[m]["metrics"][0]}
+        row = {"protocol": key, "method": m, "frames": len(per[m]["metrics"])}
+        row.update({k: v for k, v in average_metrics(stacked).items()})
+        sec = statistics.median(per[m]["seconds"])
+        row.update(seconds_median=sec, fps_median=1.0 / sec, device=args.device, batch_size=1,
+                   threads=torch.get_num_threads(), size=f"{w}x{h}")
+        if m in CRF_METHODS:
+            row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in CRF_METHODS[m].items()}
+        for name, items in per[m]["unc"].items():
+            row[f"ause_{name}_mm"] = float(np.mean([a["ause"] for a in items]))
+            row[f"ause_random_{name}_mm"] = float(np.mean([a["ause_random"] for a in items]))
+            curves[(m, name)] = np.mean([a["curve"] for a in items], 0)
+            curves[(m, "oracle")] = np.mean([a["oracle"] for a in items], 0)
+        if m == "learned":
+            row["fit"] = "; ".join(fit_note.values())
+            row["weights"] = {g: fits[FIT_SOURCE[(key, g)]]["weights"] for g in fit_note}
+        rows.append(row)
+    return rows, curves
+
+
+def get_fit(source: tuple[str, str], args, fits: dict, log) -> CRFDepth:
+    if source not in fits:
+        group, proto = source
+        _, layout, folder, options = next(g for g in PROTOCOLS[proto][1] if g[0] == group)
+        frames = load_group(args.kitti_root, layout, folder, options, args.fit_frames)
+        t = time.perf_counter()
+        model, losses = fit_weights(frames, args.fit_steps, args.fit_lr, args.device)
+        model.eval()
+        fits[source] = dict(model=model, weights=model.weights(), losses=losses)
+        log(f"  fit on {group} ({len(frames)} frames, protocol-{proto} hold-out): {args.fit_steps} Adam steps "
+            f"in {time.perf_counter() - t:.0f} s; loss {losses[0]:.3f} -> {losses[-1]:.3f} m^2; "
+            + ", ".join(f"{k} {v:.3g}" for k, v in fits[source]["weights"].items()))
+    return fits[source]["model"]
+
+
+def subsampling(args, log) -> list[dict]:
+    """RMSE of default and NN on protocol b for every keep fraction."""
+    rows = []
+    model = CRFDepth().to(args.device)
+    for frac in args.fractions:
+        res = {"default": [], "nn": []}
+        for group, layout, folder, options in PROTOCOLS["b"][1]:
+            for s in load_group(args.kitti_root, layout, folder, options, args.subsample_frames, frac):
+                image, sparse, target, K = batch(s, args.device)
+                for m in res:
+                    depth, *_ = predict(m, model if m == "default" else None, image, sparse, K, args.device)
+                    res[m].append(depth_metrics(depth, target))
+        for m, items in res.items():
+            stacked = {k: torch.cat([d[k] for d in items]) for k in items[0]}
+            avg = average_metrics(stacked)
+            rows.append(dict(study="subsampling", protocol="b", method=m, keep_fraction=frac, frames=len(items),
+                             rmse=avg["rmse"], mae=avg["mae"]))
+        log(f"  keep {frac:.0%}: default {rows[-2]['rmse']:.0f} mm, nn {rows[-1]['rmse']:.0f} mm")
+    return rows
+
+
+# -- reporting ---------------------------------------------------------------------------
+def markdown_tables(rows: list[dict]) -> list[str]:
+    lines = []
+    for key in dict.fromkeys(r["protocol"] for r in rows):
+        rs = [r for r in rows if r["protocol"] == key]
+        lines += ["", f"**{PROTOCOLS[key][0]}** ({rs[0]['frames']} frames, {rs[0]['size']}, "
+                      f"{rs[0]['device']}, batch 1, {rs[0]['threads']} thread(s))", "",
+                  "| method | RMSE mm | MAE mm | iRMSE 1/km | iMAE 1/km | REL | d<1.25 | fps |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in rs:
+            lines.append(f"| {r['method']} | {r['rmse']:.0f} | {r['mae']:.0f} | {r['irmse']:.2f} | {r['imae']:.2f} "
+                         f"| {r['rel']:.4f} | {r['delta1']:.4f} | {r['fps_median']:.2f} |")
+        for r in rs:
+            if "fit" in r:
+                lines.append(f"\nlearned: {r['fit']}")
+    unc = [r for r in rows if "ause_std_mm" in r]
+    if unc:
+        lines += ["", "**Uncertainty: AUSE of RMSE in mm (lower is better; random order for scale)**", "",
+                  "| protocol | method | AUSE std | AUSE count map | AUSE random order |", "|---|---|---|---|---|"]
+        for r in unc:
+            lines.append(f"| {r['protocol']} | {r['method']} | {r['ause_std_mm']:.0f} | {r['ause_count_mm']:.0f} "
+                         f"| {r['ause_random_std_mm']:.0f} |")
+    return lines
+
+
+def subsampling_table(rows: list[dict]) -> list[str]:
+    lines = ["", f"**Sub-sampling, protocol (b): RMSE mm vs share of input LiDAR points kept** "
+                 f"({rows[0]['frames']} frames)", "", "| kept | default | nn |", "|---|---|---|"]
+    for frac in dict.fromkeys(r["keep_fraction"] for r in rows):
+        d = {r["method"]: r["rmse"] for r in rows if r["keep_fraction"] == frac}
+        lines.append(f"| {frac:.0%} | {d['default']:.0f} | {d['nn']:.0f} |")
+    return lines
+
+
+def verdicts(rows: list[dict]) -> list[str]:
+    out = ["", "**Verdicts**", ""]
+    by = {(r["protocol"], r["method"]): r for r in rows}
+    for key in dict.fromkeys(r["protocol"] for r in rows):
+        if (key, "learned") in by and (key, "nn") in by:
+            l, n = by[(key, "learned")]["rmse"], by[(key, "nn")]["rmse"]
+            gain = (n - l) / n
+            need = TARGET_GAIN_C if key == "c" else 0.0
+            ok = gain > need if need == 0 else gain >= need
+            out.append(f"- protocol {key}: learned {l:.0f} mm vs nn {n:.0f} mm: {gain:+.1%} "
+                       f"(target {'> 0' if need == 0 else f'>= {need:.0%}'}): "
+                       f"{'meets' if ok else f'misses by {(need - gain) * 100:.1f} points'}")
+    for suffix, label in (("", "no refinement"), ("+r", "with refinement")):
+        chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "default"]
+        if all(("a", m) in by for m in chain):
+            v = [by[("a", m)]["rmse"] for m in chain]
+            steps = [f"{chain[i]} -> {chain[i + 1]}: {v[i]:.0f} -> {v[i + 1]:.0f} mm "
+                     f"({'ok' if v[i + 1] <= v[i] else f'worse by {v[i + 1] - v[i]:.0f} mm'})" for i in range(2)]
+            ok = all(v[i + 1] <= v[i] for i in range(2))
+            out.append(f"- Table 1 order on protocol a ({label}): {'; '.join(steps)}: {'meets' if ok else 'misses'}")
+    return out
+
+
+def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    if sub_rows:
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        for m in ("default", "nn"):
+            rs = [r for r in sub_rows if r["method"] == m]
+            ax.plot([100 * r["keep_fraction"] for r in rs], [r["rmse"] for r in rs], "o-", label=m)
+        ax.set_xlabel("input LiDAR points kept (%)")
+        ax.set_ylabel("RMSE (mm)")
+        ax.set_title("protocol (b): sub-sampling")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        paths.append(out_dir / "subsampling.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    if curves:
+        keys = list(curves)
+        fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.3), squeeze=False)
+        for ax, key in zip(axes[0], keys):
+            f = np.arange(SPARSIFY_STEPS) / SPARSIFY_STEPS * 100
+            for (m, name), c in curves[key].items():
+                if m == "default" or name == "oracle":
+                    ax.plot(f, c, label=f"{m} {name}" if name != "oracle" else "oracle")
+            ax.set_title(f"protocol {key}: sparsification")
+            ax.set_xlabel("pixels removed (%)")
+            ax.set_ylabel("RMSE (mm)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(out_dir / "sparsification.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT, help="KITTI root (default: %(default)s)")
+    parser.add_argument("--protocols", nargs="+", choices=list(PROTOCOLS), default=list(PROTOCOLS))
+    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
+    parser.add_argument("--max-frames", type=int, default=None, help="frames per group (evenly spaced); default all")
+    parser.add_argument("--fit-steps", type=int, default=16, help="Adam steps of each learned-weight fit")
+    parser.add_argument("--fit-frames", type=int, default=4, help="training frames of each fit")
+    parser.add_argument("--fit-lr", type=float, default=0.1)
+    parser.add_argument("--fractions", type=float, nargs="+", default=[0.2, 0.4, 0.6, 0.8, 1.0])
+    parser.add_argument("--subsample-frames", type=int, default=None, help="frames per group of the sub-sampling "
+                        "study (default: --max-frames)")
+    parser.add_argument("--no-subsample", action="store_true", help="skip the sub-sampling study")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 frame per group, 2 fit steps, "
+                        "1 fit frame, fractions 0.5 and 1.0")
+    parser.add_argument("--out-dir", type=Path, default=Path("accuracy_results"))
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.max_frames, args.fit_steps, args.fit_frames = 1, 2, 1
+        if args.fractions == parser.get_default("fractions"):
+            args.fractions = [0.5, 1.0]
+    if args.subsample_frames is None:
+        args.subsample_frames = args.max_frames
+    if "learned" in args.methods and args.fit_steps < 1:
+        parser.error("--fit-steps: expected >= 1")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict]:
+    """Run the benchmark; returns the JSON rows (also printed and written to ``--out-dir``)."""
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - start:6.0f} s] {msg}", flush=True)
+
+    rows, fits, curves = [], {}, {}
+    for key in args.protocols:
+        log(f"protocol {key}")
+        r, c = evaluate_protocol(key, args, fits, log)
+        rows += r
+        curves[key] = c
+    sub_rows = [] if args.no_subsample else (log("sub-sampling study") or subsampling(args, log))
+    lines = [f"# crfdepth accuracy benchmark ({args.kitti_root})", *markdown_tables(rows)]
+    if sub_rows:
+        lines += subsampling_table(sub_rows)
+    lines += verdicts(rows)
+    lines.append(f"\ntotal run time {time.perf_counter() - start:.0f} s")
+    text = "\n".join(lines)
+    print(text)
+    all_rows = rows + sub_rows
+    with open(args.out_dir / "results.jsonl", "w") as fh:
+        for r in all_rows:
+            print(json.dumps(r))
+            fh.write(json.dumps(r) + "\n")
+    (args.out_dir / "results.md").write_text(text + "\n")
+    for p in plots(args.out_dir, sub_rows, curves):
+        print(f"plot: {p}")
+    return all_rows
+
+
+if __name__ == "__main__":
+    main()
