@@ -201,7 +201,7 @@ def fit_weights(frames: Sequence, steps: int, lr: float, device: str) -> tuple[C
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     return model, losses
 
 
@@ -278,6 +278,9 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         if m == "learned":
             row["fit"] = "; ".join(fit_note.values())
             row["weights"] = {g: fits[FIT_SOURCE[(key, g)]]["weights"] for g in fit_note}
+            row["fit_loss_m2"] = {g: [float(np.mean(fits[FIT_SOURCE[(key, g)]]["losses"][:args.fit_frames])),
+                                      float(np.mean(fits[FIT_SOURCE[(key, g)]]["losses"][-args.fit_frames:]))]
+                                  for g in fit_note}
         rows.append(row)
     return rows, curves
 
@@ -292,7 +295,8 @@ def get_fit(source: tuple[str, str], args, fits: dict, log) -> CRFDepth:
         model.eval()
         fits[source] = dict(model=model, weights=model.weights(), losses=losses)
         log(f"  fit on {group} ({len(frames)} frames, protocol-{proto} hold-out): {args.fit_steps} Adam steps "
-            f"in {time.perf_counter() - t:.0f} s; loss {losses[0]:.3f} -> {losses[-1]:.3f} m^2; "
+            f"in {time.perf_counter() - t:.0f} s; mean loss of the first / last pass over the frames "
+            f"{np.mean(losses[:len(frames)]):.3f} / {np.mean(losses[-len(frames):]):.3f} m^2; "
             + ", ".join(f"{k} {v:.3g}" for k, v in fits[source]["weights"].items()))
     return fits[source]["model"]
 
@@ -364,6 +368,9 @@ def verdicts(rows: list[dict]) -> list[str]:
             out.append(f"- protocol {key}: learned {l:.0f} mm vs nn {n:.0f} mm: {gain:+.1%} "
                        f"(target {'> 0' if need == 0 else f'>= {need:.0%}'}): "
                        f"{'meets' if ok else f'misses by {(need - gain) * 100:.1f} points'}")
+            if (key, "default") in by:
+                d = by[(key, "default")]["rmse"]
+                out.append(f"  (learned vs default weights on protocol {key}: {l:.0f} vs {d:.0f} mm, {(d - l) / d:+.1%})")
     for suffix, label in (("", "no refinement"), ("+r", "with refinement")):
         chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "default"]
         if all(("a", m) in by for m in chain):
