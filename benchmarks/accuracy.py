@@ -370,7 +370,8 @@ def verdicts(rows: list[dict]) -> list[str]:
                        f"{'meets' if ok else f'misses by {(need - gain) * 100:.1f} points'}")
             if (key, "default") in by:
                 d = by[(key, "default")]["rmse"]
-                out.append(f"  (learned vs default weights on protocol {key}: {l:.0f} vs {d:.0f} mm, {(d - l) / d:+.1%})")
+                out.append(f"  (learned vs default weights on protocol {key}: {l:.0f} vs {d:.0f} mm, "
+                           f"{(d - l) / d:+.1%})")
     for suffix, label in (("", "no refinement"), ("+r", "with refinement")):
         chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "default"]
         if all(("a", m) in by for m in chain):
