@@ -78,6 +78,15 @@ class _Monitor:
         return KrylovResult(self.iterations, self.rel_residual, converged & torch.isfinite(self.rel_residual))
 
 
+def _start(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor,
+           rtol: float) -> tuple[torch.Tensor, torch.Tensor, _Monitor]:
+    """Initial iterate, its residual ``c - M y`` and the convergence monitor."""
+    if y0 is None:
+        return torch.zeros_like(c), c.clone(), _Monitor(c, residual_weight, rtol)
+    y = y0.clone()
+    return y, c - matvec(y), _Monitor(c, residual_weight, rtol)
+
+
 def conjugate_gradient(
     matvec: MatVec,
     c: torch.Tensor,
@@ -103,13 +112,7 @@ def conjugate_gradient(
         y (G, n) and a :class:`KrylovResult`.
     """
     tiny = torch.finfo(c.dtype).tiny
-    if y0 is None:
-        y = torch.zeros_like(c)
-        r = c.clone()
-    else:
-        y = y0.clone()
-        r = c - matvec(y)
-    monitor = _Monitor(c, residual_weight, rtol)
+    y, r, monitor = _start(matvec, c, y0, residual_weight, rtol)
     if monitor.check(r, 0) or max_iter == 0:
         return y, monitor.result()
     p = r.clone()
@@ -190,13 +193,7 @@ def conjugate_gradient_squared(
     method for the SPD systems of crfdepth; CGS is offered to reproduce the paper.
     """
     tiny = torch.finfo(c.dtype).tiny
-    if y0 is None:
-        y = torch.zeros_like(c)
-        r = c.clone()
-    else:
-        y = y0.clone()
-        r = c - matvec(y)
-    monitor = _Monitor(c, residual_weight, rtol)
+    y, r, monitor = _start(matvec, c, y0, residual_weight, rtol)
     if monitor.check(r, 0) or max_iter == 0:
         return y, monitor.result()
     r_hat = r.clone()
