@@ -58,7 +58,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from crfdepth.cli.complete import add_model_arguments, build_model
+from crfdepth.cli.complete import _positive_int, add_model_arguments, build_model
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
@@ -91,16 +91,6 @@ def _fraction(text: str) -> float:
         value = math.nan
     if not 0.0 < value < 1.0:
         raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return value
 
 
