@@ -104,14 +104,21 @@ def _potentials(text: str) -> tuple[str, ...]:
     return names
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+def int_at_least(low: int):
+    """An argparse ``type`` accepting integers >= ``low`` (shared by the sub-commands)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+        return value
+
+    return parse
+
+
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -167,7 +174,7 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
                  "options --mode, --superpixels, --potentials and --no-refine, where given, override it.")
     model.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
                        help="graph nodes (default: the checkpoint's, else superpixel)")
-    model.add_argument("--superpixels", type=_positive_int, default=None, metavar="N",
+    model.add_argument("--superpixels", type=int_at_least(1), default=None, metavar="N",
                        help="SLIC segments for a 1216x352 image (default: the checkpoint's, else 5500)")
     model.add_argument("--potentials", type=_potentials, default=None, metavar="LIST",
                        help="comma list of colour,normal,distance; colour required (default: the "

@@ -58,7 +58,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from crfdepth.cli.complete import _positive_int, add_model_arguments, build_model
+from crfdepth.cli.complete import add_model_arguments, build_model, int_at_least
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
@@ -94,16 +94,6 @@ def _fraction(text: str) -> float:
     return value
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return value
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register the ``evaluate`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
@@ -126,14 +116,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                       help="raw / object: how LiDAR points are held out as targets (default: fraction)")
     data.add_argument("--holdout-fraction", type=_fraction, default=None, metavar="F",
                       help="raw / object with --holdout fraction: share of points held out (default 0.2)")
-    data.add_argument("--keep-every-ring", type=_positive_int, default=None, metavar="N",
+    data.add_argument("--keep-every-ring", type=int_at_least(1), default=None, metavar="N",
                       help="raw / object with --holdout rings: keep every N-th laser ring as input "
                            "(default 4)")
-    data.add_argument("--seed", type=_non_negative_int, default=None, metavar="S",
+    data.add_argument("--seed", type=int_at_least(0), default=None, metavar="S",
                       help="raw / object: hold-out seed; synthetic: first scene (default 0)")
-    data.add_argument("--limit", type=_positive_int, default=None, metavar="N",
+    data.add_argument("--limit", type=int_at_least(1), default=None, metavar="N",
                       help="evaluate only the first N frames")
-    data.add_argument("--batch-size", type=_positive_int, default=1, metavar="B",
+    data.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
                       help="frames per forward pass (frames of a batch must have the same size; "
                            "default 1)")
     out = parser.add_argument_group("output")
