@@ -119,8 +119,6 @@ def int_at_least(low: int):
     return parse
 
 
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register the ``complete`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
