@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 import lightning.pytorch as pl
-from torch.utils.data import DataLoader, Dataset, Subset
+from torch.utils.data import ConcatDataset, DataLoader, Dataset, Subset
 
 from crfdepth.data import HorizontalFlip, build_dataset, collate_samples
 from crfdepth.data.factory import LAYOUTS
@@ -67,7 +67,9 @@ class TransformedDataset(Dataset):
 
 
 def dataset_names(dataset: Dataset) -> list[str]:
-    """Sample names of a crfdepth dataset (or a ``Subset`` of one), in dataset order."""
+    """Sample names of a crfdepth dataset (or a ``Subset`` / ``ConcatDataset`` of them), in order."""
+    if isinstance(dataset, ConcatDataset):
+        return [n for d in dataset.datasets for n in dataset_names(d)]
     if isinstance(dataset, Subset):
         names = dataset_names(dataset.dataset)
         return [names[i] for i in dataset.indices]
@@ -75,6 +77,28 @@ def dataset_names(dataset: Dataset) -> list[str]:
     if names is None:
         return [dataset[i].name for i in range(len(dataset))]
     return list(names)
+
+
+def _check_source(index: int, source: Any) -> dict[str, Any]:
+    """An ``extra_train`` entry, checked and normalised (``names_contain`` as a list or None)."""
+    where = f"extra_train[{index}]"
+    if not isinstance(source, dict):
+        raise InputError(f"{where}: expected a mapping with layout, root, options, names_contain, "
+                         f"got {type(source).__name__}")
+    unknown = set(source) - {"layout", "root", "options", "names_contain"}
+    if unknown:
+        raise InputError(f"{where}: expected keys among layout, root, options, names_contain, got {sorted(unknown)}")
+    if source.get("layout") not in LAYOUTS:
+        raise InputError(f"{where}.layout: expected one of {', '.join(LAYOUTS)}, got {source.get('layout')!r}")
+    options = source.get("options")
+    if options is not None and not isinstance(options, dict):
+        raise InputError(f"{where}.options: expected a mapping of dataset options, got {type(options).__name__}")
+    keep = source.get("names_contain")
+    if isinstance(keep, str):
+        keep = [keep]
+    if keep is not None and (not isinstance(keep, list) or not all(isinstance(k, str) for k in keep)):
+        raise InputError(f"{where}.names_contain: expected a string or a list of strings, got {keep!r}")
+    return {**source, "names_contain": keep}
 
 
 class CRFDataModule(pl.LightningDataModule):
@@ -108,6 +132,13 @@ class CRFDataModule(pl.LightningDataModule):
         val_batch_size: frames per validation batch; None = ``batch_size``.
         num_workers: ``DataLoader`` worker processes (0 = load in the main process).
         shuffle: shuffle the training frames each epoch.
+        extra_train: more training sources, concatenated to the first: a list of
+            ``{layout, root, options, names_contain}`` mappings (``options`` and
+            ``names_contain`` optional; ``names_contain``, a string or list, keeps only the
+            frames whose name contains one of them). Frames matching
+            ``val_names_contain`` are left out of every source, so a held-out drive stays
+            held out. E.g. the same scans with another hold-out (``{layout: raw, root:
+            ..., options: {holdout: rings}}``) or another folder (``object``).
 
     Raises:
         InputError: unknown layout, a split option that does not apply, a split that
@@ -131,6 +162,7 @@ class CRFDataModule(pl.LightningDataModule):
         val_batch_size: int | None = None,
         num_workers: int = 0,
         shuffle: bool = True,
+        extra_train: list[dict[str, Any]] | None = None,
     ) -> None:
         super().__init__()
         for name, value in (("layout", layout), ("val_layout", val_layout)):
@@ -147,6 +179,7 @@ class CRFDataModule(pl.LightningDataModule):
                 raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
         if not isinstance(num_workers, int) or num_workers < 0:
             raise InputError(f"num_workers: expected an integer >= 0, got {num_workers!r}")
+        self.extra_train = [_check_source(i, source) for i, source in enumerate(extra_train or [])]
         self.save_hyperparameters()
         self.layout = layout
         self.root = root
@@ -217,6 +250,8 @@ class CRFDataModule(pl.LightningDataModule):
                 raise InputError(f"{what}: the split of the {len(names)} frames under {self.root} leaves "
                                  f"{len(train_idx)} training and {len(val_idx)} validation frames; both need one")
             train, val = Subset(train, train_idx), Subset(val, val_idx)
+        if self.extra_train:
+            train = ConcatDataset([train, *(self._extra(i, source) for i, source in enumerate(self.extra_train))])
         both = set(dataset_names(train)) & set(dataset_names(val))
         if both:
             shown = ", ".join(sorted(both)[:3])
@@ -224,6 +259,19 @@ class CRFDataModule(pl.LightningDataModule):
                              f"(e.g. {shown}); use val_names_contain / val_fraction (raw, object), disjoint "
                              f"synthetic seeds, or another val_layout / val_root")
         return train, val
+
+    def _extra(self, index: int, source: dict[str, Any]) -> Dataset:
+        """Extra training source ``index``: its frames minus the held-out names."""
+        dataset = self._build(source["layout"], source.get("root"), dict(source.get("options") or {}),
+                              f"extra_train[{index}]")
+        keep, drop = source.get("names_contain"), self.val_names_contain or []
+        names = dataset_names(dataset)
+        idx = [i for i, n in enumerate(names)
+               if (keep is None or any(k in n for k in keep)) and not any(d in n for d in drop)]
+        if not idx:
+            raise InputError(f"extra_train[{index}]: none of the {len(names)} frames of {source.get('root')} "
+                             f"is left (names_contain={keep!r}, held out: {drop!r})")
+        return dataset if len(idx) == len(names) else Subset(dataset, idx)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:

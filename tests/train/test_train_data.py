@@ -124,3 +124,46 @@ def test_same_frames_in_two_layouts_are_refused(kitti_root):
                        val_layout="val_selection", val_root=str(kitti_root / "depth_selection"))
     with pytest.raises(InputError, match=r"2 frame\(s\) are in both"):
         dm.setup("fit")
+
+
+def test_kitti_weights_config_trains_on_48_frames_and_never_on_drive_0001(kitti_root, configs):
+    data = yaml.safe_load((configs / "kitti_weights.yaml").read_text())["data"]
+    for source in [data, *data["extra_train"]]:  # config paths are relative to the repository root
+        source["root"] = source["root"].replace("../shared/data/kitti", str(kitti_root))
+    dm = CRFDataModule(**{**data, "flip": 0.0})
+    dm.setup("fit")
+    train, val = dataset_names(dm.train_set), dataset_names(dm.val_set)
+    assert val == ["2011_09_26_drive_0001_sync_0000000005_image_02"]
+    assert len(train) == 48 and not any("drive_0001" in n for n in train)
+    assert sum("drive_0060" in n for n in train) == 26 and len(set(train)) == 24  # two hold-outs per scan
+    # The second copy of a scan has its 16-beam input: fewer LiDAR pixels than the 80% one.
+    first, second = dm.train_set[0], dm.train_set[13]
+    assert first.name == second.name
+    assert (second.sparse > 0).sum() < 0.5 * (first.sparse > 0).sum()
+
+
+def test_extra_train_names_contain_keeps_matching_frames(kitti_root):
+    dm = CRFDataModule(layout="raw", root=str(kitti_root / "raw"), val_names_contain="drive_0001", flip=0.0,
+                       extra_train=[{"layout": "object", "root": str(kitti_root / "object" / "training"),
+                                     "names_contain": ["000010", "000011"]}])
+    dm.setup("fit")
+    assert dataset_names(dm.train_set)[13:] == ["000010", "000011"]
+
+
+@pytest.mark.parametrize("extra, match", [
+    ("raw", r"extra_train\[0\]: expected a mapping"),
+    ({"layout": "lidar"}, r"extra_train\[0\].layout: expected one of"),
+    ({"layout": "raw", "folder": "x"}, r"extra_train\[0\]: expected keys.*folder"),
+    ({"layout": "raw", "options": [1]}, r"extra_train\[0\].options: expected a mapping"),
+    ({"layout": "raw", "names_contain": 5}, r"extra_train\[0\].names_contain: expected a string"),
+])
+def test_bad_extra_train_is_named(extra, match):
+    with pytest.raises(InputError, match=match):
+        CRFDataModule(extra_train=[extra])
+
+
+def test_extra_train_that_keeps_nothing_is_named(kitti_root):
+    dm = CRFDataModule(layout="raw", root=str(kitti_root / "raw"), val_names_contain="drive_0001",
+                       extra_train=[{"layout": "raw", "root": str(kitti_root / "raw"), "names_contain": "drive_0001"}])
+    with pytest.raises(InputError, match=r"extra_train\[0\]: none of the 14 frames"):
+        dm.setup("fit")
