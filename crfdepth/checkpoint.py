@@ -1,7 +1,8 @@
 """Save and load trained :class:`~crfdepth.model.CRFDepth` models (no Lightning needed).
 
-:func:`load_model` reads three kinds of file, always with ``torch.load(weights_only=True)``
-(only tensors and plain containers are unpickled; no code in the file runs):
+:func:`load_model` reads four kinds of file. The first three are read with
+``torch.load(weights_only=True)`` (only tensors and plain containers are unpickled; no
+code in the file runs):
 
 (a) a Lightning checkpoint (``.ckpt``) of the trainer in ``train/``: ``{"state_dict":
     {"model.<name>": tensor, ...}, "hyper_parameters": {"crf": {CRFDepth kwargs}}, ...}``.
@@ -13,6 +14,9 @@
 (c) a bare ``CRFDepth().state_dict()`` (``torch.save(model.state_dict(), path)``): it
     holds no configuration, so the model is built with the default configuration
     (superpixel mode, all potentials, refinement on) unless ``overrides`` say otherwise.
+(d) a JSON weights file of :mod:`crfdepth.pretrained` (such as the shipped
+    ``crfdepth/weights/kitti.json``): the configuration with the learned values written
+    in; recognised by its first character ``{``.
 
 The configuration is ``CRFDepth.config``: the constructor's keyword arguments, JSON
 friendly. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by the stored
@@ -33,6 +37,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
+from crfdepth.pretrained import read_weights
 
 __all__ = ["FORMAT", "VERSION", "load_model", "save_model"]
 
@@ -128,6 +133,16 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     if file.is_dir():
         raise InputError(f"{file}: expected a checkpoint file, got a folder")
     device = _check_device(map_location)
+    if _is_json(file):  # a weights file (crfdepth.pretrained): the configuration is the model
+        config = {**read_weights(file)["config"], **dict(overrides or {})}
+        try:
+            model = CRFDepth(**config)
+        except TypeError as exc:
+            raise InputError(f"{file}: the weights file's configuration does not fit CRFDepth ({exc})") from None
+        except InputError as exc:
+            raise InputError(f"{file}: invalid model configuration in the weights file ({exc})") from None
+        logger.info("loaded CRFDepth (%s mode) from %s (weights file)", model.mode, file)
+        return model.to(device).eval()
     loaded = _torch_load(file, map_location)
     config, state, kind = _unpack(file, loaded)
     config = {**config, **dict(overrides or {})}
@@ -158,6 +173,12 @@ def _check_device(map_location: str | torch.device) -> torch.device:
         raise InputError(f"map_location: CUDA is not available on this machine/PyTorch installation, "
                          f"got {map_location!r}; use 'cpu'")
     return device
+
+
+def _is_json(file: Path) -> bool:
+    """Whether ``file`` starts (after white space) with ``{``: a JSON weights file."""
+    with open(file, "rb") as handle:
+        return handle.read(64).lstrip()[:1] == b"{"
 
 
 def _torch_load(file: Path, map_location: str | torch.device) -> Any:

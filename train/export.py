@@ -1,0 +1,87 @@
+"""Turn a trainer checkpoint into a crfdepth weights file (JSON, :mod:`crfdepth.pretrained`).
+
+::
+
+    python -m train.export lightning_logs/kitti_weights/version_0/checkpoints/best.ckpt \\
+        --out crfdepth/weights/kitti.json --config configs/kitti_weights.yaml \\
+        --command "python -m train fit --config configs/kitti_weights.yaml"
+
+The file holds the model's complete configuration with the learned values, and an
+``"about"`` record written from the checkpoint: the epoch and step, the monitored
+validation score of the checkpoint, the training arguments (``hyper_parameters``), the
+data module's arguments (``datamodule_hyper_parameters``: layout, root, split, hold-out),
+the YAML config given with ``--config`` (verbatim) and the ``--command`` text. That is
+what ``crfdepth/weights/README.md`` refers to for the shipped weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+
+from crfdepth.checkpoint import load_model
+from crfdepth.errors import InputError
+from crfdepth.pretrained import save_weights
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with tensors, paths and tuples made JSON-friendly."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, torch.Tensor):
+        return value.item() if value.numel() == 1 else value.tolist()
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    return str(value)
+
+
+def describe_checkpoint(path: Path) -> dict[str, Any]:
+    """The ``about`` record of a Lightning checkpoint (see the module docstring)."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    about: dict[str, Any] = {"checkpoint": path.name, "epoch": ckpt.get("epoch"), "global_step": ckpt.get("global_step")}
+    for key, state in (ckpt.get("callbacks") or {}).items():
+        if str(key).startswith("ModelCheckpoint") and isinstance(state, dict):
+            about["monitor"] = state.get("monitor")
+            about["best_model_score"] = _plain(state.get("best_model_score"))
+            about["best_model_path"] = Path(str(state.get("best_model_path") or "")).name or None
+    about["hyper_parameters"] = _plain(ckpt.get("hyper_parameters") or {})
+    about["datamodule_hyper_parameters"] = _plain(ckpt.get("datamodule_hyper_parameters") or {})
+    return about
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", type=Path, help="a Lightning .ckpt of the trainer")
+    parser.add_argument("--out", type=Path, required=True, help="the weights file to write (.json)")
+    parser.add_argument("--config", type=Path, default=None, help="the training YAML, stored verbatim")
+    parser.add_argument("--command", default=None, help="the command that trained the checkpoint")
+    parser.add_argument("--note", default=None, help="free text stored as about.note (e.g. validation numbers)")
+    args = parser.parse_args(argv)
+    try:
+        model = load_model(args.checkpoint)
+        about = describe_checkpoint(args.checkpoint)
+        if args.config is not None:
+            if not args.config.is_file():
+                raise InputError(f"--config: no such file: {args.config}")
+            about["config_file"] = str(args.config)
+            about["config"] = args.config.read_text(encoding="utf-8")
+        if args.command is not None:
+            about["command"] = args.command
+        if args.note is not None:
+            about["note"] = args.note
+        out = save_weights(model, args.out, about)
+    except (InputError, FileNotFoundError) as exc:
+        print(f"train.export: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}: " + ", ".join(f"{k} {v:.4g}" for k, v in model.weights().items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
