@@ -71,11 +71,10 @@ import torch
 
 from crfdepth.data.factory import build_dataset
 from crfdepth.fill import nearest_fill
-from crfdepth.metrics import METRICS, average_metrics, depth_metrics
+from crfdepth.metrics import SPARSIFY_STEPS, ause, average_metrics, depth_metrics
 from crfdepth.model import CRFDepth
 
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
-SPARSIFY_STEPS = 100  # fractions removed: 0, 0.01, ..., 0.99
 TARGET_GAIN_C = 0.20  # learned must beat NN on protocol c by >= 20% RMSE
 
 # protocol -> (title, [(group, layout, sub-folder, dataset options)])
@@ -108,55 +107,6 @@ METHODS = ("nn", "inpaint", *CRF_METHODS)
 WITH_STD = ("default", "learned")
 
 
-# -- uncertainty -------------------------------------------------------------------------
-def sparsification(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> np.ndarray:
-    """RMSE (same unit as ``error``) of the pixels left after removing the most uncertain.
-
-    Args:
-        error: (N,) prediction minus truth at the evaluated pixels.
-        uncertainty: (N,) predicted uncertainty (std, count map, ...); larger = removed first.
-        steps: the curve is sampled at removed fractions ``0, 1/steps, ..., (steps-1)/steps``.
-
-    Returns:
-        (steps,) RMSE after removing ``floor(f N)`` pixels. Pixels of equal uncertainty are
-        removed in random order *in expectation*: within a tie the removed squared error
-        is interpolated linearly, so a coarse map (the 3-level count map) is neither
-        favoured nor penalised by the sort order.
-    """
-    sq = np.asarray(error, dtype=np.float64) ** 2
-    u = np.asarray(uncertainty, dtype=np.float64)
-    if sq.shape != u.shape or sq.ndim != 1 or sq.size == 0:
-        raise ValueError(f"error, uncertainty: expected equal (N,) arrays, N > 0, got {sq.shape}, {u.shape}")
-    order = np.argsort(-u, kind="stable")
-    u_sorted, sq_sorted = u[order], sq[order]
-    # Cumulative removed squared error at the end of every tie group.
-    ends = np.flatnonzero(np.r_[u_sorted[1:] != u_sorted[:-1], True]) + 1
-    positions = np.r_[0, ends]
-    removed = np.r_[0.0, np.cumsum(sq_sorted)[ends - 1]]
-    n = sq.size
-    k = np.floor(np.arange(steps) / steps * n)
-    kept = n - k
-    left = np.maximum(sq.sum() - np.interp(k, positions, removed), 0.0)
-    return np.sqrt(left / kept)
-
-
-def ause(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> dict[str, float]:
-    """Area under the sparsification error (DESIGN.md section 5) of one image.
-
-    ``ause``: area between the curve of ``uncertainty`` and the oracle curve (ordered by
-    ``|error|``) over the removed fraction 0..(steps-1)/steps, trapezoid rule, in the unit
-    of ``error``; 0 for an oracle-ordered uncertainty. ``ause_random``: the same for a
-    random order (flat curve at the full RMSE), for scale.
-    """
-    curve = sparsification(error, uncertainty, steps)
-    oracle = sparsification(error, np.abs(error), steps)
-    f = np.arange(steps) / steps
-    flat = np.full_like(oracle, oracle[0])
-    return {"ause": float(np.trapezoid(curve - oracle, f)), "ause_random": float(np.trapezoid(flat - oracle, f)),
-            "curve": curve, "oracle": oracle}
-
-
-# -- data --------------------------------------------------------------------------------
 def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: int | None,
                keep_fraction: float = 1.0) -> list:
     """Samples of one frame group, evenly spaced down to ``max_frames``."""

@@ -3,10 +3,14 @@
 Computed over the pixels where the ground truth is > 0, **per image**, then averaged over
 images (the official devkit's way). Units: RMSE and MAE in millimetres, iRMSE and iMAE in
 1/km, REL unitless, ``delta1`` the fraction of pixels with ``max(p/g, g/p) < 1.25``.
+
+Uncertainty quality (DESIGN.md section 5): :func:`sparsification` curves and
+:func:`ause`, the area between an uncertainty's curve and the oracle's.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from crfdepth.errors import InputError
@@ -95,3 +99,60 @@ def format_metrics(metrics: dict[str, float]) -> str:
             text = f"{value:.1f}" if key in ("rmse", "mae") else f"{value:.4f}" if key in ("rel", "delta1") else f"{value:.2f}"
             parts.append(f"{names[key]} {text}{(' ' + UNITS[key]) if UNITS[key] else ''}")
     return " | ".join(parts)
+
+
+# --------------------------------------------------------------------------- uncertainty
+
+SPARSIFY_STEPS = 100
+"""Points of a sparsification curve: removed fractions 0, 0.01, ..., 0.99."""
+
+
+def sparsification(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> np.ndarray:
+    """RMSE (same unit as ``error``) of the pixels left after removing the most uncertain.
+
+    Args:
+        error: (N,) prediction minus truth at the evaluated pixels.
+        uncertainty: (N,) predicted uncertainty (std, count map, ...); larger = removed first.
+        steps: the curve is sampled at removed fractions ``0, 1/steps, ..., (steps-1)/steps``.
+
+    Returns:
+        (steps,) RMSE after removing ``floor(f N)`` pixels. Pixels of equal uncertainty are
+        removed in random order *in expectation*: within a tie the removed squared error
+        is interpolated linearly, so a coarse map (the 3-level count map) is neither
+        favoured nor penalised by the sort order.
+    """
+    sq = np.asarray(error, dtype=np.float64) ** 2
+    u = np.asarray(uncertainty, dtype=np.float64)
+    if sq.shape != u.shape or sq.ndim != 1 or sq.size == 0:
+        raise InputError(f"error, uncertainty: expected two (N,) arrays of one length N > 0, "
+                         f"got shapes {sq.shape} and {u.shape}")
+    order = np.argsort(-u, kind="stable")
+    u_sorted, sq_sorted = u[order], sq[order]
+    # Cumulative removed squared error at the end of every tie group.
+    ends = np.flatnonzero(np.r_[u_sorted[1:] != u_sorted[:-1], True]) + 1
+    positions = np.r_[0, ends]
+    removed = np.r_[0.0, np.cumsum(sq_sorted)[ends - 1]]
+    n = sq.size
+    k = np.floor(np.arange(steps) / steps * n)
+    kept = n - k
+    left = np.maximum(sq.sum() - np.interp(k, positions, removed), 0.0)
+    return np.sqrt(left / kept)
+
+
+def ause(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> dict[str, float]:
+    """Area under the sparsification error (DESIGN.md section 5) of one image.
+
+    ``ause``: area between the curve of ``uncertainty`` and the oracle curve (ordered by
+    ``|error|``) over the removed fraction 0..(steps-1)/steps, trapezoid rule, in the unit
+    of ``error``; 0 for an oracle-ordered uncertainty. ``ause_random``: the same for a
+    random order (flat curve at the full RMSE), for scale.
+    """
+    curve = sparsification(error, uncertainty, steps)
+    oracle = sparsification(error, np.abs(error), steps)
+    f = np.arange(steps) / steps
+    flat = np.full_like(oracle, oracle[0])
+    return {"ause": float(np.trapezoid(curve - oracle, f)), "ause_random": float(np.trapezoid(flat - oracle, f)),
+            "curve": curve, "oracle": oracle}
+
+
+# -- data --------------------------------------------------------------------------------

@@ -1,12 +1,13 @@
-"""KITTI metrics against hand-computed values."""
+"""KITTI metrics and the sparsification / AUSE of an uncertainty, against hand-computed values."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
+from crfdepth.metrics import ause, average_metrics, depth_metrics, format_metrics, sparsification
 
 
 def test_hand_computed_single_image():
@@ -49,3 +50,32 @@ def test_bad_input():
         depth_metrics(torch.ones(2, 2, 2), torch.stack([torch.ones(2, 2), torch.zeros(2, 2)]))
     with pytest.raises(InputError, match="pred: expected finite depth > 0 at ground-truth pixels, got 1"):
         depth_metrics(torch.tensor([[0.0, 1.0]]), torch.tensor([[5.0, 5.0]]))
+
+
+def test_ause_of_oracle_order_is_zero():
+    rng = np.random.default_rng(0)
+    err = rng.normal(size=5000) * 1000.0
+    assert abs(ause(err, np.abs(err))["ause"]) < 1e-9
+    # Any monotone function of |error| orders the same: also 0.
+    assert abs(ause(err, np.sqrt(np.abs(err)) + 3.0)["ause"]) < 1e-9
+
+
+def test_sparsification_hand_computed_and_ties():
+    err = np.array([4.0, 3.0, 0.0, 0.0])
+    # Removing the largest error first: RMSE sqrt(25/4), sqrt(9/3), 0, 0 at 0, 1/4, 2/4, 3/4.
+    curve = sparsification(err, np.abs(err), steps=4)
+    np.testing.assert_allclose(curve, [2.5, math.sqrt(3.0), 0.0, 0.0], atol=1e-12)
+    # A constant map is a random order: the expected remaining MSE is flat at the full MSE.
+    flat = sparsification(err, np.ones(4), steps=4)
+    np.testing.assert_allclose(flat, [2.5] * 4, atol=1e-12)
+    a = ause(err, np.ones(4), steps=4)
+    assert a["ause"] == pytest.approx(a["ause_random"])
+    # The worst order (smallest error first) has a larger AUSE than random.
+    assert ause(err, -np.abs(err), steps=4)["ause"] > a["ause_random"]
+
+
+def test_sparsification_bad_input_is_named():
+    with pytest.raises(InputError, match=r"error, uncertainty.*\(3,\) and \(2,\)"):
+        sparsification(np.zeros(3), np.zeros(2))
+    with pytest.raises(InputError, match="N > 0"):
+        ause(np.zeros(0), np.zeros(0))
