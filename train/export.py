@@ -12,6 +12,10 @@ validation score of the checkpoint, the training arguments (``hyper_parameters``
 data module's arguments (``datamodule_hyper_parameters``: layout, root, split, hold-out),
 the YAML config given with ``--config`` (verbatim) and the ``--command`` text. That is
 what ``crfdepth/weights/README.md`` refers to for the shipped weights.
+
+``--calibrate-std`` (needs ``--config``) first sets the std scale to its closed-form
+NLL optimum over the config's training frames (:func:`crfdepth.uncertainty.calibrate_std_scale`,
+no flip), and records the frames and the scale before / after in ``about``.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import torch
 from crfdepth.checkpoint import load_model
 from crfdepth.errors import InputError
 from crfdepth.pretrained import save_weights
+from crfdepth.uncertainty import calibrate_std_scale
 
 
 def _plain(value: Any) -> Any:
@@ -55,6 +60,24 @@ def describe_checkpoint(path: Path) -> dict[str, Any]:
     return about
 
 
+def calibrate(model, config: Path) -> dict[str, Any]:
+    """Calibrate ``model``'s std scale on the training frames of ``config``'s ``data`` section."""
+    import yaml
+
+    from train.data import CRFDataModule
+
+    if not config.is_file():
+        raise InputError(f"--config: no such file: {config}")
+    data = dict((yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("data") or {})
+    datamodule = CRFDataModule(**{**data, "flip": 0.0})
+    train, _ = datamodule.build_datasets()
+    before = float(model.std_scale.detach())
+    after = calibrate_std_scale(model, (train[i] for i in range(len(train))))
+    print(f"std scale calibrated on {len(train)} training frames: {before:.4g} -> {after:.4g}")
+    return {"frames": len(train), "before": before, "after": after,
+            "method": "closed-form Gaussian NLL optimum (crfdepth.uncertainty.calibrate_std_scale)"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", type=Path, help="a Lightning .ckpt of the trainer")
@@ -62,10 +85,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=None, help="the training YAML, stored verbatim")
     parser.add_argument("--command", default=None, help="the command that trained the checkpoint")
     parser.add_argument("--note", default=None, help="free text stored as about.note (e.g. validation numbers)")
+    parser.add_argument("--calibrate-std", action="store_true",
+                        help="set the std scale by its closed-form NLL optimum over --config's training frames")
     args = parser.parse_args(argv)
     try:
+        if args.calibrate_std and args.config is None:
+            raise InputError("--calibrate-std: needs --config (its data section names the training frames)")
         model = load_model(args.checkpoint)
         about = describe_checkpoint(args.checkpoint)
+        if args.calibrate_std:
+            about["std_scale_calibration"] = calibrate(model, args.config)
         if args.config is not None:
             if not args.config.is_file():
                 raise InputError(f"--config: no such file: {args.config}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -58,3 +59,23 @@ def test_export_bad_input_exits_2_without_output(tmp_path, capsys):
     _checkpoint(tmp_path / "last.ckpt")
     assert main([str(tmp_path / "last.ckpt"), "--out", str(out), "--config", str(tmp_path / "no.yaml")]) == 2
     assert "--config: no such file" in capsys.readouterr().err and not out.exists()
+
+
+def test_export_calibrates_the_std_scale_on_the_configs_training_frames(tmp_path, capsys):
+    _checkpoint(tmp_path / "last.ckpt")
+    config = tmp_path / "recipe.yaml"
+    config.write_text("data:\n  layout: synthetic\n  train_options: {count: 2, height: 48, width: 160}\n")
+    out = tmp_path / "w.json"
+    assert main([str(tmp_path / "last.ckpt"), "--out", str(out), "--config", str(config), "--calibrate-std"]) == 0
+    about = json.loads(out.read_text())["about"]
+    calibration = about["std_scale_calibration"]
+    assert calibration["frames"] == 2 and calibration["before"] == pytest.approx(math.exp(0.4), rel=1e-6)
+    assert calibration["after"] != pytest.approx(calibration["before"], rel=1e-3)
+    assert load_model(out).weights()["std_scale"] == pytest.approx(calibration["after"], rel=1e-6)
+    assert "std scale calibrated on 2 training frames" in capsys.readouterr().out
+
+
+def test_export_calibrate_std_needs_a_config(tmp_path, capsys):
+    _checkpoint(tmp_path / "last.ckpt")
+    assert main([str(tmp_path / "last.ckpt"), "--out", str(tmp_path / "w.json"), "--calibrate-std"]) == 2
+    assert "--calibrate-std: needs --config" in capsys.readouterr().err
