@@ -19,33 +19,41 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 - ``inpaint``: OpenCV ``cv2.inpaint`` (Telea, radius 5) of the sparse map as float32
   metres (OpenCV 5 takes 1-channel float32), clipped to the input's depth range (Telea
   overshoots below 0 near the image border otherwise);
-- ``default``: ``CRFDepth()`` (superpixel 5500, all potentials, pixel refinement), default weights;
-- ``learned``: the same model with its weights fitted (Adam, L2 on target pixels, the std
-  scale left alone) on frames **outside** the evaluated set: the object frames for a and
-  for the raw drives of b/c, the raw drives for the object frames of b/c (2-fold by source,
-  each fit with the evaluated protocol's hold-out scheme). Which fit served which frames is
+- ``paper``: ``CRFDepth()`` (superpixel 5500, all potentials, pixel refinement) with the
+  hand-set weights (``CRFDepth.from_pretrained("paper")``);
+- ``learned``: the same model with weights learned by the recipe of the shipped weights
+  (``configs/kitti_weights.yaml``: the Lightning trainer, L1 loss, Adam, both hold-outs of
+  every training scan, the same epochs and seed), always on frames **outside** the
+  evaluated set. Protocol a: the shipped weights themselves (``crfdepth/weights/kitti.json``,
+  the package default; trained on drive 0060 and the object frames, never on drive 0001).
+  Protocols b and c: 2-fold by source, since the shipped weights saw those frames: the
+  raw-drive frames get weights fitted on the object frames, the object frames weights
+  fitted on the raw drives. The NLL term is off in these fits (it moves only the std
+  scale, which changes neither the depth nor the AUSE). Which fit served which frames is
   in the output (``fit``);
 - ``pixel``: ``CRFDepth(mode="pixel")``;
 - ``sp-c``, ``sp-cn``, ``sp-cnd``: the paper's Table 1 ablation (colour; + normal; +
   3D distance), superpixel 5500, piecewise-constant painting (``refine=False``);
-  ``sp-c+r``, ``sp-cn+r``: the same with the pixel refinement (``sp-cnd+r`` is ``default``);
+  ``sp-c+r``, ``sp-cn+r``: the same with the pixel refinement (``sp-cnd+r`` is ``paper``);
 - ``sp1200``, ``sp2400``: the paper's Table 2 segment counts, all potentials, no
   refinement (5500 is ``sp-cnd``).
+
+The ablations and segment counts use the hand-set weights, as ``paper`` does.
 
 Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, averaged
 over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), DESIGN.md section 7.
 
-Uncertainty (DESIGN.md section 5), for ``default`` and ``learned``: sparsification curves
+Uncertainty (DESIGN.md section 5), for ``paper`` and ``learned``: sparsification curves
 of the posterior std and of the paper's count map (:func:`sparsification`; ties in the
 count map, which has 3 levels, are removed in random order in expectation), and
 :func:`ause` per image, averaged; ``ause_random`` is the AUSE of a random order, for scale.
 
 Speed: median over frames of the wall clock of one forward (batch 1, ``no_grad``,
-``torch.set_num_threads(--threads)``); for ``default``/``learned`` the ``uncertainty`` stage
+``torch.set_num_threads(--threads)``); for ``paper``/``learned`` the ``uncertainty`` stage
 is subtracted (their forwards also return the std). On CUDA clocks are read after a
 synchronise (untested: this was written on a CPU-only machine).
 
-Sub-sampling study: RMSE of ``default`` and ``nn`` on protocol b for ``keep_fraction``
+Sub-sampling study: RMSE of ``paper`` and ``nn`` on protocol b for ``keep_fraction``
 in ``--fractions`` (the target is the same pixels for every fraction), table and PNG.
 
 Outputs under ``--out-dir`` (default ``./accuracy_results``): ``results.md`` (the printed
@@ -53,7 +61,7 @@ tables and verdicts), ``results.jsonl`` (one JSON line per method and protocol, 
 sub-sampling point), ``subsampling.png``, ``sparsification.png``.
 
     python benchmarks/accuracy.py [--kitti-root PATH] [--protocols a b c] [--methods ...]
-        [--max-frames N] [--fit-steps 16] [--fit-frames 4] [--fractions 0.2 0.4 0.6 0.8 1.0]
+        [--max-frames N] [--fit-epochs E] [--fit-frames N] [--fractions 0.2 0.4 0.6 0.8 1.0]
         [--no-subsample] [--device cpu|cuda] [--threads 1] [--quick] [--out-dir DIR]
 """
 
@@ -61,8 +69,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import statistics
 import time
+import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -88,11 +98,12 @@ PROTOCOLS = {
           [("raw", "raw", "raw", dict(holdout="rings", keep_every_ring=4)),
            ("object", "object", "object/training", dict(holdout="rings", keep_every_ring=4))]),
 }
-# (protocol, evaluated group) -> (training group, hold-out protocol of the fit)
-FIT_SOURCE = {("a", "val"): ("object", "b"), ("b", "raw"): ("object", "b"), ("b", "object"): ("raw", "b"),
-              ("c", "raw"): ("object", "c"), ("c", "object"): ("raw", "c")}
+# (protocol, evaluated group) -> training group of its learned weights ("shipped": the package's file)
+FIT_SOURCE = {("a", "val"): "shipped", ("b", "raw"): "object", ("b", "object"): "raw",
+              ("c", "raw"): "object", ("c", "object"): "raw"}
+RECIPE = Path(__file__).resolve().parent.parent / "configs" / "kitti_weights.yaml"
 CRF_METHODS = {
-    "default": dict(),
+    "paper": dict(),
     "learned": dict(),
     "pixel": dict(mode="pixel"),
     "sp-c": dict(potentials=("colour",), refine=False),
@@ -104,7 +115,7 @@ CRF_METHODS = {
     "sp2400": dict(superpixels=2400, refine=False),
 }
 METHODS = ("nn", "inpaint", *CRF_METHODS)
-WITH_STD = ("default", "learned")
+WITH_STD = ("paper", "learned")
 
 
 def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: int | None,
@@ -135,24 +146,37 @@ def inpaint(sparse: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out)[None, None].to(sparse)
 
 
-def fit_weights(frames: Sequence, steps: int, lr: float, device: str) -> tuple[CRFDepth, list[float]]:
-    """``CRFDepth()`` with weights fitted by Adam on the mean squared error (m^2) over target
-    pixels, one frame per step, cycling; the std scale is not trained. Returns the model
-    and the loss of every step."""
-    model = CRFDepth().to(device)
-    params = [p for n, p in model.named_parameters() if n != "log_std_scale"]
-    opt = torch.optim.Adam(params, lr=lr)
-    losses = []
-    for step in range(steps):
-        image, sparse, target, K = batch(frames[step % len(frames)], device)
-        out = model(image, sparse, K)
-        mask = target > 0
-        loss = ((out.depth - target)[mask] ** 2).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-    return model, losses
+def fit_recipe(frames: Sequence, epochs: int, device: str) -> tuple[CRFDepth, float]:
+    """``CRFDepth`` weights learned on ``frames`` by the shipped recipe (:data:`RECIPE`).
+
+    The Lightning trainer's module and optimiser with the recipe's ``model`` settings
+    (the NLL term off), its flip augmentation, batch size and seed, for ``epochs`` epochs;
+    no validation, logging or checkpoints. Returns the model (eval mode) and the last
+    epoch's mean training loss.
+    """
+    import lightning.pytorch as pl
+    import yaml
+    from torch.utils.data import DataLoader
+
+    from crfdepth.data import HorizontalFlip, collate_samples
+    from train.data import TransformedDataset
+    from train.module import CRFDepthModule
+
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # no device / summary banners
+    recipe = yaml.safe_load(RECIPE.read_text())
+    data = recipe["data"]
+    pl.seed_everything(recipe.get("seed_everything", 0), verbose=False)
+    module = CRFDepthModule(**{**recipe["model"], "nll_weight": 0.0})
+    dataset = TransformedDataset(list(frames), HorizontalFlip(p=data["flip"])) if data.get("flip") else list(frames)
+    loader = DataLoader(dataset, batch_size=data.get("batch_size", 1), shuffle=True, collate_fn=collate_samples)
+    trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
+                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)
+    with warnings.catch_warnings():  # "validation_step but no val_dataloader": intended
+        warnings.filterwarnings("ignore", message=".*val_dataloader.*")
+        trainer.fit(module, train_dataloaders=loader)
+    loss = float(trainer.callback_metrics.get("train/loss_epoch", float("nan")))
+    return module.model.to(device).eval(), loss
 
 
 def sync(device: str) -> None:
@@ -194,7 +218,9 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         if "learned" in args.methods:
             source = FIT_SOURCE[(key, group)]
             models["learned"] = get_fit(source, args, fits, log)
-            fit_note[group] = f"{group} frames: fit on {source[0]} frames, protocol-{source[1]} hold-out"
+            fit_note[group] = (f"{group} frames: the shipped weights (crfdepth/weights/kitti.json)" if source == "shipped"
+                               else f"{group} frames: fitted on the {fits[source]['frames']} {source} frames "
+                                    f"(both hold-outs, {args.fit_epochs} epochs)")
         log(f"  protocol {key}, {group}: {len(frames)} frame(s)")
         for s in frames:
             image, sparse, target, K = batch(s, args.device)
@@ -228,47 +254,48 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         if m == "learned":
             row["fit"] = "; ".join(fit_note.values())
             row["weights"] = {g: fits[FIT_SOURCE[(key, g)]]["weights"] for g in fit_note}
-            row["fit_loss_m2"] = {g: [float(np.mean(fits[FIT_SOURCE[(key, g)]]["losses"][:args.fit_frames])),
-                                      float(np.mean(fits[FIT_SOURCE[(key, g)]]["losses"][-args.fit_frames:]))]
-                                  for g in fit_note}
+            row["fit_last_epoch_loss"] = {g: fits[FIT_SOURCE[(key, g)]]["loss"] for g in fit_note}
         rows.append(row)
     return rows, curves
 
 
-def get_fit(source: tuple[str, str], args, fits: dict, log) -> CRFDepth:
+def get_fit(source: str, args, fits: dict, log) -> CRFDepth:
+    """The learned model for frames of groups other than ``source`` (cached in ``fits``)."""
     if source not in fits:
-        group, proto = source
-        _, layout, folder, options = next(g for g in PROTOCOLS[proto][1] if g[0] == group)
-        frames = load_group(args.kitti_root, layout, folder, options, args.fit_frames)
         t = time.perf_counter()
-        model, losses = fit_weights(frames, args.fit_steps, args.fit_lr, args.device)
-        model.eval()
-        fits[source] = dict(model=model, weights=model.weights(), losses=losses)
-        log(f"  fit on {group} ({len(frames)} frames, protocol-{proto} hold-out): {args.fit_steps} Adam steps "
-            f"in {time.perf_counter() - t:.0f} s; mean loss of the first / last pass over the frames "
-            f"{np.mean(losses[:len(frames)]):.3f} / {np.mean(losses[-len(frames):]):.3f} m^2; "
-            + ", ".join(f"{k} {v:.3g}" for k, v in fits[source]["weights"].items()))
+        if source == "shipped":
+            model, loss, count = CRFDepth.from_pretrained("kitti").to(args.device), float("nan"), 0
+        else:
+            frames = [s for proto in ("b", "c")
+                      for group, layout, folder, options in PROTOCOLS[proto][1] if group == source
+                      for s in load_group(args.kitti_root, layout, folder, options, args.fit_frames)]
+            model, loss = fit_recipe(frames, args.fit_epochs, args.device)
+            count = len(frames) // 2
+            log(f"  fit on {source} ({count} frames x 2 hold-outs): {args.fit_epochs} epochs in "
+                f"{time.perf_counter() - t:.0f} s, last-epoch loss {loss:.4f}; "
+                + ", ".join(f"{k} {v:.3g}" for k, v in model.weights().items()))
+        fits[source] = dict(model=model, weights=model.weights(), loss=loss, frames=count)
     return fits[source]["model"]
 
 
 def subsampling(args, log) -> list[dict]:
-    """RMSE of default and NN on protocol b for every keep fraction."""
+    """RMSE of the hand-set weights and NN on protocol b for every keep fraction."""
     rows = []
     model = CRFDepth().to(args.device)
     for frac in args.fractions:
-        res = {"default": [], "nn": []}
+        res = {"paper": [], "nn": []}
         for group, layout, folder, options in PROTOCOLS["b"][1]:
             for s in load_group(args.kitti_root, layout, folder, options, args.subsample_frames, frac):
                 image, sparse, target, K = batch(s, args.device)
                 for m in res:
-                    depth, *_ = predict(m, model if m == "default" else None, image, sparse, K, args.device)
+                    depth, *_ = predict(m, model if m == "paper" else None, image, sparse, K, args.device)
                     res[m].append(depth_metrics(depth, target))
         for m, items in res.items():
             stacked = {k: torch.cat([d[k] for d in items]) for k in items[0]}
             avg = average_metrics(stacked)
             rows.append(dict(study="subsampling", protocol="b", method=m, keep_fraction=frac, frames=len(items),
                              rmse=avg["rmse"], mae=avg["mae"]))
-        log(f"  keep {frac:.0%}: default {rows[-2]['rmse']:.0f} mm, nn {rows[-1]['rmse']:.0f} mm")
+        log(f"  keep {frac:.0%}: paper {rows[-2]['rmse']:.0f} mm, nn {rows[-1]['rmse']:.0f} mm")
     return rows
 
 
@@ -299,10 +326,10 @@ def markdown_tables(rows: list[dict]) -> list[str]:
 
 def subsampling_table(rows: list[dict]) -> list[str]:
     lines = ["", f"**Sub-sampling, protocol (b): RMSE mm vs share of input LiDAR points kept** "
-                 f"({rows[0]['frames']} frames)", "", "| kept | default | nn |", "|---|---|---|"]
+                 f"({rows[0]['frames']} frames)", "", "| kept | paper | nn |", "|---|---|---|"]
     for frac in dict.fromkeys(r["keep_fraction"] for r in rows):
         d = {r["method"]: r["rmse"] for r in rows if r["keep_fraction"] == frac}
-        lines.append(f"| {frac:.0%} | {d['default']:.0f} | {d['nn']:.0f} |")
+        lines.append(f"| {frac:.0%} | {d['paper']:.0f} | {d['nn']:.0f} |")
     return lines
 
 
@@ -318,12 +345,12 @@ def verdicts(rows: list[dict]) -> list[str]:
             out.append(f"- protocol {key}: learned {l:.0f} mm vs nn {n:.0f} mm: {gain:+.1%} "
                        f"(target {'> 0' if need == 0 else f'>= {need:.0%}'}): "
                        f"{'meets' if ok else f'misses by {(need - gain) * 100:.1f} points'}")
-            if (key, "default") in by:
-                d = by[(key, "default")]["rmse"]
-                out.append(f"  (learned vs default weights on protocol {key}: {l:.0f} vs {d:.0f} mm, "
+            if (key, "paper") in by:
+                d = by[(key, "paper")]["rmse"]
+                out.append(f"  (learned vs hand-set weights on protocol {key}: {l:.0f} vs {d:.0f} mm, "
                            f"{(d - l) / d:+.1%})")
     for suffix, label in (("", "no refinement"), ("+r", "with refinement")):
-        chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "default"]
+        chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "paper"]
         if all(("a", m) in by for m in chain):
             v = [by[("a", m)]["rmse"] for m in chain]
             steps = [f"{chain[i]} -> {chain[i + 1]}: {v[i]:.0f} -> {v[i + 1]:.0f} mm "
@@ -342,7 +369,7 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
     paths = []
     if sub_rows:
         fig, ax = plt.subplots(figsize=(5, 3.5))
-        for m in ("default", "nn"):
+        for m in ("paper", "nn"):
             rs = [r for r in sub_rows if r["method"] == m]
             ax.plot([100 * r["keep_fraction"] for r in rs], [r["rmse"] for r in rs], "o-", label=m)
         ax.set_xlabel("input LiDAR points kept (%)")
@@ -359,8 +386,9 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
         fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.3), squeeze=False)
         for ax, key in zip(axes[0], keys):
             f = np.arange(SPARSIFY_STEPS) / SPARSIFY_STEPS * 100
+            shown = "learned" if any(m == "learned" for m, _ in curves[key]) else "paper"
             for (m, name), c in curves[key].items():
-                if m == "default":  # the oracle differs a little per method (its errors)
+                if m == shown:  # the oracle differs a little per method (its errors)
                     ax.plot(f, c, "--" if name == "oracle" else "-",
                             label=f"{m} {name}" if name != "oracle" else f"oracle ({m} errors)")
             ax.set_title(f"protocol {key}: sparsification")
@@ -381,27 +409,31 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--protocols", nargs="+", choices=list(PROTOCOLS), default=list(PROTOCOLS))
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument("--max-frames", type=int, default=None, help="frames per group (evenly spaced); default all")
-    parser.add_argument("--fit-steps", type=int, default=16, help="Adam steps of each learned-weight fit")
-    parser.add_argument("--fit-frames", type=int, default=4, help="training frames of each fit")
-    parser.add_argument("--fit-lr", type=float, default=0.1)
+    parser.add_argument("--fit-epochs", type=int, default=None,
+                        help="epochs of each learned-weight fit (default: the recipe's, configs/kitti_weights.yaml)")
+    parser.add_argument("--fit-frames", type=int, default=None, help="frames per group of each fit; default all")
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.2, 0.4, 0.6, 0.8, 1.0])
     parser.add_argument("--subsample-frames", type=int, default=None, help="frames per group of the sub-sampling "
                         "study (default: --max-frames)")
     parser.add_argument("--no-subsample", action="store_true", help="skip the sub-sampling study")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--quick", action="store_true", help="smoke run: 1 frame per group, 2 fit steps, "
-                        "1 fit frame, fractions 0.5 and 1.0")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 frame per group, 1 fit epoch on "
+                        "1 frame per group, fractions 0.5 and 1.0")
     parser.add_argument("--out-dir", type=Path, default=Path("accuracy_results"))
     args = parser.parse_args(argv)
     if args.quick:
-        args.max_frames, args.fit_steps, args.fit_frames = 1, 2, 1
+        args.max_frames, args.fit_epochs, args.fit_frames = 1, 1, 1
         if args.fractions == parser.get_default("fractions"):
             args.fractions = [0.5, 1.0]
     if args.subsample_frames is None:
         args.subsample_frames = args.max_frames
-    if "learned" in args.methods and args.fit_steps < 1:
-        parser.error("--fit-steps: expected >= 1")
+    if args.fit_epochs is None:
+        import yaml
+
+        args.fit_epochs = int(yaml.safe_load(RECIPE.read_text())["trainer"]["max_epochs"])
+    if args.fit_epochs < 1:
+        parser.error(f"--fit-epochs: expected >= 1, got {args.fit_epochs}")
     return args
 
 

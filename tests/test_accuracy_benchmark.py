@@ -21,18 +21,31 @@ def accuracy():
 
 def test_quick_run_writes_parseable_json(accuracy, kitti_root, tmp_path, capsys):
     rows = accuracy.main(["--quick", "--kitti-root", str(kitti_root), "--protocols", "a",
-                          "--methods", "nn", "default", "--no-subsample", "--out-dir", str(tmp_path)])
+                          "--methods", "nn", "paper", "learned", "--no-subsample", "--out-dir", str(tmp_path)])
     lines = [json.loads(x) for x in (tmp_path / "results.jsonl").read_text().splitlines()]
     assert lines == json.loads(json.dumps(rows))
-    assert [(r["protocol"], r["method"]) for r in lines] == [("a", "nn"), ("a", "default")]
+    assert [(r["protocol"], r["method"]) for r in lines] == [("a", "nn"), ("a", "paper"), ("a", "learned")]
     by = {r["method"]: r for r in lines}
     # Nearest fill on the official frame: about 1.3-1.4 m RMSE (DESIGN.md section 6: 1386 mm over 2 frames).
     assert 1000 < by["nn"]["rmse"] < 1700
-    assert by["default"]["rmse"] < by["nn"]["rmse"]
+    assert by["paper"]["rmse"] < by["nn"]["rmse"] and by["learned"]["rmse"] < by["nn"]["rmse"]
+    assert "shipped weights" in by["learned"]["fit"]  # protocol a: the package's file, never trained on drive 0001
     for r in lines:
         assert r["frames"] == 1 and r["batch_size"] == 1 and r["fps_median"] > 0
-    d = by["default"]
-    assert 0 < d["ause_std_mm"] < d["ause_random_std_mm"]
-    assert "| default |" in (tmp_path / "results.md").read_text()
+    for m in ("paper", "learned"):
+        assert 0 < by[m]["ause_std_mm"] < by[m]["ause_random_std_mm"]
+    assert "| paper |" in (tmp_path / "results.md").read_text()
     printed = capsys.readouterr().out
-    assert sum(1 for x in printed.splitlines() if x.startswith("{")) == 2
+    assert sum(1 for x in printed.splitlines() if x.startswith("{")) == 3
+
+
+def test_learned_weights_on_raw_protocols_come_from_the_other_source(accuracy, kitti_root, tmp_path):
+    rows = accuracy.main(["--quick", "--kitti-root", str(kitti_root), "--protocols", "c",
+                          "--methods", "nn", "learned", "--no-subsample", "--out-dir", str(tmp_path)])
+    learned = next(r for r in rows if r["method"] == "learned")
+    assert learned["frames"] == 2  # one raw frame, one object frame
+    assert "raw frames: fitted on the 1 object frames" in learned["fit"]
+    assert "object frames: fitted on the 1 raw frames" in learned["fit"]
+    paper = accuracy.CRFDepth().weights()
+    for group, weights in learned["weights"].items():  # each fit moved the hand-set weights
+        assert any(abs(weights[k] - paper[k]) > 1e-3 * paper[k] for k in ("alpha", "beta", "confidence")), group
