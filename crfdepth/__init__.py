@@ -1,7 +1,8 @@
 """crfdepth: dense, calibrated depth from a camera image and sparse LiDAR with a learnable CRF.
 
-Start with :class:`crfdepth.CRFDepth` (the model), :func:`crfdepth.complete_depth` (arrays in,
-arrays out, any rig) or the ``crfdepth`` command. The library does not need Lightning; the
+Start with :meth:`crfdepth.CRFDepth.from_pretrained` (the model with the weights learned on
+KITTI), :func:`crfdepth.complete_depth` (arrays in, arrays out, any rig) or the ``crfdepth``
+command. The library does not need Lightning; the
 trainer lives in the separate ``train`` package.
 """
 
@@ -11,6 +12,7 @@ from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
 from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
 from crfdepth.model import CRFDepth, CRFOutput
+from crfdepth.pretrained import load_pretrained, save_weights
 
 __version__ = "0.1.0"
 
@@ -25,7 +27,9 @@ __all__ = [
     "complete_depth",
     "crf_refine",
     "load_model",
+    "load_pretrained",
     "save_model",
+    "save_weights",
     "solve_grid_laplacian",
     "solve_laplacian",
 ]

@@ -182,13 +182,13 @@ def _count_inside(xyz: np.ndarray, T: np.ndarray, K: np.ndarray, image_size: tup
 
 
 def _model_on(model, device: str | torch.device):
-    from crfdepth.model import CRFDepth
+    from crfdepth.pretrained import load_pretrained
 
     device = torch.device(device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device: CUDA is not available in this PyTorch installation/machine; use device='cpu'")
     if model is None:
-        return CRFDepth().to(device).eval()
+        return load_pretrained().to(device)
     if not isinstance(model, torch.nn.Module):
         raise InputError(f"model: expected a crfdepth.model.CRFDepth (or None for the default), got "
                          f"{type(model).__name__}")
@@ -226,8 +226,9 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             When given, the image is undistorted (module docstring) and the output is
             the depth of the undistorted image.
         model: a :class:`~crfdepth.model.CRFDepth` (e.g. from
-            :func:`crfdepth.checkpoint.load_model`); None = ``CRFDepth()`` with its
-            initial weights. Used in its current train/eval mode, under ``no_grad``; a
+            :func:`crfdepth.checkpoint.load_model`, or ``CRFDepth.from_pretrained("paper")``
+            for the hand-set weights); None = ``CRFDepth.from_pretrained()``, the weights
+            learned on KITTI. Used in its current train/eval mode, under ``no_grad``; a
             model on another device is copied there (the caller's model is not moved).
         device: "cpu", "cuda" or a torch.device for the computation.
         return_std: also return the posterior standard deviation.

@@ -117,6 +117,10 @@ def _check_positive(name: str, value: float) -> None:
 class CRFDepth(nn.Module):
     """Gaussian CRF depth completion with learnable potential weights (paper eq. 2).
 
+    ``CRFDepth()`` starts from hand-set weights (the ``"paper"`` set), the starting point
+    for training; ``CRFDepth.from_pretrained()`` has the weights learned on KITTI that
+    :func:`~crfdepth.api.complete_depth` and the CLI use by default.
+
     Energy (DESIGN.md section 3) on nodes ``i`` and edges ``(i, j)``::
 
         E(x) = alpha sum w_i (x_i - z_i)^2 + beta sum e_ij (x_i - x_j)^2
@@ -234,6 +238,18 @@ class CRFDepth(nn.Module):
         self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
         self.register_buffer("eps", torch.tensor(float(eps)))
         self.register_buffer("refine_prior", torch.tensor(float(refine_prior)))
+
+    @classmethod
+    def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
+        """The model with a shipped weight set, in eval mode (:func:`crfdepth.pretrained.load_pretrained`).
+
+        ``"kitti"``: weights learned on real KITTI frames (``crfdepth/weights/README.md``
+        says how); ``"paper"``: the hand-set initial values of ``CRFDepth()``.
+        ``overrides`` replace stored arguments, e.g. ``mode="pixel"``.
+        """
+        from crfdepth.pretrained import load_pretrained
+
+        return load_pretrained(name, **overrides)
 
     # -- constrained parameters ----------------------------------------------------------
     @property

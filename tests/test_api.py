@@ -71,7 +71,7 @@ def _frustum(scene) -> np.ndarray:
 
 
 def test_kitti_points_equal_two_step_path(kitti):
-    """In memory, same float32 tensors: project_velodyne + CRFDepth()(...) vs complete_depth.
+    """In memory, same float32 tensors: project_velodyne + the default model vs complete_depth.
 
     Both paths see the unquantised sparse map (no PNG in between); the CLI test compares
     the PNG outputs. Measured: identical (max difference 0 mm)."""
@@ -79,7 +79,7 @@ def test_kitti_points_equal_two_step_path(kitti):
     sparse = project_velodyne(kitti["points"], kitti["calib"])
     image = torch.from_numpy(kitti["image"].transpose(2, 0, 1).copy()).float()[None] / 255.0
     with torch.no_grad():
-        out = CRFDepth().eval()(image, torch.from_numpy(sparse)[None, None],
+        out = CRFDepth.from_pretrained()(image, torch.from_numpy(sparse)[None, None],
                                 torch.from_numpy(kitti["calib"].K).float()[None], return_std=True)
     assert depth.dtype == np.float32 and depth.shape == (375, 1242) and std.shape == (375, 1242)
     assert np.abs(depth - out.depth[0, 0].numpy()).max() < 1e-3  # 1 mm

@@ -46,8 +46,9 @@ lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. Then the model is 
 ``--out-std-dir`` and ``--vis`` folders created if missing (parents included; they must
 be writable). Each PNG is written atomically, so a failed run leaves no partial file.
 
-The model (:func:`build_model`): without ``--checkpoint``, ``CRFDepth`` with its initial
-weights and the options given. ``--checkpoint`` is read by
+The model (:func:`build_model`): without ``--checkpoint``, the shipped weights named by
+``--weights`` (default ``kitti``, learned on KITTI; ``paper`` = the hand-set initial
+values of ``CRFDepth()``) with the options given. ``--checkpoint`` is read by
 :func:`crfdepth.checkpoint.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
 :func:`crfdepth.checkpoint.save_model`, or a bare state dict, which gets the default
 configuration): the checkpoint's configuration defines the model, and the model options
@@ -77,6 +78,7 @@ from tqdm import tqdm
 
 from crfdepth.api import complete_depth
 from crfdepth.checkpoint import load_model
+from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
 from crfdepth.data.kitti import KittiTestCompletion, KittiValSelection
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
@@ -179,11 +181,15 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
                             "checkpoint's, else all)")
     model.add_argument("--no-refine", action="store_true",
                        help="superpixel mode: keep the piecewise-constant painting, no pixel refinement")
+    model.add_argument("--weights", choices=WEIGHTS, default=None,
+                       help=f"shipped weight set when no --checkpoint is given: kitti (learned on KITTI, "
+                            f"crfdepth/weights/README.md) or paper (the hand-set initial values); "
+                            f"default: {DEFAULT_WEIGHTS}")
     model.add_argument("--checkpoint", metavar="CKPT",
-                       help="trained model: a Lightning .ckpt of train/ (configuration in "
-                            "hyper_parameters['crf']), a crfdepth model file (crfdepth.checkpoint."
-                            "save_model) or a bare CRFDepth state_dict (default configuration); "
-                            "default: the initial weights of CRFDepth")
+                       help="trained model instead of --weights: a Lightning .ckpt of train/ (configuration "
+                            "in hyper_parameters['crf']), a crfdepth model file (crfdepth.checkpoint."
+                            "save_model), a JSON weights file (crfdepth.pretrained) or a bare CRFDepth "
+                            "state_dict (default configuration)")
     model.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="default: cpu")
     model.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                        help="default: float32")
@@ -262,8 +268,9 @@ def _model_overrides(args: argparse.Namespace) -> dict:
 def build_model(args: argparse.Namespace) -> CRFDepth:
     """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
 
-    Without ``--checkpoint``: ``CRFDepth(**options)``, options left unset keeping the
-    model's defaults. With it: :func:`crfdepth.checkpoint.load_model` rebuilds the model
+    Without ``--checkpoint``: the shipped weight set ``--weights`` (default "kitti",
+    :func:`crfdepth.pretrained.load_pretrained`) with the options given overriding its
+    configuration. With it: :func:`crfdepth.checkpoint.load_model` rebuilds the model
     from the checkpoint's configuration (the default one for a bare state dict), and the
     explicit options (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
     override that configuration. Raises InputError for a CUDA request without CUDA and for
@@ -275,12 +282,14 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
                          "use --device cpu")
     overrides = _model_overrides(args)
     if args.checkpoint is not None:
+        if args.weights is not None:
+            raise InputError(f"--weights {args.weights} / --checkpoint: give one of them, not both")
         try:
             model = load_model(args.checkpoint, overrides=overrides)
         except (InputError, FileNotFoundError) as exc:
             raise type(exc)(f"--checkpoint: {exc}") from None
     else:
-        model = CRFDepth(**overrides)
+        model = load_pretrained(args.weights or DEFAULT_WEIGHTS, **overrides)
     if model.mode == "pixel" and (args.superpixels is not None or args.no_refine):
         logger.warning("--superpixels and --no-refine only apply to --mode superpixel; ignored")
     dtype = torch.float64 if args.dtype == "float64" else torch.float32

@@ -33,7 +33,7 @@ from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
-from crfdepth.model import CRFDepth
+from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.visualize import colorize_depth, colorize_std, draw_points, render_point_cloud
 
@@ -57,6 +57,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--beams", type=int, default=64, help="beams of the simulated LiDAR (default 64)")
     parser.add_argument("--mode", choices=("superpixel", "pixel"), default="superpixel",
                         help="CRF graph (default: superpixel)")
+    parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
+                        help=f"shipped weight set: kitti (learned on KITTI) or paper (hand-set); "
+                             f"default: {DEFAULT_WEIGHTS}")
     parser.add_argument("--max-frames", type=int, default=2, help="KITTI frames to run (default 2)")
     parser.set_defaults(func=run)
     return parser
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the demo; returns 0. Prints one metrics line per method and frame."""
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    model = CRFDepth(mode=args.mode)
+    model = load_pretrained(args.weights, mode=args.mode)
     start = time.perf_counter()
     for name, image, sparse, K, target in _frames(args):
         t0 = time.perf_counter()

@@ -6,7 +6,8 @@
         --data depth_selection/val_selection_cropped [--limit N] [--save-png] [--out-dir DIR]
 
 Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
-:func:`crfdepth.checkpoint.load_model`; without it, the model's initial weights) over the
+:func:`crfdepth.checkpoint.load_model`; without it, the shipped ``--weights``, by default
+the ones learned on KITTI) over the
 frames of ``crfdepth.data.build_dataset(--layout, --data, ...)`` under
 ``torch.no_grad()`` and compares the float depth with the ground truth of each frame.
 The metrics are KITTI's (:func:`crfdepth.metrics.depth_metrics`): over the pixels with
@@ -21,7 +22,7 @@ missing):
 - ``per_frame.csv``: one row per frame: ``name`` and every metric (``rmse`` ... ``delta1``
   in the units above, ``pixels`` the frame's ground-truth pixels);
 - ``summary.json``: the mean metrics and their units, frames, pixels, the checkpoint
-  path, layout, data root and dataset options, the model configuration
+  path (or the shipped weight set's name), layout, data root and dataset options, the model configuration
   (``CRFDepth.config``), the learned weights (``CRFDepth.weights()``), dtype and device;
 - with ``--save-png``: ``depth/<frame name>.png``, the prediction as a KITTI depth PNG
   (uint16, metres * 256, clipped below at 1/256 m), named like the frames (for
@@ -64,6 +65,7 @@ from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS, UNITS, depth_metrics
+from crfdepth.pretrained import DEFAULT_WEIGHTS
 
 logger = logging.getLogger(__name__)
 
@@ -99,7 +101,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser = subparsers.add_parser(
         "evaluate",
         help="KITTI metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)",
-        description="Run a checkpoint (or the initial weights) over a dataset with ground truth and "
+        description="Run a checkpoint (or the shipped weights) over a dataset with ground truth and "
                     "report the KITTI depth-completion metrics (per-frame mean; RMSE/MAE in mm, "
                     "iRMSE/iMAE in 1/km). For test-set submissions use 'crfdepth complete "
                     "--input-dir'.",
@@ -329,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
         "averaging": "per-frame metrics over ground-truth pixels (> 0), then the mean over frames (KITTI)",
         "skipped": skipped,
         "checkpoint": str(Path(args.checkpoint).resolve()) if args.checkpoint is not None else None,
+        "shipped_weights": (args.weights or DEFAULT_WEIGHTS) if args.checkpoint is None else None,
         "layout": args.layout,
         "data_root": str(root.resolve()) if root is not None else None,
         "dataset_options": options,
@@ -344,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
     _atomic_write_text(out_dir / CSV_NAME, _csv_text(rows))
     _atomic_write_text(out_dir / JSON_NAME, json.dumps(summary, indent=2) + "\n")
 
-    source = args.checkpoint if args.checkpoint is not None else "initial weights (no --checkpoint)"
+    source = args.checkpoint if args.checkpoint is not None else f"{args.weights or DEFAULT_WEIGHTS} weights"
     data = f"{args.layout} {root}" if root is not None else args.layout
     print(f"crfdepth evaluate: {source} on {data}, {model.mode} mode, {args.dtype}")
     print(format_table(summary))

@@ -25,6 +25,7 @@ from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.pretrained import weights_path
 from crfdepth.visualize import colorize_depth, colorize_std
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
@@ -385,9 +386,13 @@ def test_complete_checkpoint_loads(main, synth, tmp_path):
         assert main(_one(synth, out, "--mode", "pixel", *extra)) == 0
         return read_depth_png(out)
 
-    default = complete()
+    default = complete("--weights", "paper")  # the hand-set weights of CRFDepth()
     torch.save(CRFDepth().state_dict(), tmp_path / "default.pt")
     np.testing.assert_array_equal(complete("--checkpoint", tmp_path / "default.pt"), default)
+    shipped = complete()  # no --checkpoint, no --weights: the learned KITTI weights
+    np.testing.assert_array_equal(complete("--weights", "kitti"), shipped)
+    np.testing.assert_array_equal(complete("--checkpoint", weights_path("kitti")), shipped)
+    assert np.abs(shipped - default).max() > 1e-3  # metres
 
     state = _modified_state_dict()
     torch.save(state, tmp_path / "modified.pt")
@@ -427,6 +432,13 @@ def test_complete_bad_checkpoint(main, synth, tmp_path, capsys, case):
     assert "--checkpoint" in err and str(checkpoint) in err
     assert all(w in err for w in words)
     assert not out.exists() and not (tmp_path / "vis").exists()
+
+
+def test_complete_weights_and_checkpoint_exclude_each_other(main, synth, tmp_path, capsys):
+    argv = _one(synth, tmp_path / "d.png", "--weights", "paper", "--checkpoint", weights_path("kitti"))
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--weights paper / --checkpoint" in err and "not both" in err and not (tmp_path / "d.png").exists()
 
 
 def test_complete_missing_checkpoint(main, synth, tmp_path, capsys):

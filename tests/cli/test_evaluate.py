@@ -68,9 +68,9 @@ def val_dir(kitti_root) -> Path:
 
 @pytest.fixture(scope="module")
 def expected(val_dir) -> dict:
-    """Per-frame metrics of the default CRFDepth on the two frames, computed directly."""
+    """Per-frame metrics of the default (shipped KITTI) weights on the two frames, computed directly."""
     dataset = KittiValSelection(val_dir)
-    model = CRFDepth().eval()
+    model = CRFDepth.from_pretrained()
     per_frame, depths = [], {}
     with torch.no_grad():
         for i in range(len(dataset)):
@@ -126,11 +126,12 @@ def test_summary_json(default_run, expected, val_dir):
         assert summary["metrics"][m] == pytest.approx(expected["mean"][m], rel=1e-6)
     assert summary["units"]["rmse"] == "mm" and summary["units"]["irmse"] == "1/km"
     assert summary["frames"] == 2 and summary["pixels"] == expected["mean"]["pixels"]
-    assert summary["checkpoint"] is None and summary["layout"] == "val_selection"
+    assert summary["checkpoint"] is None and summary["shipped_weights"] == "kitti"
+    assert summary["layout"] == "val_selection"
     assert summary["data_root"] == str(val_dir.resolve())
-    assert summary["model_config"] == CRFDepth().config
+    assert summary["model_config"] == CRFDepth.from_pretrained().config
     with torch.no_grad():
-        assert summary["weights"] == pytest.approx(CRFDepth().weights())
+        assert summary["weights"] == pytest.approx(CRFDepth.from_pretrained().weights())
     assert summary["dtype"] == "float32" and summary["skipped"] == []
     # Written atomically: no temporary file left.
     assert sorted(p.name for p in default_run["out_dir"].iterdir()) == ["depth", "per_frame.csv", "summary.json"]

@@ -238,7 +238,7 @@ def test_data_root_without_frames(tmp_path, configs, capsys, cli, sub):
 
 @pytest.mark.parametrize("files", [
     ["synthetic.yaml"], ["synthetic.yaml", "debug.yaml"], ["synthetic.yaml", "debug.yaml", "ddp.yaml"],
-    ["kitti_raw.yaml"], ["kitti_raw.yaml", "ddp.yaml"], ["kitti_dc.yaml"],
+    ["kitti_raw.yaml"], ["kitti_raw.yaml", "ddp.yaml"], ["kitti_dc.yaml"], ["kitti_weights.yaml"],
 ])
 def test_configs_parse(configs, capsys, cli, files):
     args = ["fit"] + [a for f in files for a in ("--config", str(configs / f))] + ["--print_config"]
