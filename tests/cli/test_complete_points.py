@@ -62,7 +62,7 @@ def test_kitti_points_equal_two_step_cli(main, kitti_root, tmp_path):
     one, two = read_depth_png(tmp_path / "one.png"), read_depth_png(tmp_path / "two.png")
     assert one.shape == two.shape == (375, 1242) and one.min() > 0
 
-    model = CRFDepth(potentials=["colour"], refine=False)
+    model = CRFDepth.from_pretrained(potentials=["colour"], refine=False)  # the CLI default weights
     rgb = read_rgb(image)
     api_points, _ = complete_depth(rgb, points=read_velodyne(kitti_root / SCAN),
                                    calibration=load_any_calibration(calib_dir), model=model, return_std=False)
@@ -91,7 +91,7 @@ def test_kitti_16_rings_from_pcd_beats_nearest_fill(main, kitti_root, tmp_path):
     target[sparse > 0] = 0
     crf = _rmse(read_depth_png(tmp_path / "d.png"), target)
     nn = _rmse(nearest_fill(torch.from_numpy(sparse)), target)
-    assert crf < 0.8 * nn, (crf, nn)  # measured: 2428 mm vs 3481 mm
+    assert crf < 0.8 * nn, (crf, nn)  # measured: 2378 mm vs 3481 mm
     assert read_depth_png(tmp_path / "s.png").min() > 0
 
 
