@@ -1,4 +1,4 @@
-"""Tests of ``crfdepth complete`` (crfdepth.cli.complete) and of crfdepth.visualize.
+"""Tests of ``crfdepth complete`` (crfdepth.cli.complete).
 
 Real frames: the two ``val_selection_cropped`` frames of the shared KITTI data. Bad-input
 and checkpoint tests use a small synthetic frame written to ``tmp_path`` (fast, and
@@ -20,13 +20,11 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
 from crfdepth.pretrained import weights_path
-from crfdepth.visualize import colorize_depth, colorize_std
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
 # Cheap model options for tests about files and names rather than accuracy.
@@ -444,45 +442,3 @@ def test_complete_weights_and_checkpoint_exclude_each_other(main, synth, tmp_pat
 def test_complete_missing_checkpoint(main, synth, tmp_path, capsys):
     assert main(_one(synth, tmp_path / "d.png", "--checkpoint", tmp_path / "none.pt")) == 2
     assert "none.pt" in capsys.readouterr().err and not (tmp_path / "d.png").exists()
-
-
-# --------------------------------------------------------------------------- visualize
-
-
-def test_colorize_depth_near_is_warm_and_invalid_black():
-    depth = np.array([[2.0, 5.0, 80.0, 0.0, np.nan]])
-    before = depth.copy()
-    rgb = colorize_depth(depth)
-    assert rgb.shape == (1, 5, 3) and rgb.dtype == np.uint8
-    assert rgb[0, 0, 0] > rgb[0, 0, 2]  # nearest: red
-    assert rgb[0, 2, 2] > rgb[0, 2, 0]  # farthest: blue
-    assert (rgb[0, 3:] == 0).all()  # no depth: black
-    np.testing.assert_array_equal(depth, before, strict=True)
-    # Ends of the TURBO map at vmin / vmax; a tensor with leading singleton dims works too.
-    turbo = cv2.cvtColor(cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
-    np.testing.assert_array_equal(colorize_depth(torch.tensor([[[[2.0, 80.0]]]]))[0], turbo[0, ::-1])
-    # A fixed range: depths beyond it are clipped to its ends.
-    np.testing.assert_array_equal(colorize_depth(depth, vmin=5.0, vmax=10.0)[0, :3], turbo[0, [1, 1, 0]])
-
-
-def test_colorize_std_is_sequential():
-    std = np.array([[0.0, 0.5, 1.0, 3.0, -1.0]])
-    rgb = colorize_std(std, vmax=1.0)
-    viridis = cv2.cvtColor(cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_VIRIDIS),
-                           cv2.COLOR_BGR2RGB)[0]
-    np.testing.assert_array_equal(rgb[0, [0, 2, 3]], viridis[[0, 1, 1]])
-    brightness = rgb[0, :3].astype(int).sum(1)
-    assert brightness[0] < brightness[1] < brightness[2]
-    assert (rgb[0, 4] == 0).all()  # negative: no value
-    # Default top of the scale: the 99th percentile, not the outlier.
-    many = np.concatenate([np.linspace(0, 1, 999), [100.0]])[None]
-    assert colorize_std(many)[0, 998].astype(int).sum() > 400
-
-
-def test_colorize_bad_input():
-    with pytest.raises(InputError, match="depth"):
-        colorize_depth(np.ones((2, 3, 4)))
-    with pytest.raises(InputError, match="vmin"):
-        colorize_depth(np.ones((2, 2)), vmin=-1.0, vmax=3.0)
-    with pytest.raises(InputError, match="vmin, vmax"):
-        colorize_std(np.ones((2, 2)), vmin=2.0, vmax=1.0)
