@@ -338,3 +338,20 @@ def test_real_frame_5500_segments(kitti_root):
     assert 0.5 < (g.lidar_count > 0).float().mean().item() < 0.8  # measured: 0.63
     has = g.lidar_count > 0
     assert bool((g.lidar_depth[has] > 0).all()) and bool((g.lidar_depth[~has] == 0).all())
+
+
+def test_region_adjacency_by_hand_and_against_skimage():
+    labels = torch.tensor([[0, 0, 1],
+                           [2, 3, 1],
+                           [2, 2, 2]])
+    # 0-1, 0-2, 0-3 (0 above 3), 1-3, 1-2 (1 above the last 2), 2-3; diagonal contact does not count
+    assert region_adjacency(labels).tolist() == [[0, 0, 0, 1, 1, 2], [1, 2, 3, 2, 3, 3]]
+    diagonal = torch.tensor([[0, 1], [1, 0]])  # the two 0 pixels touch only diagonally: 0-1 still adjacent
+    assert region_adjacency(diagonal).tolist() == [[0], [1]]
+    from skimage.graph import RAG
+
+    rng = np.random.default_rng(0)
+    random = rng.integers(0, 12, size=(20, 30))
+    expected = sorted((min(a, b), max(a, b)) for a, b in RAG(random, connectivity=1).edges)
+    got = region_adjacency(torch.from_numpy(random), num_nodes=12)
+    assert list(zip(*got.tolist())) == expected

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
-from crfdepth.linalg.krylov import KrylovResult, conjugate_gradient, conjugate_gradient_squared
+from crfdepth.linalg.krylov import conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 
 Method = Literal["cg", "cgs"]
