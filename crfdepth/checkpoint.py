@@ -152,6 +152,7 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
         raise InputError(f"{file}: the {kind}'s model configuration does not fit CRFDepth ({exc})") from None
     except InputError as exc:
         raise InputError(f"{file}: invalid model configuration in the {kind} ({exc})") from None
+    state = _upgrade(state)
     _check_state(file, state, model.state_dict())
     model.load_state_dict(state)
     dtypes = {v.dtype for v in state.values() if v.is_floating_point()}
@@ -256,6 +257,15 @@ def _state_dict(file: Path, value: Any, kind: str) -> dict[str, torch.Tensor]:
         raise InputError(f"{file}: the {kind} does not hold a state dict (a mapping of parameter names "
                          f"to tensors); got {what}")
     return value
+
+
+def _upgrade(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Older state dicts kept the refinement prior as a buffer ``refine_prior``; it is now the
+    parameter ``log_refine_prior``."""
+    if "refine_prior" in state and "log_refine_prior" not in state:
+        state = dict(state)
+        state["log_refine_prior"] = state.pop("refine_prior").log()
+    return state
 
 
 def _check_state(file: Path, state: dict[str, torch.Tensor], expected: dict[str, torch.Tensor]) -> None:

@@ -136,7 +136,7 @@ class CRFDepth(nn.Module):
 
     Learnable parameters (``nn.Parameter``, unconstrained underneath): ``alpha, beta,
     gamma, delta`` through a sigmoid; ``sigma_d, sigma_n, sigma_p``, the data confidence
-    ``c`` and the std scale ``s`` through ``exp``. The predictive standard deviation is
+    ``c``, the refinement prior weight and the std scale ``s`` through ``exp``. The predictive standard deviation is
     ``s * sqrt(diag(A^-1))`` (DESIGN.md section 5); ``s`` is fitted with a Gaussian
     negative log-likelihood (its gradient comes through ``std`` only).
 
@@ -161,8 +161,9 @@ class CRFDepth(nn.Module):
         confidence: initial data confidence ``c`` > 0.
         eps: prior weight relative to the mean potential weight (keeps A positive
             definite; where nothing else informs a node, its depth falls back to x0).
-        refine_prior: weight of the superpixel solution as the refinement's prior, relative
-            to the mean potential weight.
+        refine_prior: initial weight of the superpixel solution as the refinement's prior,
+            relative to the mean potential weight (learnable: smaller lets the pixel solve
+            depart further from the piecewise-constant superpixel depth).
         std_scale: initial ``s`` > 0.
         std_samples: samples of the posterior-variance estimate on large graphs
             (:mod:`crfdepth.uncertainty`); graphs up to 1,000 nodes are exact.
@@ -237,7 +238,7 @@ class CRFDepth(nn.Module):
         self.log_confidence = nn.Parameter(torch.tensor(math.log(confidence)))
         self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
         self.register_buffer("eps", torch.tensor(float(eps)))
-        self.register_buffer("refine_prior", torch.tensor(float(refine_prior)))
+        self.log_refine_prior = nn.Parameter(torch.tensor(math.log(refine_prior)))
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -285,12 +286,17 @@ class CRFDepth(nn.Module):
         return self.log_confidence.exp()
 
     @property
+    def refine_prior(self) -> torch.Tensor:
+        return self.log_refine_prior.exp()
+
+    @property
     def std_scale(self) -> torch.Tensor:
         return self.log_std_scale.exp()
 
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
-        names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "std_scale")
+        names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
+                 "std_scale")
         return {n: float(getattr(self, n).detach()) for n in names}
 
     def _scales(self) -> tuple[torch.Tensor, ...]:

@@ -10,7 +10,7 @@ Two named weight sets:
   and what it measured.
 - ``"paper"``: the hand-set initial values of ``CRFDepth()`` (no file).
 
-A weights file is JSON, not a pickle: the CRF has nine learnable numbers, so the file is
+A weights file is JSON, not a pickle: the CRF has ten learnable numbers, so the file is
 its complete ``CRFDepth`` configuration (``model.config`` with the learned values of
 ``alpha .. std_scale`` written in) plus a free-form ``"about"`` record::
 
@@ -50,7 +50,8 @@ DEFAULT_WEIGHTS = "kitti"
 
 _FOLDER = Path(__file__).resolve().parent / "weights"
 #: The learnable values in a configuration (the keys of ``CRFDepth.weights()``).
-LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "std_scale")
+LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
+           "std_scale")
 
 
 def weights_path(name: str) -> Path | None:

@@ -286,3 +286,13 @@ def test_loads_a_lightning_checkpoint_without_lightning(tmp_path):
     assert done.returncode == 0, done.stderr
     mode, alpha = done.stdout.split()
     assert mode == "pixel" and float(alpha) == pytest.approx(float(model.alpha.detach()))
+
+
+def test_state_dict_with_the_old_refine_prior_buffer_loads(tmp_path):
+    model = CRFDepth(refine_prior=0.02)
+    state = {k: v for k, v in model.state_dict().items() if k != "log_refine_prior"}
+    state["refine_prior"] = torch.tensor(0.02)  # the layout before the prior became learnable
+    torch.save(state, tmp_path / "old.pt")
+    loaded = load_model(tmp_path / "old.pt")
+    assert float(loaded.refine_prior.detach()) == pytest.approx(0.02, rel=1e-6)
+    assert loaded.weights() == pytest.approx(model.weights(), rel=1e-6)

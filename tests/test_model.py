@@ -104,13 +104,31 @@ def test_every_parameter_gets_a_finite_nonzero_gradient():
     loss = ((out.depth - depth) ** 2).mean() + (torch.log(out.std) + (out.depth - depth) ** 2 / out.std ** 2).mean()
     loss.backward()
     for name, p in model.named_parameters():
+        if name == "log_refine_prior":  # the pixel mode has no refinement stage
+            assert p.grad is None
+            continue
         assert p.grad is not None and torch.isfinite(p.grad).all() and float(p.grad.abs()) > 0, name
+
+
+def test_refinement_prior_gradient_matches_finite_differences():
+    image, sparse, K, depth = small_scene(24, 32)
+    model = CRFDepth(superpixels=40, scale_superpixels=False, rtol=1e-13).double()
+
+    def loss(log_prior):
+        out = torch.func.functional_call(model, {"log_refine_prior": log_prior}, (image, sparse, K))
+        return ((out.depth - depth) ** 2).mean()
+
+    value = model.log_refine_prior.detach().clone().requires_grad_()
+    (grad,) = torch.autograd.grad(loss(value), value)
+    h = 1e-5
+    numeric = (loss(value.detach() + h) - loss(value.detach() - h)) / (2 * h)
+    assert float(grad.abs()) > 0 and float(grad) == pytest.approx(float(numeric), rel=1e-4)
 
 
 def test_gradcheck_through_the_whole_model():
     image, sparse, K, depth = small_scene()
     model = CRFDepth(mode="pixel", rtol=1e-13).double()
-    names = [n for n, _ in model.named_parameters() if n != "log_std_scale"]
+    names = [n for n, _ in model.named_parameters() if n not in ("log_std_scale", "log_refine_prior")]
     params = tuple(dict(model.named_parameters())[n].detach().clone().requires_grad_() for n in names)
 
     def f(*values):

@@ -1,8 +1,8 @@
 """The Lightning module that learns the CRF's potential weights (DESIGN.md sections 3, 5, 7).
 
 :class:`CRFDepthModule` wraps one :class:`crfdepth.model.CRFDepth` as ``self.model`` and
-fits its few parameters (alpha..delta, the sigmas, the data confidence and, with a
-negative log-likelihood term, the std scale) with Adam, by backpropagating a depth loss on
+fits its few parameters (alpha..delta, the sigmas, the data confidence, the refinement
+prior and, with a negative log-likelihood term, the std scale) with Adam, by backpropagating a depth loss on
 the target pixels through the CRF's implicit solves.
 
 Checkpoint contract (read by :func:`crfdepth.checkpoint.load_model` and
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 PARAMETERS = {
     "alpha": "raw_alpha", "beta": "raw_beta", "gamma": "raw_gamma", "delta": "raw_delta",
     "sigma_d": "log_sigma_d", "sigma_n": "log_sigma_n", "sigma_p": "log_sigma_p",
-    "confidence": "log_confidence", "std_scale": "log_std_scale",
+    "confidence": "log_confidence", "refine_prior": "log_refine_prior", "std_scale": "log_std_scale",
 }
 
 
@@ -111,13 +111,13 @@ class CRFDepthModule(pl.LightningModule):
         lr: Adam learning rate on the free (unconstrained) parameters: logits of
             alpha..delta, logs of the sigmas, confidence and std scale.
         freeze: names of weights to keep at their initial value (any of alpha, beta,
-            gamma, delta, sigma_d, sigma_n, sigma_p, confidence, std_scale).
+            gamma, delta, sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale).
 
     Batches are :class:`~crfdepth.data.sample.Batch` objects; Lightning moves them to the
     device through ``Batch.to`` (its default ``transfer_batch_to_device``).
 
-    Parameters the model does not use (the weights of potentials that are off; the std
-    scale without NLL) are frozen too, so every trainable parameter gets a gradient each
+    Parameters the model does not use (the weights of potentials that are off; the
+    refinement prior without refinement; the std scale without NLL) are frozen too, so every trainable parameter gets a gradient each
     step (as DDP requires).
     """
 
@@ -153,6 +153,8 @@ class CRFDepthModule(pl.LightningModule):
             frozen.update(("gamma", "sigma_n"))
         if "distance" not in self.model.potentials:
             frozen.update(("delta", "sigma_p"))
+        if self.model.mode == "pixel" or not self.model.refine:
+            frozen.add("refine_prior")
         for name in frozen:
             getattr(self.model, PARAMETERS[name]).requires_grad_(False)
         self.frozen = tuple(n for n in PARAMETERS if n in frozen)

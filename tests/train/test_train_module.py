@@ -59,11 +59,14 @@ def test_hyperparameters_hold_the_complete_crf_config():
 def test_unused_parameters_are_frozen():
     module = CRFDepthModule(crf={"mode": "pixel", "potentials": ["colour"]}, freeze=["sigma_d"])
     frozen = {name for name, raw in PARAMETERS.items() if not getattr(module.model, raw).requires_grad}
-    assert frozen == {"std_scale", "gamma", "sigma_n", "delta", "sigma_p", "sigma_d"}
+    assert frozen == {"std_scale", "gamma", "sigma_n", "delta", "sigma_p", "sigma_d", "refine_prior"}
     optimizer = module.configure_optimizers()
     assert sum(len(g["params"]) for g in optimizer.param_groups) == 3  # alpha, beta, confidence
     assert module.model.log_std_scale.requires_grad is False
     assert CRFDepthModule(nll_weight=0.1).model.log_std_scale.requires_grad is True
+    # The refinement prior is learned only where there is a refinement.
+    assert CRFDepthModule().model.log_refine_prior.requires_grad is True
+    assert CRFDepthModule(crf={"refine": False}).model.log_refine_prior.requires_grad is False
 
 
 @pytest.mark.parametrize("kwargs, match", [
