@@ -91,7 +91,7 @@ def test_kitti_16_rings_from_pcd_beats_nearest_fill(main, kitti_root, tmp_path):
     target[sparse > 0] = 0
     crf = _rmse(read_depth_png(tmp_path / "d.png"), target)
     nn = _rmse(nearest_fill(torch.from_numpy(sparse)), target)
-    assert crf < 0.8 * nn, (crf, nn)  # measured: 2378 mm vs 3481 mm
+    assert crf < 0.8 * nn, (crf, nn)  # measured: 2231 mm vs 3481 mm
     assert read_depth_png(tmp_path / "s.png").min() > 0
 
 
