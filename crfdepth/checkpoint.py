@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import os
-import secrets
 import warnings
 from pathlib import Path
 from typing import Any, Mapping
@@ -36,6 +35,7 @@ from typing import Any, Mapping
 import torch
 
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write, check_output_file
 from crfdepth.model import CRFDepth
 from crfdepth.pretrained import read_weights
 
@@ -72,24 +72,14 @@ def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
     """
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
-    file = Path(path)
-    if file.is_dir():
-        raise InputError(f"path: expected a file name, got a folder: {file}")
-    if not file.parent.is_dir():
-        raise FileNotFoundError(f"path: the folder of {file} does not exist")
+    file = check_output_file(path)
     payload = {
         "format": FORMAT,
         "version": VERSION,
         "config": _plain(dict(model.config)),
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
     }
-    temporary = file.parent / f".{file.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        torch.save(payload, temporary)
-        os.replace(temporary, file)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    atomic_write(file, lambda temporary: torch.save(payload, temporary))
     logger.info("saved CRFDepth (%s mode) to %s", model.mode, file)
     return file
 

@@ -30,11 +30,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import secrets
 from pathlib import Path
 from typing import Any, Mapping
 
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes, check_output_file
 
 __all__ = ["FORMAT", "VERSION", "WEIGHTS", "DEFAULT_WEIGHTS", "weights_path", "load_pretrained",
            "read_weights", "save_weights"]
@@ -141,11 +141,7 @@ def save_weights(model, path: str | os.PathLike, about: Mapping[str, Any] | None
 
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
-    file = Path(path)
-    if file.is_dir():
-        raise InputError(f"path: expected a file name, got a folder: {file}")
-    if not file.parent.is_dir():
-        raise FileNotFoundError(f"path: the folder of {file} does not exist")
+    file = check_output_file(path)
     config = dict(model.config)
     config.update(model.weights())  # the current (learned) values replace the initial ones
     payload = {"format": FORMAT, "version": VERSION, "config": config, "about": dict(about or {})}
@@ -153,11 +149,5 @@ def save_weights(model, path: str | os.PathLike, about: Mapping[str, Any] | None
         text = json.dumps(payload, indent=2) + "\n"
     except (TypeError, ValueError) as exc:
         raise InputError(f"about: expected JSON-serialisable values ({exc})") from None
-    temporary = file.parent / f".{file.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        temporary.write_text(text, encoding="utf-8")
-        os.replace(temporary, file)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(file, text.encode("utf-8"))
     return file

@@ -66,7 +66,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import secrets
 import sys
 import time
 from pathlib import Path
@@ -81,6 +80,7 @@ from crfdepth.checkpoint import load_model
 from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
 from crfdepth.data.kitti import KittiTestCompletion, KittiValSelection
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
 from crfdepth.io.pointcloud import read_points
 from crfdepth.io.rig import load_any_calibration
@@ -238,14 +238,7 @@ def _write_rgb_png(path: Path, rgb: np.ndarray) -> None:
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:  # pragma: no cover - cv2 encodes any uint8 HxWx3 array
         raise InputError(f"vis: could not encode a picture of shape {rgb.shape} as PNG")
-    temporary = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        with open(temporary, "xb") as handle:
-            handle.write(encoded.tobytes())
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 # --------------------------------------------------------------------------- model

@@ -48,7 +48,6 @@ import json
 import logging
 import math
 import os
-import secrets
 import sys
 import time
 from pathlib import Path
@@ -63,6 +62,7 @@ from crfdepth.cli.complete import add_model_arguments, build_model, int_at_least
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS, UNITS, depth_metrics
 from crfdepth.pretrained import DEFAULT_WEIGHTS
@@ -280,14 +280,7 @@ def format_table(summary: dict[str, Any]) -> str:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    temporary = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        with open(temporary, "x", encoding="utf-8", newline="") as handle:
-            handle.write(text)
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _csv_text(rows: list[dict[str, Any]]) -> str:

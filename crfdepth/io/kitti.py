@@ -14,7 +14,6 @@ expected and what was found.
 from __future__ import annotations
 
 import os
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes
 
 __all__ = [
     "Calibration",
@@ -141,16 +141,7 @@ def write_depth_png(path: PathLike, depth: np.ndarray) -> None:
     if not ok:  # pragma: no cover - cv2 encodes any 2-D uint16 array
         raise InputError(f"depth: could not encode an array of shape {codes.shape} as PNG")
 
-    temporary = directory / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        # O_EXCL: never clobber someone else's file; mode 0o666 is reduced by the umask.
-        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(encoded.tobytes())
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 # --------------------------------------------------------------------------- images
