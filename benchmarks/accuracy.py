@@ -38,7 +38,11 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 - ``sp1200``, ``sp2400``: the paper's Table 2 segment counts, all potentials, no
   refinement (5500 is ``sp-cnd``).
 
-The ablations and segment counts use the hand-set weights, as ``paper`` does.
+The ablations and segment counts use the hand-set weights, as ``paper`` does. With
+``--learn-ablations``, protocol a also gets ``sp-c/learned`` .. ``sp-cn+r/learned``: each
+ablation with weights learned for its own configuration by the shipped recipe on the
+shipped weights' training frames (drive 0060 and the object frames, never drive 0001), as
+the paper trains each row of its Table 1 (5 more fits, about 5 minutes each on 2 cores).
 
 Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, averaged
 over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), DESIGN.md section 7.
@@ -61,7 +65,8 @@ tables and verdicts), ``results.jsonl`` (one JSON line per method and protocol, 
 sub-sampling point), ``subsampling.png``, ``sparsification.png``.
 
     python benchmarks/accuracy.py [--kitti-root PATH] [--protocols a b c] [--methods ...]
-        [--max-frames N] [--fit-epochs E] [--fit-frames N] [--fractions 0.2 0.4 0.6 0.8 1.0]
+        [--max-frames N] [--fit-epochs E] [--fit-frames N] [--learn-ablations]
+        [--fractions 0.2 0.4 0.6 0.8 1.0]
         [--no-subsample] [--device cpu|cuda] [--threads 1] [--quick] [--out-dir DIR]
 """
 
@@ -116,6 +121,9 @@ CRF_METHODS = {
 }
 METHODS = ("nn", "inpaint", *CRF_METHODS)
 WITH_STD = ("paper", "learned")
+# The Table 1 ablations with weights learned for each configuration (protocol a only:
+# ``--learn-ablations``), as the paper does.
+LEARNED_ABLATIONS = {f"{m}/learned": CRF_METHODS[m] for m in ("sp-c", "sp-cn", "sp-cnd", "sp-c+r", "sp-cn+r")}
 
 
 def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: int | None,
@@ -146,12 +154,13 @@ def inpaint(sparse: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out)[None, None].to(sparse)
 
 
-def fit_recipe(frames: Sequence, epochs: int, device: str) -> tuple[CRFDepth, float]:
+def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = None) -> tuple[CRFDepth, float]:
     """``CRFDepth`` weights learned on ``frames`` by the shipped recipe (:data:`RECIPE`).
 
     The Lightning trainer's module and optimiser with the recipe's ``model`` settings
     (the NLL term off), its flip augmentation, batch size and seed, for ``epochs`` epochs;
-    no validation, logging or checkpoints. Returns the model (eval mode) and the last
+    no validation, logging or checkpoints. ``crf`` overrides the recipe's model structure
+    (e.g. ``{"potentials": ["colour"]}``). Returns the model (eval mode) and the last
     epoch's mean training loss.
     """
     import lightning.pytorch as pl
@@ -166,7 +175,8 @@ def fit_recipe(frames: Sequence, epochs: int, device: str) -> tuple[CRFDepth, fl
     recipe = yaml.safe_load(RECIPE.read_text())
     data = recipe["data"]
     pl.seed_everything(recipe.get("seed_everything", 0), verbose=False)
-    module = CRFDepthModule(**{**recipe["model"], "nll_weight": 0.0})
+    model = recipe["model"]
+    module = CRFDepthModule(**{**model, "crf": {**(model.get("crf") or {}), **(crf or {})}, "nll_weight": 0.0})
     dataset = TransformedDataset(list(frames), HorizontalFlip(p=data["flip"])) if data.get("flip") else list(frames)
     loader = DataLoader(dataset, batch_size=data.get("batch_size", 1), shuffle=True, collate_fn=collate_samples)
     trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
@@ -208,13 +218,17 @@ def predict(method: str, model: CRFDepth | None, image, sparse, K, device: str):
 def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) -> tuple[list[dict], dict]:
     """Rows (one per method) of protocol ``key`` and its mean sparsification curves."""
     title, groups = PROTOCOLS[key]
-    per = {m: dict(metrics=[], seconds=[], unc={}) for m in args.methods}
+    methods = list(args.methods) + (list(LEARNED_ABLATIONS) if args.learn_ablations and key == "a" else [])
+    per = {m: dict(metrics=[], seconds=[], unc={}) for m in methods}
     curves: dict = {}
     fit_note = {}
     for group, layout, folder, options in groups:
         frames = load_group(args.kitti_root, layout, folder, options, args.max_frames)
         models = {m: CRFDepth(**CRF_METHODS[m]).to(args.device) for m in args.methods
                   if m in CRF_METHODS and m != "learned"}
+        for m in methods:
+            if m in LEARNED_ABLATIONS:
+                models[m] = get_fit(("recipe", m), args, fits, log)
         if "learned" in args.methods:
             source = FIT_SOURCE[(key, group)]
             models["learned"] = get_fit(source, args, fits, log)
@@ -225,7 +239,7 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         for s in frames:
             image, sparse, target, K = batch(s, args.device)
             mask = (target > 0)[0, 0]
-            for m in args.methods:
+            for m in methods:
                 depth, std, count, seconds = predict(m, models.get(m), image, sparse, K, args.device)
                 per[m]["metrics"].append(depth_metrics(depth, target))
                 per[m]["seconds"].append(seconds)
@@ -237,14 +251,19 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
                     per[m]["unc"].setdefault(name, []).append(a)
     rows = []
     h, w = frames[0].size
-    for m in args.methods:
+    for m in methods:
         stacked = {k: torch.cat([d[k] for d in per[m]["metrics"]]) for k in per[m]["metrics"][0]}
         row = {"protocol": key, "method": m, "frames": len(per[m]["metrics"])}
         row.update({k: v for k, v in average_metrics(stacked).items()})
         sec = statistics.median(per[m]["seconds"])
         row.update(seconds_median=sec, fps_median=1.0 / sec, device=args.device, batch_size=1,
                    threads=torch.get_num_threads(), size=f"{w}x{h}")
-        if m in CRF_METHODS:
+        if m in LEARNED_ABLATIONS:
+            row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in LEARNED_ABLATIONS[m].items()}
+            row["fit"] = (f"weights learned for this configuration by the shipped recipe on its "
+                          f"{fits[('recipe', m)]['frames']} frames (drive 0060, object frames; both hold-outs)")
+            row["weights"] = fits[("recipe", m)]["weights"]
+        elif m in CRF_METHODS:
             row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in CRF_METHODS[m].items()}
         for name, items in per[m]["unc"].items():
             row[f"ause_{name}_mm"] = float(np.mean([a["ause"] for a in items]))
@@ -259,11 +278,23 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
     return rows, curves
 
 
-def get_fit(source: str, args, fits: dict, log) -> CRFDepth:
-    """The learned model for frames of groups other than ``source`` (cached in ``fits``)."""
+def get_fit(source, args, fits: dict, log) -> CRFDepth:
+    """The learned model for frames of groups other than ``source`` (cached in ``fits``).
+
+    ``source``: "shipped" (the package's file), a group name (fit on that group's frames),
+    or ``("recipe", method)``: the structure of ``method`` fitted on the shipped weights'
+    own training frames (all but drive 0001)."""
     if source not in fits:
         t = time.perf_counter()
-        if source == "shipped":
+        if isinstance(source, tuple):
+            frames = [s for proto in ("b", "c") for group, layout, folder, options in PROTOCOLS[proto][1]
+                      for s in load_group(args.kitti_root, layout, folder, options, args.fit_frames)
+                      if "drive_0001" not in s.name]
+            model, loss = fit_recipe(frames, args.fit_epochs, args.device, crf=LEARNED_ABLATIONS[source[1]])
+            count = len(frames) // 2
+            log(f"  fit of {source[1]} ({count} frames x 2 hold-outs): {args.fit_epochs} epochs in "
+                f"{time.perf_counter() - t:.0f} s")
+        elif source == "shipped":
             model, loss, count = CRFDepth.from_pretrained("kitti").to(args.device), float("nan"), 0
         else:
             frames = [s for proto in ("b", "c")
@@ -313,7 +344,7 @@ def markdown_tables(rows: list[dict]) -> list[str]:
                          f"| {r['rel']:.4f} | {r['delta1']:.4f} | {r['fps_median']:.2f} |")
         for r in rs:
             if "fit" in r:
-                lines.append(f"\nlearned: {r['fit']}")
+                lines.append(f"\n{r['method']}: {r['fit']}")
     unc = [r for r in rows if "ause_std_mm" in r]
     if unc:
         lines += ["", "**Uncertainty: AUSE of RMSE in mm (lower is better; random order for scale)**", "",
@@ -349,12 +380,15 @@ def verdicts(rows: list[dict]) -> list[str]:
                 d = by[(key, "paper")]["rmse"]
                 out.append(f"  (learned vs hand-set weights on protocol {key}: {l:.0f} vs {d:.0f} mm, "
                            f"{(d - l) / d:+.1%})")
-    for suffix, label in (("", "no refinement"), ("+r", "with refinement")):
-        chain = ["sp-c" + suffix, "sp-cn" + suffix, "sp-cnd" + suffix if suffix == "" else "paper"]
+    chains = [("no refinement, hand-set weights", ["sp-c", "sp-cn", "sp-cnd"]),
+              ("with refinement, hand-set weights", ["sp-c+r", "sp-cn+r", "paper"]),
+              ("no refinement, weights learned per configuration", ["sp-c/learned", "sp-cn/learned", "sp-cnd/learned"]),
+              ("with refinement, weights learned per configuration", ["sp-c+r/learned", "sp-cn+r/learned", "learned"])]
+    for label, chain in chains:
         if all(("a", m) in by for m in chain):
             v = [by[("a", m)]["rmse"] for m in chain]
-            steps = [f"{chain[i]} -> {chain[i + 1]}: {v[i]:.0f} -> {v[i + 1]:.0f} mm "
-                     f"({'ok' if v[i + 1] <= v[i] else f'worse by {v[i + 1] - v[i]:.0f} mm'})" for i in range(2)]
+            steps = [f"{chain[i]} -> {chain[i + 1]}: {v[i]:.1f} -> {v[i + 1]:.1f} mm "
+                     f"({'ok' if v[i + 1] <= v[i] else f'worse by {v[i + 1] - v[i]:.1f} mm'})" for i in range(2)]
             ok = all(v[i + 1] <= v[i] for i in range(2))
             out.append(f"- Table 1 order on protocol a ({label}): {'; '.join(steps)}: {'meets' if ok else 'misses'}")
     return out
@@ -412,6 +446,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--fit-epochs", type=int, default=None,
                         help="epochs of each learned-weight fit (default: the recipe's, configs/kitti_weights.yaml)")
     parser.add_argument("--fit-frames", type=int, default=None, help="frames per group of each fit; default all")
+    parser.add_argument("--learn-ablations", action="store_true",
+                        help="protocol a: also the Table 1 ablations with weights learned per configuration by the "
+                             "shipped recipe (5 more fits)")
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.2, 0.4, 0.6, 0.8, 1.0])
     parser.add_argument("--subsample-frames", type=int, default=None, help="frames per group of the sub-sampling "
                         "study (default: --max-frames)")

@@ -49,3 +49,18 @@ def test_learned_weights_on_raw_protocols_come_from_the_other_source(accuracy, k
     paper = accuracy.CRFDepth().weights()
     for group, weights in learned["weights"].items():  # each fit moved the hand-set weights
         assert any(abs(weights[k] - paper[k]) > 1e-3 * paper[k] for k in ("alpha", "beta", "confidence")), group
+
+
+def test_learned_ablations_are_fitted_per_configuration_on_protocol_a_only(accuracy, kitti_root, tmp_path):
+    rows = accuracy.main(["--quick", "--kitti-root", str(kitti_root), "--protocols", "a", "c", "--methods", "nn",
+                          "--learn-ablations", "--no-subsample", "--out-dir", str(tmp_path)])
+    names = [(r["protocol"], r["method"]) for r in rows]
+    assert names == [("a", "nn"), *[("a", m) for m in accuracy.LEARNED_ABLATIONS], ("c", "nn")]
+    by = {r["method"]: r for r in rows if r["protocol"] == "a"}
+    assert by["sp-c/learned"]["config"] == {"potentials": ["colour"], "refine": False}
+    assert "drive 0060, object frames" in by["sp-cn+r/learned"]["fit"]
+    # Each configuration had its own fit: the normal weight is learned only where the term is on.
+    assert by["sp-c/learned"]["weights"]["gamma"] == pytest.approx(0.05)
+    assert by["sp-cn/learned"]["weights"]["gamma"] != pytest.approx(0.05)
+    text = (tmp_path / "results.md").read_text()
+    assert "Table 1 order on protocol a (no refinement, weights learned per configuration)" in text
