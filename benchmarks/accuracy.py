@@ -471,6 +471,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         args.fit_epochs = int(yaml.safe_load(RECIPE.read_text())["trainer"]["max_epochs"])
     if args.fit_epochs < 1:
         parser.error(f"--fit-epochs: expected >= 1, got {args.fit_epochs}")
+    needed = sorted({folder for key in args.protocols for _, _, folder, _ in PROTOCOLS[key][1]}
+                    | ({"raw", "object/training"} if args.learn_ablations else set())
+                    | (set() if args.no_subsample else {"raw", "object/training"}))
+    missing = [f for f in needed if not (args.kitti_root / f).is_dir()]
+    if missing:
+        parser.error(f"--kitti-root: expected the folders {', '.join(needed)} under {args.kitti_root} "
+                     f"(the layout of ../shared/data/kitti), missing: {', '.join(missing)}")
     return args
 
 

@@ -64,3 +64,15 @@ def test_learned_ablations_are_fitted_per_configuration_on_protocol_a_only(accur
     assert by["sp-cn/learned"]["weights"]["gamma"] != pytest.approx(0.05)
     text = (tmp_path / "results.md").read_text()
     assert "Table 1 order on protocol a (no refinement, weights learned per configuration)" in text
+
+
+def test_kitti_root_without_the_protocol_folders_is_named_before_any_output(accuracy, tmp_path, capsys):
+    (tmp_path / "raw").mkdir()
+    out = tmp_path / "results"
+    with pytest.raises(SystemExit) as info:
+        accuracy.main(["--kitti-root", str(tmp_path), "--protocols", "a", "b", "--out-dir", str(out)])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--kitti-root" in err and str(tmp_path) in err
+    assert "missing: depth_selection/val_selection_cropped, object/training" in err
+    assert not out.exists()
