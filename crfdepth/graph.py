@@ -1,4 +1,4 @@
-"""The CRF graph of one frame: SLIC superpixels, node features and edges (DESIGN.md section 2).
+"""The CRF graph of one frame: SLIC superpixels, node features and edges (docs/design.md section 2).
 
 Two kinds of graph are supported:
 
@@ -11,7 +11,7 @@ Two kinds of graph are supported:
   (:func:`four_neighbour_picks`); the edge set is the undirected union of these picks,
   each pair once (:func:`undirected_edges`).
 - **Pixel mode**: every pixel is a node and the edges are the 4-connected grid,
-  :func:`pixel_grid_edges`, ``H (W - 1) + W (H - 1)`` edges.
+  :func:`crfdepth.linalg.grid_edge_index`, ``H (W - 1) + W (H - 1)`` edges.
 
 :func:`paint` maps node values back to pixels (piecewise constant, as in the paper).
 
@@ -30,15 +30,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from numbers import Integral
 from typing import Literal
 
 import numpy as np
 import torch
-from skimage.segmentation import relabel_sequential, slic
 
 from crfdepth.errors import InputError
-from crfdepth.linalg import grid_edge_index
+from crfdepth.superpixels import _check_n_segments, _describe, _image_tensor, _labels_tensor, slic_segments
 
 __all__ = [
     "DIRECTIONS_DEG",
@@ -46,11 +44,9 @@ __all__ = [
     "batch_edge_index",
     "build_superpixel_graph",
     "build_superpixel_graphs",
+    "boundary_pairs",
     "four_neighbour_picks",
-    "paint",
-    "pixel_grid_edges",
     "region_adjacency",
-    "slic_segments",
     "undirected_edges",
 ]
 
@@ -63,36 +59,6 @@ Aggregate = Literal["mean", "median"]
 
 
 # --------------------------------------------------------------------------- input checks
-
-
-def _describe(value: object) -> str:
-    if isinstance(value, (torch.Tensor, np.ndarray)):
-        return f"shape {tuple(value.shape)} ({value.dtype})"
-    return type(value).__name__
-
-
-def _image_tensor(image: torch.Tensor | np.ndarray, name: str = "image") -> torch.Tensor:
-    """(3, H, W) tensor from a (3, H, W) tensor or an (H, W, 3) array; checked finite, [0, 1]."""
-    if isinstance(image, np.ndarray):
-        if image.ndim != 3 or image.shape[2] != 3:
-            raise InputError(f"{name}: expected an (H, W, 3) RGB array in [0, 1], got {_describe(image)}")
-        tensor = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
-    elif isinstance(image, torch.Tensor):
-        if image.ndim != 3 or image.shape[0] != 3:
-            raise InputError(f"{name}: expected a (3, H, W) RGB tensor in [0, 1], got {_describe(image)}")
-        tensor = image
-    else:
-        raise InputError(f"{name}: expected a (3, H, W) tensor or an (H, W, 3) array, got {_describe(image)}")
-    if not tensor.is_floating_point():
-        raise InputError(f"{name}: expected floating-point RGB in [0, 1], got dtype {tensor.dtype}")
-    if tensor.shape[1] < 1 or tensor.shape[2] < 1:
-        raise InputError(f"{name}: expected a non-empty image, got {_describe(image)}")
-    if not bool(torch.isfinite(tensor).all()):
-        raise InputError(f"{name}: expected finite RGB values in [0, 1], got NaN or inf")
-    lo, hi = float(tensor.min()), float(tensor.max())
-    if lo < 0.0 or hi > 1.0:
-        raise InputError(f"{name}: expected RGB values in [0, 1], got range [{lo:.4g}, {hi:.4g}]")
-    return tensor
 
 
 def _sparse_tensor(sparse: torch.Tensor, size: tuple[int, int], name: str = "sparse") -> torch.Tensor:
@@ -116,108 +82,35 @@ def _sparse_tensor(sparse: torch.Tensor, size: tuple[int, int], name: str = "spa
     return sparse
 
 
-def _check_n_segments(n_segments: object) -> int:
-    if isinstance(n_segments, bool) or not isinstance(n_segments, Integral) or int(n_segments) < 1:
-        raise InputError(f"n_segments: expected an integer >= 1, got {n_segments!r}")
-    return int(n_segments)
+# --------------------------------------------------------------------------- edges
 
 
-def _labels_tensor(
-    labels: torch.Tensor | np.ndarray, size: tuple[int, int] | None, name: str = "labels"
-) -> torch.Tensor:
-    """(H, W) int64 labels, relabelled to consecutive ``0 .. S-1`` if they are not already."""
-    if isinstance(labels, np.ndarray):
-        labels = torch.from_numpy(np.ascontiguousarray(labels))
-    if not isinstance(labels, torch.Tensor) or labels.ndim != 2:
-        raise InputError(f"{name}: expected an (H, W) integer tensor, got {_describe(labels)}")
-    if size is not None and tuple(labels.shape) != tuple(size):
-        raise InputError(f"{name}: expected shape {tuple(size)} (the image size), got {_describe(labels)}")
-    if labels.dtype.is_floating_point or labels.dtype == torch.bool or labels.is_complex():
-        raise InputError(f"{name}: expected an integer tensor, got dtype {labels.dtype}")
-    if labels.numel() == 0:
-        raise InputError(f"{name}: expected a non-empty label map, got {_describe(labels)}")
-    labels = labels.to(torch.int64)
-    if int(labels.min()) < 0:
-        raise InputError(f"{name}: expected labels >= 0, got minimum {int(labels.min())}")
-    num = int(labels.max()) + 1
-    present = torch.bincount(labels.flatten(), minlength=num) > 0
-    if bool(present.all()):
-        return labels
-    # Drop unused label values: node i is the i-th smallest label that occurs.
-    new_index = torch.cumsum(present, 0) - 1
-    return new_index[labels]
+def boundary_pairs(node: torch.Tensor, num_nodes: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The segment graph of label maps: which segments touch, and through which pixel edges.
 
-
-# --------------------------------------------------------------------------- SLIC
-
-
-def slic_segments(
-    image: torch.Tensor | np.ndarray,
-    n_segments: int = 5500,
-    *,
-    compactness: float = 20.0,
-    sigma: float = 1.0,
-    max_num_iter: int = 5,
-    convert2lab: bool = True,
-) -> torch.Tensor:
-    """SLIC superpixels of an RGB image (paper Sec. 3.2), labels ``0 .. S-1``.
-
-    Wraps :func:`skimage.segmentation.slic` with ``start_label=0`` and
-    ``enforce_connectivity=True`` (every segment is one 4-connected region; the ones
-    below ``min_size_factor`` of the nominal size are merged into a neighbour, so ``S`` is
-    usually a little below ``n_segments``), then renumbers the labels consecutively with
-    :func:`skimage.segmentation.relabel_sequential`.
-
-    The defaults were chosen on the two real ``val_selection_cropped`` frames (1216x352,
-    5500 segments), by the RMSE of the oracle piecewise-constant depth (each segment
-    painted with its mean ground truth): ``compactness=20, sigma=1`` in Lab gives about
-    5200 segments and 1.13 m; ``compactness=10`` follows colour more closely but
-    gives fewer segments (4950) and 1.18 m; ``sigma=0`` produces ragged segments (1.20-
-    1.53 m). Five k-means iterations match ten to within 1% on that measure at 60% of
-    the time. Note that scikit-image rescales the image by its own min/max to [0, 1]
-    before the Lab conversion, so ``compactness`` is in Lab units of that stretched image.
-
-    Time at 1216x352 on one CPU core (2-core machine), 5500 segments: about 0.27 s with
-    the defaults, about 0.45 s with ``max_num_iter=10``; each k-means iteration costs about
-    35 ms, the Lab conversion about 40 ms (``convert2lab=False`` saves it; then use a
-    compactness of about 0.1-0.2 for RGB in [0, 1]), the Gaussian pre-smoothing and the
-    connectivity pass about 10 ms each. The iterations dominate.
+    The one superpixel-graph builder: :func:`region_adjacency` (the model's graph) and the
+    superpixel mode of :func:`crfdepth.layer.crf_refine` (edge weights summed over each
+    shared boundary) both use it.
 
     Args:
-        image: (3, H, W) float tensor or (H, W, 3) float array, RGB in [0, 1].
-        n_segments: approximate number of superpixels, >= 1 (paper: 5500 at 1216x352).
-        compactness: balance of colour against space (higher = more regular, grid-like).
-        sigma: width (pixels) of the Gaussian pre-smoothing; 0 = none.
-        max_num_iter: number of k-means iterations.
-        convert2lab: cluster in CIELAB (True) or in the RGB values (False).
+        node: (H, W) or (B, H, W) int64 node index per pixel, ``0 .. num_nodes-1`` (for a
+            batch, global indices as from :func:`crfdepth.superpixels.batch_segments`).
+        num_nodes: number of nodes.
 
     Returns:
-        (H, W) int64 tensor of labels ``0 .. S-1``, every value used, on the image's device.
-
-    Raises:
-        InputError: image not 3-channel RGB in [0, 1], ``n_segments < 1``.
+        ``pairs`` (2, A) int64 adjacent node pairs, ``[0] < [1]``, each once, sorted;
+        ``crossing`` (P,) bool over the 4-connected pixel edges, horizontal ones (every
+        frame, row-major) then vertical ones, true where the edge joins two segments;
+        ``pair_of_edge`` (number of crossing edges,) the index into ``pairs`` of each
+        crossing edge.
     """
-    tensor = _image_tensor(image)
-    n_segments = _check_n_segments(n_segments)
-    device = tensor.device if isinstance(image, torch.Tensor) else torch.device("cpu")
-    rgb = tensor.detach().to("cpu", torch.float32).permute(1, 2, 0).contiguous().numpy()
-    segments = slic(
-        rgb,
-        n_segments=n_segments,
-        compactness=compactness,
-        sigma=sigma,
-        max_num_iter=max_num_iter,
-        convert2lab=convert2lab,
-        enforce_connectivity=True,
-        start_label=0,
-        channel_axis=-1,
-    )
-    # relabel_sequential keeps 0 as background, so shift to 1.. first and back after.
-    consecutive, _, _ = relabel_sequential(segments.astype(np.int64) + 1)
-    return torch.from_numpy(consecutive - 1).to(device)
-
-
-# --------------------------------------------------------------------------- edges
+    first = torch.cat([node[..., :, :-1].reshape(-1), node[..., :-1, :].reshape(-1)])
+    second = torch.cat([node[..., :, 1:].reshape(-1), node[..., 1:, :].reshape(-1)])
+    crossing = first != second
+    low = torch.minimum(first[crossing], second[crossing])
+    high = torch.maximum(first[crossing], second[crossing])
+    key, pair_of_edge = torch.unique(low * num_nodes + high, return_inverse=True)  # sorted
+    return torch.stack([key // num_nodes, key % num_nodes]), crossing, pair_of_edge
 
 
 def region_adjacency(labels: torch.Tensor, num_nodes: int | None = None) -> torch.Tensor:
@@ -237,13 +130,7 @@ def region_adjacency(labels: torch.Tensor, num_nodes: int | None = None) -> torc
     """
     labels = _labels_tensor(labels, None)
     n = int(labels.max()) + 1 if num_nodes is None else int(num_nodes)
-    first = torch.cat([labels[:, :-1].reshape(-1), labels[:-1, :].reshape(-1)])
-    second = torch.cat([labels[:, 1:].reshape(-1), labels[1:, :].reshape(-1)])
-    differ = first != second
-    low = torch.minimum(first[differ], second[differ])
-    high = torch.maximum(first[differ], second[differ])
-    key = torch.unique(low * n + high)  # sorted
-    return torch.stack([key // n, key % n])
+    return boundary_pairs(labels, n)[0]
 
 
 def four_neighbour_picks(adjacency: torch.Tensor, centroid: torch.Tensor, num_nodes: int) -> torch.Tensor:
@@ -317,28 +204,12 @@ def undirected_edges(picks: torch.Tensor) -> torch.Tensor:
     return torch.stack([key // n, key % n])
 
 
-def pixel_grid_edges(height: int, width: int, device: torch.device | str | None = None) -> torch.Tensor:
-    """Edges of pixel mode: the 4-connected ``height x width`` grid.
-
-    Node ``row * width + col``; ``E = H (W - 1) + W (H - 1)`` edges, horizontal ones
-    first. This is :func:`crfdepth.linalg.grid_edge_index`, the layout the pixel-grid
-    solver expects.
-
-    Returns:
-        (2, E) int64 with ``[0] < [1]``.
-    """
-    for name, value in (("height", height), ("width", width)):
-        if isinstance(value, bool) or not isinstance(value, Integral) or int(value) < 1:
-            raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
-    return grid_edge_index(int(height), int(width), device=device)
-
-
 # --------------------------------------------------------------------------- graph
 
 
 @dataclass
 class SuperpixelGraph:
-    """The superpixel CRF graph of one frame (DESIGN.md section 2).
+    """The superpixel CRF graph of one frame (docs/design.md section 2).
 
     ``S = num_nodes`` nodes, ``E`` edges, ``A`` adjacent pairs, on the device of the inputs.
 
@@ -417,7 +288,7 @@ def build_superpixel_graph(
 ) -> SuperpixelGraph:
     """Superpixel graph of one frame: segments, node features and the paper's edges.
 
-    Nodes and features as in DESIGN.md section 2; edges by :func:`four_neighbour_picks`
+    Nodes and features as in docs/design.md section 2; edges by :func:`four_neighbour_picks`
     over :func:`region_adjacency`. All per-node sums use ``index_add``/``bincount`` (no
     loop over nodes); the median sorts the LiDAR pixels by (label, depth) and takes the
     middle elements.
@@ -559,30 +430,3 @@ def batch_edge_index(graphs: list[SuperpixelGraph]) -> tuple[torch.Tensor, torch
     return torch.cat(edges, dim=1), ptr
 
 
-# --------------------------------------------------------------------------- painting
-
-
-def paint(node_values: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Node values to pixels, piecewise constant over each superpixel (paper, Fig. 2d).
-
-    Differentiable with respect to ``node_values`` (an index gather).
-
-    Args:
-        node_values: (S,) values per node (e.g. depth in metres), or (S, C).
-        labels: (H, W) int64 node index of each pixel, ``0 .. S-1``.
-
-    Returns:
-        (H, W), or (C, H, W) for (S, C) input: ``out[..., r, c] = node_values[labels[r, c]]``.
-    """
-    if not isinstance(node_values, torch.Tensor) or node_values.ndim not in (1, 2):
-        raise InputError(f"node_values: expected an (S,) or (S, C) tensor, got {_describe(node_values)}")
-    if not isinstance(labels, torch.Tensor) or labels.ndim != 2 or labels.dtype != torch.int64:
-        raise InputError(f"labels: expected an (H, W) int64 tensor, got {_describe(labels)}")
-    s = node_values.shape[0]
-    if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= s):
-        raise InputError(
-            f"labels: expected values in [0, {s - 1}] (node_values has {s} nodes), "
-            f"got range [{int(labels.min())}, {int(labels.max())}]"
-        )
-    out = node_values[labels.to(node_values.device)]
-    return out if node_values.ndim == 1 else out.permute(2, 0, 1)

@@ -1,4 +1,4 @@
-"""The CRF as a refinement layer on top of any depth network (DESIGN.md sections 3-5).
+"""The CRF as a refinement layer on top of any depth network (docs/design.md sections 3-5).
 
 A network predicts a dense depth ``y``, a per-pixel confidence ``c >= 0`` and guidance
 features ``f``; the layer returns the minimiser of the Gaussian CRF energy
@@ -10,15 +10,15 @@ features ``f``; the layer returns the minimiser of the Gaussian CRF energy
 
 with ``w_ij = s exp(-||P f_i - P f_j||^2)``, ``P`` a learnable linear projection of the
 features (a 1x1 convolution) and ``s > 0`` an edge scale. The minimiser solves the sparse
-SPD system ``A x = b`` of DESIGN.md section 3 with
+SPD system ``A x = b`` of docs/design.md section 3 with
 
     A = diag(c + eps + lambda m) + L(w),    b = (c + eps) y + lambda m z,    m = [z > 0],
 
 by :func:`crfdepth.linalg.solve_grid_laplacian` (Jacobi-preconditioned CG, warm start
-from ``y``) and is differentiated by one adjoint solve (DESIGN.md section 4), so gradients
+from ``y``) and is differentiated by one adjoint solve (docs/design.md section 4), so gradients
 reach ``y``, ``c``, ``f``, ``z``, ``P``, ``s`` and ``lambda`` and memory does not grow
 with the iteration count. The predictive standard deviation is
-``sigma * sqrt(diag(A^-1))`` (DESIGN.md section 5, :func:`grid_posterior_variance`), with
+``sigma * sqrt(diag(A^-1))`` (docs/design.md section 5, :func:`grid_posterior_variance`), with
 a learnable scale ``sigma``; the variance itself carries no gradient, only ``sigma`` does.
 
 Superpixel mode (``labels`` given): the same energy restricted to depth maps that are
@@ -41,9 +41,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from crfdepth.checks import check_map, check_scalar_tensor, describe
+from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
-from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
-from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+from crfdepth.graph import boundary_pairs
+from crfdepth.linalg import SolveInfo, solver_settings
+from crfdepth.potentials import unary_system
+from crfdepth.superpixels import batch_segments, slic_segments
 
 __all__ = ["CRFRefine", "RefineOutput", "crf_refine"]
 
@@ -64,67 +68,17 @@ class RefineOutput:
 
 
 # ----------------------------------------------------------------------------------------
-# input checks (all before any solve)
+# input checks (all before any solve; the shared ones are in crfdepth.checks)
 # ----------------------------------------------------------------------------------------
-
-def _shape(t) -> str:
-    return f"shape {tuple(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
-
-
-def _check_map(name: str, t, ref: torch.Tensor | None, channels: int | None, *,
-               nonneg: bool = False) -> torch.Tensor:
-    """A finite (B, C, H, W) floating tensor with the batch/size/dtype/device of ``ref``."""
-    if not isinstance(t, torch.Tensor) or t.dim() != 4:
-        want = f"(B, {channels}, H, W)" if channels else "(B, C, H, W)"
-        raise InputError(f"{name}: expected a {want} tensor, got {_shape(t)}")
-    if not t.is_floating_point():
-        raise InputError(f"{name}: expected a floating-point tensor, got dtype {t.dtype}")
-    if channels is not None and t.shape[1] != channels:
-        raise InputError(f"{name}: expected {channels} channel(s), (B, {channels}, H, W), got {_shape(t)}")
-    if ref is not None:
-        b, _, h, w = ref.shape
-        if t.shape[0] != b or tuple(t.shape[2:]) != (h, w):
-            raise InputError(f"{name}: expected batch {b} and size {h}x{w} like depth {tuple(ref.shape)}, "
-                             f"got {_shape(t)}")
-        if t.dtype != ref.dtype or t.device != ref.device:
-            raise InputError(f"{name}: expected dtype {ref.dtype} on {ref.device} like depth, "
-                             f"got {t.dtype} on {t.device}")
-    v = t.detach()
-    finite = torch.isfinite(v)
-    if not bool(finite.all()):
-        raise InputError(f"{name}: expected finite values, got {int((~finite).sum())} NaN/inf entries")
-    if nonneg and bool((v < 0).any()):
-        raise InputError(f"{name}: expected values >= 0, got minimum {float(v.min()):.4g} "
-                         f"({int((v < 0).sum())} negative entries)")
-    return t
-
-
-def _check_scalar(name: str, value, ref: torch.Tensor, *, positive: bool) -> torch.Tensor:
-    """A float or 0-d/1-element tensor, > 0 (or >= 0), as a 0-d tensor like ``ref``."""
-    if isinstance(value, torch.Tensor):
-        if value.numel() != 1:
-            raise InputError(f"{name}: expected a scalar (one element), got {_shape(value)}")
-        if value.device != ref.device:
-            raise InputError(f"{name}: expected device {ref.device} like depth, got {value.device}")
-        t = value.reshape(()).to(ref.dtype)
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        t = torch.tensor(float(value), dtype=ref.dtype, device=ref.device)
-    else:
-        raise InputError(f"{name}: expected a number or a one-element tensor, got {type(value).__name__}")
-    v = float(t.detach())
-    if not math.isfinite(v) or (v <= 0 if positive else v < 0):
-        raise InputError(f"{name}: expected a finite value {'> 0' if positive else '>= 0'}, got {v:g}")
-    return t
-
 
 def _check_projection(projection_weight, channels: int, ref: torch.Tensor) -> torch.Tensor:
     p = projection_weight
     is_1x1 = isinstance(p, torch.Tensor) and p.dim() == 4 and tuple(p.shape[2:]) == (1, 1)
     if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or is_1x1):
-        raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {_shape(p)}")
+        raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {describe(p)}")
     if p.shape[1] != channels:
         raise InputError(f"projection_weight: expected C = {channels} input channels (features has "
-                         f"{channels}), got {_shape(p)}")
+                         f"{channels}), got {describe(p)}")
     if p.dtype != ref.dtype or p.device != ref.device:
         raise InputError(f"projection_weight: expected dtype {ref.dtype} on {ref.device} like depth, "
                          f"got {p.dtype} on {p.device}")
@@ -137,7 +91,7 @@ def _check_labels(labels, depth: torch.Tensor) -> torch.Tensor:
     b, _, h, w = depth.shape
     if not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w) \
             or labels.dtype not in (torch.int64, torch.int32):
-        got = _shape(labels) + (f" {labels.dtype}" if isinstance(labels, torch.Tensor) else "")
+        got = describe(labels) + (f" {labels.dtype}" if isinstance(labels, torch.Tensor) else "")
         raise InputError(f"labels: expected a ({b}, {h}, {w}) int64 tensor of segment indices, got {got}")
     if labels.device != depth.device:
         raise InputError(f"labels: expected device {depth.device} like depth, got {labels.device}")
@@ -216,7 +170,7 @@ def crf_refine(
         prior_weight: ``eps > 0``, added to the confidence everywhere so that ``A`` is
             positive definite; small against ``c`` and ``s``.
         labels: optional (B, H, W) int64 segment index per pixel (e.g. SLIC superpixels of
-            each frame, :func:`crfdepth.graph.slic_segments`): solve on the segment graph
+            each frame, :func:`crfdepth.superpixels.slic_segments`): solve on the segment graph
             and paint back (piecewise-constant output). Labels need not be consecutive.
         return_std: also return ``std_scale * sqrt(diag(A^-1))`` (extra solves, no
             gradient except to ``std_scale``).
@@ -236,87 +190,54 @@ def crf_refine(
             ``confidence`` or ``sparse``, ``sparse`` without ``sparse_weight``, or
             non-positive scales; the message names the argument.
     """
-    _check_map("depth", depth, None, 1)
-    _check_map("confidence", confidence, depth, 1, nonneg=True)
-    _check_map("features", features, depth, None)
+    check_map("depth", depth, None, 1)
+    check_map("confidence", confidence, depth, 1, nonneg=True)
+    check_map("features", features, depth, None)
     projection = _check_projection(projection_weight, features.shape[1], depth)
-    scale = _check_scalar("edge_scale", edge_scale, depth, positive=True)
-    eps = _check_scalar("prior_weight", prior_weight, depth, positive=True)
+    scale = check_scalar_tensor("edge_scale", edge_scale, depth, positive=True)
+    eps = check_scalar_tensor("prior_weight", prior_weight, depth, positive=True)
     if sparse is not None:
-        _check_map("sparse", sparse, depth, 1, nonneg=True)
+        check_map("sparse", sparse, depth, 1, nonneg=True)
         if sparse_weight is None:
             raise InputError("sparse_weight: expected a number >= 0 when sparse is given, got None")
-        lam = _check_scalar("sparse_weight", sparse_weight, depth, positive=False)
-    sigma = _check_scalar("std_scale", std_scale, depth, positive=True) if return_std else None
+        lam = check_scalar_tensor("sparse_weight", sparse_weight, depth, positive=False)
+    sigma = check_scalar_tensor("std_scale", std_scale, depth, positive=True) if return_std else None
     if labels is not None:
         labels = _check_labels(labels, depth)
+    settings = solver_settings(rtol=rtol, max_iter=max_iter, on_nonconvergence=on_nonconvergence)
 
     y = depth[:, 0]
-    data_w = confidence[:, 0] + eps
-    d = data_w
-    b = data_w * y
+    unaries = [(confidence[:, 0] + eps, y)]
     if sparse is not None:
         z = sparse[:, 0]
-        m = (z.detach() > 0).to(depth.dtype)
-        d = d + lam * m
-        b = b + lam * m * z
+        unaries.append((lam * (z.detach() > 0).to(depth.dtype), z))
+    d, b = unary_system(*unaries)
     weight_h, weight_v = crf_edge_weights(features, projection, scale)
-    settings = dict(rtol=rtol, max_iter=max_iter, on_nonconvergence=on_nonconvergence)
+    std_settings = dict(samples=std_samples, seed=seed, rtol=max(rtol, 1e-4))
 
     if labels is None:
-        x, info = solve_grid_laplacian(b, d, weight_h, weight_v, x0=y.detach(), **settings)
-        std = None
-        if return_std:
-            var = grid_posterior_variance(d.detach(), weight_h.detach(), weight_v.detach(),
-                                          samples=std_samples, seed=seed, rtol=max(rtol, 1e-4))
-            std = (sigma * var.sqrt())[:, None]
+        x, info = grid_crf(d, b, weight_h, weight_v, x0=y, settings=settings)
+        std = grid_crf_std(d, weight_h, weight_v, sigma, **std_settings)[:, None] if return_std else None
         return RefineOutput(x[:, None], std, info)
 
-    return _refine_segments(labels, y, d, b, weight_h, weight_v, sigma, return_std, std_samples, seed,
-                            settings)
-
-
-def _refine_segments(labels, y, d, b, weight_h, weight_v, sigma, return_std, std_samples, seed,
-                     settings) -> RefineOutput:
-    """The energy restricted to piecewise-constant maps on ``labels`` (module docstring)."""
-    bsz, h, w = y.shape
-    # Consecutive node indices per frame, offset into one block-diagonal system.
-    nodes, sizes = [], []
-    offset = 0
-    for k in range(bsz):
-        _, inv = torch.unique(labels[k], return_inverse=True)
-        n_k = int(inv.max()) + 1
-        nodes.append(inv + offset)
-        sizes.append(n_k)
-        offset += n_k
-    node = torch.stack(nodes)  # (B, H, W) global node index
-    n = offset
-    ptr = torch.tensor([0] + sizes, device=y.device).cumsum(0)
+    # Superpixel mode: the energy restricted to piecewise-constant maps (module docstring).
+    node, ptr = batch_segments(labels)
+    n = int(ptr[-1])
     flat = node.reshape(-1)
     d_s = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, d.reshape(-1))
     b_s = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, b.reshape(-1))
     area = torch.bincount(flat, minlength=n).to(y.dtype)
     x0 = torch.zeros(n, dtype=y.dtype, device=y.device).index_add(0, flat, y.detach().reshape(-1)) / area
-
     # Pixel edges that cross a segment boundary, summed per pair of segments.
-    u = torch.cat([node[:, :, :-1].reshape(-1), node[:, :-1, :].reshape(-1)])
-    v = torch.cat([node[:, :, 1:].reshape(-1), node[:, 1:, :].reshape(-1)])
-    wts = torch.cat([weight_h.reshape(-1), weight_v.reshape(-1)])
-    cross = u != v
-    lo = torch.minimum(u[cross], v[cross])
-    hi = torch.maximum(u[cross], v[cross])
-    keys, inv = torch.unique(lo * n + hi, return_inverse=True)
-    edge_index = torch.stack([keys // n, keys % n])
-    edge_weight = torch.zeros(keys.numel(), dtype=y.dtype, device=y.device).index_add(0, inv, wts[cross])
-
-    x, info = solve_laplacian(b_s, d_s, edge_index, edge_weight, ptr=ptr, x0=x0, **settings)
-    out = x[node][:, None]
+    edge_index, crossing, pair_of_edge = boundary_pairs(node, n)
+    pixel_weights = torch.cat([weight_h.reshape(-1), weight_v.reshape(-1)])[crossing]
+    edge_weight = torch.zeros(edge_index.shape[1], dtype=y.dtype, device=y.device).index_add(
+        0, pair_of_edge, pixel_weights)
+    x, info = graph_crf(d_s, b_s, edge_index, edge_weight, ptr, x0=x0, settings=settings)
     std = None
     if return_std:
-        var = posterior_variance(d_s.detach(), edge_index, edge_weight.detach(), ptr=ptr,
-                                 samples=std_samples, seed=seed, rtol=max(settings["rtol"], 1e-4))
-        std = (sigma * var.sqrt())[node][:, None]
-    return RefineOutput(out, std, info)
+        std = graph_crf_std(d_s, edge_index, edge_weight, ptr, sigma, **std_settings)[node][:, None]
+    return RefineOutput(x[node][:, None], std, info)
 
 
 # ----------------------------------------------------------------------------------------
@@ -340,7 +261,7 @@ class CRFRefine(nn.Module):
         std_scale: initial ``sigma`` > 0.
         superpixels: None (pixel grid, default) or the number of SLIC segments per frame;
             then ``forward`` needs ``image`` (B, 3, H, W) RGB in [0, 1] (segmented with
-            :func:`crfdepth.graph.slic_segments`, no gradient) or precomputed ``labels``,
+            :func:`crfdepth.superpixels.slic_segments`, no gradient) or precomputed ``labels``,
             and the output is piecewise constant on the segments.
         init_scale: standard deviation of the initial projection weights (small, so that
             edges start close to ``s``: a smooth prior that the training sharpens).
@@ -418,14 +339,12 @@ class CRFRefine(nn.Module):
         )
 
     def _segment(self, image, depth) -> torch.Tensor:
-        from crfdepth.graph import slic_segments
-
         if not isinstance(depth, torch.Tensor) or depth.dim() != 4:
-            raise InputError(f"depth: expected a (B, 1, H, W) tensor, got {_shape(depth)}")
+            raise InputError(f"depth: expected a (B, 1, H, W) tensor, got {describe(depth)}")
         b, _, h, w = depth.shape
         if not isinstance(image, torch.Tensor) or tuple(image.shape) != (b, 3, h, w):
             raise InputError(f"image: expected a ({b}, 3, {h}, {w}) RGB tensor in [0, 1] (superpixels="
-                             f"{self.superpixels} needs it, or pass labels), got {_shape(image)}")
+                             f"{self.superpixels} needs it, or pass labels), got {describe(image)}")
         return torch.stack([slic_segments(image[k], self.superpixels) for k in range(b)]).to(depth.device)
 
     def extra_repr(self) -> str:

@@ -1,9 +1,9 @@
-"""Surface normals for the CRF's normal term (DESIGN.md sections 2 and 3).
+"""Surface normals for the CRF's normal term (docs/design.md sections 2 and 3).
 
 - :func:`lidar_normals`: a normal at every LiDAR pixel from a local plane fit to the
   neighbouring LiDAR points (back-projected with ``K``).
 - :func:`dense_normals`: a normal at every pixel of a dense depth map (for the nodes
-  without LiDAR, which DESIGN.md section 2 takes from the first-pass dense solution).
+  without LiDAR, which docs/design.md section 2 takes from the first-pass dense solution).
 - :func:`aggregate_normals`: per-node mean normal, renormalised (``nrm_i`` of section 2).
 
 Conventions: camera frame of ``K`` (x right, y down, z forward, metres); depth is z-depth
@@ -274,7 +274,7 @@ def aggregate_normals(
     A node is valid when it holds at least one valid pixel normal and the mean vector is
     long enough, ``|mean| >= min_resultant`` (unit normals that nearly cancel have no
     meaningful mean direction; 1 = all equal). Invalid nodes get a 0 vector: for them
-    DESIGN.md section 2 takes the normal of the first-pass dense solution
+    docs/design.md section 2 takes the normal of the first-pass dense solution
     (:func:`dense_normals` aggregated the same way). Differentiable with respect to
     ``normals``.
 
@@ -312,3 +312,31 @@ def aggregate_normals(
     node_valid = (count > 0) & (length >= min_resultant) & (length > 0)
     unit = mean / torch.where(node_valid, length, torch.ones_like(length))[:, None]
     return unit * node_valid[:, None].to(unit.dtype), node_valid
+
+
+def graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """(N, 3) unit normals of planes fitted to each node's 3D point and its neighbours' points.
+
+    For nodes without LiDAR normals (docs/design.md section 2): the plane through node
+    ``i``'s point ``points[i]`` and those of its graph neighbours (the eigenvector of the
+    smallest eigenvalue of their covariance), facing the camera (``n . p < 0``). Nodes with
+    fewer than three points in the fit, or a degenerate fit, get the viewing direction.
+
+    Args:
+        points: (N, 3) camera-frame points in metres; edge_index: (2, E) undirected edges.
+    """
+    src, dst = edge_index
+    ones = torch.ones(num_nodes, dtype=points.dtype, device=points.device)
+    cnt = ones.index_add(0, src, ones[dst]).index_add(0, dst, ones[src])
+    total = points.index_add(0, src, points[dst]).index_add(0, dst, points[src])
+    mean = total / cnt[:, None]
+    outer = points[:, :, None] * points[:, None, :]
+    second = outer.index_add(0, src, outer[dst]).index_add(0, dst, outer[src]) / cnt[:, None, None]
+    cov = second - mean[:, :, None] * mean[:, None, :]
+    cov = cov + 1e-9 * torch.eye(3, dtype=points.dtype, device=points.device)
+    _, vecs = torch.linalg.eigh(cov)
+    n = vecs[:, :, 0]
+    view = points / points.norm(dim=1, keepdim=True).clamp_min(1e-9)
+    n = torch.where(((n * points).sum(1, keepdim=True) > 0), -n, n)
+    bad = (cnt < 3) | ~torch.isfinite(n).all(1)
+    return torch.where(bad[:, None], -view, n)

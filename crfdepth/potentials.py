@@ -1,4 +1,4 @@
-"""The CRF's potentials and energy (paper eq. 2-6, DESIGN.md section 3).
+"""The CRF's potentials and energy (paper eq. 2-6, docs/design.md section 3).
 
 Pure functions of tensors. Every pairwise potential is an edge affinity in [0, 1] that
 enters the system matrix *as it is*, as the weight of a graph Laplacian:
@@ -18,6 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from kornia.geometry.depth import depth_to_3d_v2
+
+from crfdepth.linalg.operators import grid_edge_index
+from crfdepth.normals import dense_normals
 
 
 def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: torch.Tensor) -> torch.Tensor:
@@ -96,11 +100,53 @@ class EnergyTerms:
         return total
 
 
+def unary_system(*terms: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(d, b)`` of ``sum_k u_k (x - t_k)^2`` from ``(u_k, t_k)`` pairs: ``d = sum u_k``, ``b = sum u_k t_k``.
+
+    The diagonal and right-hand side that unary terms (weight ``u_k >= 0`` towards target
+    ``t_k``) contribute to ``A x = b``; weights and targets broadcast (a scalar weight is fine).
+    """
+    (u, t), rest = terms[0], terms[1:]
+    d, b = u, u * t
+    for u, t in rest:
+        d = d + u
+        b = b + u * t
+    return d, b
+
+
 def system_terms(t: EnergyTerms) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(b, d, edge_weight)`` of ``A x = b`` with ``A = diag(d) + L(edge_weight)``."""
-    d = t.alpha * t.w + t.eps
-    b = t.alpha * t.w * t.z + t.eps * t.x_prior
+    d, b = unary_system((t.alpha * t.w, t.z), (t.eps, t.x_prior))
     return b, d, t.edge_weight()
+
+
+def grid_pairs(values: torch.Tensor, affinity, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """An affinity between 4-neighbours of a (B, H, W, C) grid: ``(horizontal (B, H, W-1), vertical (B, H-1, W))``.
+
+    ``affinity(a, b, scale)`` is one of the affinities above (:func:`colour_affinity` ...).
+    """
+    return (affinity(values[:, :, :-1], values[:, :, 1:], scale),
+            affinity(values[:, :-1], values[:, 1:], scale))
+
+
+def grid_energy_terms(z, w, prior, colour, normal, distance, alpha, beta, gamma, delta, eps) -> EnergyTerms:
+    """Pixel-grid terms in edge-list form (:func:`crfdepth.linalg.grid_edge_index` order per image).
+
+    ``z, w, prior``: (B, H, W); ``colour, normal, distance``: ``(horizontal, vertical)``
+    pairs of :func:`grid_pairs` or None; ``gamma`` / ``delta`` None for potentials that are off.
+    """
+    bsz, h, w_ = z.shape
+    n = h * w_
+    ei = grid_edge_index(h, w_, device=z.device)
+    edge_index = torch.cat([ei + k * n for k in range(bsz)], 1)
+
+    def flat(pair):
+        return None if pair is None else torch.cat([pair[0].reshape(bsz, -1), pair[1].reshape(bsz, -1)], 1).reshape(-1)
+
+    zero = torch.zeros_like(alpha)
+    return EnergyTerms(z.reshape(-1), w.reshape(-1), prior.reshape(-1), edge_index, flat(colour), flat(normal),
+                       flat(distance), alpha, beta, gamma if gamma is not None else zero,
+                       delta if delta is not None else zero, eps)
 
 
 def energy(x: torch.Tensor, t: EnergyTerms) -> dict[str, torch.Tensor]:
@@ -126,3 +172,45 @@ def energy(x: torch.Tensor, t: EnergyTerms) -> dict[str, torch.Tensor]:
     }
     out["total"] = sum(out.values())
     return out
+
+
+def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, prior: torch.Tensor,
+                    eps: torch.Tensor, geometry: torch.Tensor | None, weights: dict) -> dict:
+    """The potentials of one pixel-grid round (pixel mode and the refinement; docs/design.md sections 3 and 6).
+
+    Args:
+        image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) LiDAR depth, metres, 0 = none;
+        K: (B, 3, 3); prior: (B, 1, H, W) the prior depth ``x0``; eps: its weight.
+        geometry: (B, 1, H, W) depth from which normals and 3D points are taken (None in a
+            first pass: then only the colour term is on).
+        weights: ``alpha, beta, gamma, delta`` (``gamma`` / ``delta`` None when that
+            potential is off), ``confidence``, ``sigma_d, sigma_n, sigma_p``.
+
+    Returns:
+        The weights and ``z, w, prior`` (B, H, W) and ``colour, normal, distance`` as
+        ``(horizontal (B, H, W-1), vertical (B, H-1, W))`` pairs or None, for :func:`grid_system`.
+    """
+    s = sparse[:, 0]
+    t = dict(alpha=weights["alpha"], beta=weights["beta"], gamma=weights["gamma"], delta=weights["delta"], eps=eps,
+             z=s, prior=prior[:, 0], w=data_confidence((s > 0).to(s.dtype), weights["confidence"]),
+             colour=grid_pairs(image.permute(0, 2, 3, 1), colour_affinity, weights["sigma_d"]),
+             normal=None, distance=None)
+    if geometry is not None:
+        if t["gamma"] is not None:
+            n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through the geometry
+            t["normal"] = grid_pairs(n.permute(0, 2, 3, 1), normal_affinity, weights["sigma_n"])
+        if t["delta"] is not None:
+            t["distance"] = grid_pairs(depth_to_3d_v2(geometry[:, 0], K), distance_affinity, weights["sigma_p"])
+    return t
+
+
+def grid_system(t: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(d, b, weight_h, weight_v)`` of the grid system ``A x = b`` from :func:`grid_potentials`."""
+    wh = t["beta"] * t["colour"][0]
+    wv = t["beta"] * t["colour"][1]
+    for scale, name in (("gamma", "normal"), ("delta", "distance")):
+        if t[name] is not None:
+            wh = wh + t[scale] * t[name][0]
+            wv = wv + t[scale] * t[name][1]
+    d, b = unary_system((t["alpha"] * t["w"], t["z"]), (t["eps"], t["prior"]))
+    return d, b, wh, wv

@@ -8,19 +8,17 @@ import numpy as np
 import pytest
 import torch
 from skimage.graph import rag_mean_color
-from skimage.measure import label as connected_components
 
 from crfdepth.errors import InputError
+from crfdepth.linalg import grid_edge_index
+from crfdepth.superpixels import slic_segments
 from crfdepth.graph import (
     DIRECTIONS_DEG,
     batch_edge_index,
     build_superpixel_graph,
     build_superpixel_graphs,
     four_neighbour_picks,
-    paint,
-    pixel_grid_edges,
     region_adjacency,
-    slic_segments,
     undirected_edges,
 )
 
@@ -181,16 +179,16 @@ def test_node_without_neighbours_has_no_picks():
     assert four_neighbour_picks(g.adjacency, g.centroid, 1).tolist() == [[-1, -1, -1, -1]]
 
 
-def test_pixel_grid_edges():
+def test_grid_edge_index_is_the_pixel_mode_graph():
     h, w = 7, 5
-    e = pixel_grid_edges(h, w)
+    e = grid_edge_index(h, w)
     assert e.shape == (2, h * (w - 1) + w * (h - 1))
     check_edge_index(e, h * w)
     # Every edge joins 4-neighbours: same row and adjacent columns, or the pixel below.
     d = e[1] - e[0]
     assert set(d.unique().tolist()) == {1, w}
     with pytest.raises(InputError, match="height"):
-        pixel_grid_edges(0, 5)
+        grid_edge_index(0, 5)
 
 
 # --------------------------------------------------------------------------- features
@@ -252,36 +250,6 @@ def test_batched_build_and_block_diagonal_layout():
     assert ptr.tolist() == [0, 12, 24]
     assert edges.shape[1] == graphs[0].num_edges + graphs[1].num_edges
     assert torch.equal(edges[:, graphs[0].num_edges:], graphs[1].edge_index + 12)
-
-
-def test_paint_is_piecewise_constant():
-    labels = torch.tensor([[0, 0, 1], [2, 1, 1]])
-    values = torch.tensor([1.5, 2.5, 3.5], requires_grad=True)
-    out = paint(values, labels)
-    assert out.tolist() == [[1.5, 1.5, 2.5], [3.5, 2.5, 2.5]]
-    out.sum().backward()
-    assert values.grad.tolist() == [2.0, 3.0, 1.0]  # gradient = pixel count per node
-    rgb = paint(torch.eye(3), labels)
-    assert rgb.shape == (3, 2, 3) and rgb[:, 1, 0].tolist() == [0.0, 0.0, 1.0]
-    with pytest.raises(InputError, match="labels"):
-        paint(torch.ones(2), labels)
-
-
-# --------------------------------------------------------------------------- SLIC
-
-
-def test_slic_segments_are_consecutive_connected_and_array_input_agrees():
-    gen = torch.Generator().manual_seed(5)
-    coarse = torch.rand(1, 3, 5, 7, generator=gen)
-    image = torch.nn.functional.interpolate(coarse, size=(50, 70), mode="bilinear", align_corners=False)[0]
-    labels = slic_segments(image, 60)
-    assert labels.dtype == torch.int64 and labels.shape == (50, 70)
-    s = int(labels.max()) + 1
-    assert 0.5 * 60 <= s <= 1.5 * 60
-    assert torch.equal(torch.unique(labels), torch.arange(s))
-    # enforce_connectivity: each label is one 4-connected region.
-    assert connected_components(labels.numpy() + 1, connectivity=1, background=0).max() == s
-    assert torch.equal(slic_segments(image.permute(1, 2, 0).numpy(), 60), labels)
 
 
 # --------------------------------------------------------------------------- bad input

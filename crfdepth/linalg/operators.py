@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from crfdepth.checks import check_number
+
 
 def grid_edge_index(height: int, width: int, device: torch.device | str | None = None) -> torch.Tensor:
     """Edge list of the 4-connected ``height x width`` pixel grid.
@@ -33,7 +35,12 @@ def grid_edge_index(height: int, width: int, device: torch.device | str | None =
         all horizontal edges ``(r, c) - (r, c + 1)`` in row-major order, then all vertical
         edges ``(r, c) - (r + 1, c)``, matching ``weight_h.flatten()`` and
         ``weight_v.flatten()`` of :class:`PixelGrid`.
+
+    Raises:
+        InputError: ``height`` or ``width`` not an integer >= 1.
     """
+    check_number("height", height, low=1, low_open=False, integer=True)
+    check_number("width", width, low=1, low_open=False, integer=True)
     idx = torch.arange(height * width, device=device).view(height, width)
     horizontal = torch.stack([idx[:, :-1].reshape(-1), idx[:, 1:].reshape(-1)])
     vertical = torch.stack([idx[:-1, :].reshape(-1), idx[1:, :].reshape(-1)])

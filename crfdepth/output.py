@@ -1,0 +1,66 @@
+"""What :class:`crfdepth.model.CRFDepth` returns, and the per-stage timer it fills in."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import torch
+
+from crfdepth.graph import SuperpixelGraph
+from crfdepth.linalg import SolveInfo
+from crfdepth.potentials import EnergyTerms
+
+__all__ = ["CRFOutput", "Stages"]
+
+
+@dataclass
+class CRFOutput:
+    """What :meth:`CRFDepth.forward` returns.
+
+    Attributes:
+        depth: (B, 1, H, W) dense z-depth in metres, > 0.
+        std: (B, 1, H, W) posterior standard deviation in metres (None unless asked).
+        count_uncertainty: (B, 1, H, W) the paper's map from LiDAR counts per node: 1 where
+            the node holds no LiDAR point, 0.5 for one point, 0 for several (pixel mode: 1
+            without LiDAR, 0 with).
+        node_depth: (N,) node depths of the (last) graph solve, all frames concatenated
+            (superpixel mode: the super-resolved point cloud before painting).
+        node_std: (N,) node standard deviations (None unless asked).
+        ptr: (B + 1,) node offsets of the frames in ``node_depth``.
+        graphs: per-frame :class:`~crfdepth.graph.SuperpixelGraph` (superpixel mode) or None.
+        terms: the :class:`~crfdepth.potentials.EnergyTerms` of the last graph solve, for
+            :func:`crfdepth.potentials.energy`.
+        info: diagnostics of every solve, in order.
+        timings: wall-clock seconds per stage (``fill``, ``slic``, ``graph``, ``normals``,
+            ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
+            ran). On CUDA, stages are timed without synchronisation (queued work may be
+            counted in a later stage).
+    """
+
+    depth: torch.Tensor
+    std: torch.Tensor | None
+    count_uncertainty: torch.Tensor
+    node_depth: torch.Tensor
+    node_std: torch.Tensor | None
+    ptr: torch.Tensor
+    graphs: list[SuperpixelGraph] | None
+    terms: EnergyTerms
+    info: list[SolveInfo] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class Stages:
+    """Wall-clock seconds per pipeline stage (accumulated over the frames of a batch)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
