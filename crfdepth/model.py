@@ -1,4 +1,4 @@
-"""The CRF depth model of the paper as a learnable ``nn.Module`` (DESIGN.md sections 2-6).
+"""The CRF depth model of the paper as a learnable ``nn.Module`` (docs/design.md sections 2-6).
 
 :class:`CRFDepth` turns an RGB image, a sparse LiDAR depth map and the intrinsics into a
 dense depth map, the posterior standard deviation and the paper's count-based
@@ -8,7 +8,7 @@ uncertainty map. Two graphs are supported:
   optionally followed by a pixel-level refinement started from the superpixel solution;
 - ``mode="pixel"``: the 4-connected pixel grid with the same potentials per pixel.
 
-Inference (DESIGN.md section 3): a first solve with the data, colour and (where LiDAR
+Inference (docs/design.md section 3): a first solve with the data, colour and (where LiDAR
 normals exist) normal terms; then 3D points and the missing normals are taken from that
 solution and the full system (with the 3D-distance term) is solved; optionally more
 rounds. Every solve is the differentiable implicit solve of :mod:`crfdepth.linalg`, so
@@ -18,100 +18,41 @@ gradients reach every parameter through all rounds.
 from __future__ import annotations
 
 import math
-import time
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from typing import Literal, Sequence
 
 import torch
 from kornia.geometry.camera import unproject_points
-from kornia.geometry.depth import depth_to_3d_v2
 from torch import nn
 
+from crfdepth.checks import check_frames, check_number
+from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
 from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
-from crfdepth.linalg import SolveInfo, grid_edge_index, solve_grid_laplacian, solve_laplacian
-from crfdepth.normals import aggregate_normals, dense_normals, lidar_normals
+from crfdepth.linalg import SolveInfo, solver_settings
+from crfdepth.output import CRFOutput, Stages
+from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.potentials import (
     EnergyTerms,
     colour_affinity,
     data_confidence,
     distance_affinity,
     energy,
+    grid_energy_terms,
+    grid_potentials,
+    grid_system,
     normal_affinity,
     system_terms,
 )
-from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
 POTENTIALS = ("colour", "normal", "distance")
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
 
 
-@dataclass
-class CRFOutput:
-    """What :meth:`CRFDepth.forward` returns.
-
-    Attributes:
-        depth: (B, 1, H, W) dense z-depth in metres, > 0.
-        std: (B, 1, H, W) posterior standard deviation in metres (None unless asked).
-        count_uncertainty: (B, 1, H, W) the paper's map from LiDAR counts per node: 1 where
-            the node holds no LiDAR point, 0.5 for one point, 0 for several (pixel mode: 1
-            without LiDAR, 0 with).
-        node_depth: (N,) node depths of the (last) graph solve, all frames concatenated
-            (superpixel mode: the super-resolved point cloud before painting).
-        node_std: (N,) node standard deviations (None unless asked).
-        ptr: (B + 1,) node offsets of the frames in ``node_depth``.
-        graphs: per-frame :class:`~crfdepth.graph.SuperpixelGraph` (superpixel mode) or None.
-        terms: the :class:`~crfdepth.potentials.EnergyTerms` of the last graph solve, for
-            :func:`crfdepth.potentials.energy`.
-        info: diagnostics of every solve, in order.
-        timings: wall-clock seconds per stage (``fill``, ``slic``, ``graph``, ``normals``,
-            ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
-            ran). On CUDA, stages are timed without synchronisation (queued work may be
-            counted in a later stage).
-    """
-
-    depth: torch.Tensor
-    std: torch.Tensor | None
-    count_uncertainty: torch.Tensor
-    node_depth: torch.Tensor
-    node_std: torch.Tensor | None
-    ptr: torch.Tensor
-    graphs: list[SuperpixelGraph] | None
-    terms: EnergyTerms
-    info: list[SolveInfo] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-
-
-class _Stages:
-    """Wall-clock seconds per pipeline stage (accumulated over the frames of a batch)."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, name: str):
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
-
-
 def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
-
-
-def _check_unit_interval(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and 0.0 < value < 1.0):
-        raise InputError(f"{name}: expected a number in (0, 1), got {value!r}")
-
-
-def _check_positive(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
-        raise InputError(f"{name}: expected a finite number > 0, got {value!r}")
 
 
 class CRFDepth(nn.Module):
@@ -121,7 +62,7 @@ class CRFDepth(nn.Module):
     for training; ``CRFDepth.from_pretrained()`` has the weights learned on KITTI that
     :func:`~crfdepth.api.complete_depth` and the CLI use by default.
 
-    Energy (DESIGN.md section 3) on nodes ``i`` and edges ``(i, j)``::
+    Energy (docs/design.md section 3) on nodes ``i`` and edges ``(i, j)``::
 
         E(x) = alpha sum w_i (x_i - z_i)^2 + beta sum e_ij (x_i - x_j)^2
              + gamma sum nr_ij (x_i - x_j)^2 + delta sum dp_ij (x_i - x_j)^2
@@ -137,7 +78,7 @@ class CRFDepth(nn.Module):
     Learnable parameters (``nn.Parameter``, unconstrained underneath): ``alpha, beta,
     gamma, delta`` through a sigmoid; ``sigma_d, sigma_n, sigma_p``, the data confidence
     ``c``, the refinement prior weight and the std scale ``s`` through ``exp``. The predictive standard deviation is
-    ``s * sqrt(diag(A^-1))`` (DESIGN.md section 5); ``s`` is fitted with a Gaussian
+    ``s * sqrt(diag(A^-1))`` (docs/design.md section 5); ``s`` is fitted with a Gaussian
     negative log-likelihood (its gradient comes through ``std`` only).
 
     Args:
@@ -149,7 +90,7 @@ class CRFDepth(nn.Module):
             "distance"); the paper's ablation is ("colour",), ("colour", "normal"), all.
         aggregate: "mean" or "median" of the LiDAR depths in a superpixel.
         refine: superpixel mode only: follow the superpixel solve with a pixel-level solve
-            whose prior is the painted superpixel solution (DESIGN.md section 6); False
+            whose prior is the painted superpixel solution (docs/design.md section 6); False
             keeps the paper's piecewise-constant painting.
         rounds: solves with the 3D-distance term after the first pass (>= 1).
         alpha, beta, gamma, delta: initial weights in (0, 1). ``gamma`` defaults low: the
@@ -214,11 +155,11 @@ class CRFDepth(nn.Module):
         if not isinstance(rounds, int) or rounds < 1:
             raise InputError(f"rounds: expected an int >= 1, got {rounds!r}")
         for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
-            _check_unit_interval(name, value)
+            check_number(name, value, low=0.0, high=1.0)
         for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
                             ("confidence", confidence), ("eps", eps), ("refine_prior", refine_prior),
                             ("std_scale", std_scale)):
-            _check_positive(name, value)
+            check_number(name, value, low=0.0)
         self.mode = mode
         self.superpixels = superpixels
         self.scale_superpixels = scale_superpixels
@@ -227,7 +168,7 @@ class CRFDepth(nn.Module):
         self.refine = refine
         self.rounds = rounds
         self.std_samples = std_samples
-        self.solver = dict(rtol=rtol, max_iter=max_iter, method=method)
+        self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
         self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
         self.raw_beta = nn.Parameter(torch.tensor(_logit(beta)))
         self.raw_gamma = nn.Parameter(torch.tensor(_logit(gamma)))
@@ -248,9 +189,11 @@ class CRFDepth(nn.Module):
         says how); ``"paper"``: the hand-set initial values of ``CRFDepth()``.
         ``overrides`` replace stored arguments, e.g. ``mode="pixel"``.
         """
-        from crfdepth.pretrained import load_pretrained
-
-        return load_pretrained(name, **overrides)
+        config, state = pretrained_state(name)
+        model = cls(**{**config, **overrides})
+        if state:
+            model.load_state_dict(state)
+        return model.eval()
 
     # -- constrained parameters ----------------------------------------------------------
     @property
@@ -309,6 +252,12 @@ class CRFDepth(nn.Module):
         mean = torch.stack(active).mean()
         return alpha, beta, gamma, delta, self.eps * mean, mean
 
+    def _weights_for_grid(self) -> dict:
+        """The weights :func:`crfdepth.potentials.grid_potentials` needs (None: potential off)."""
+        alpha, beta, gamma, delta, _, _ = self._scales()
+        return dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, confidence=self.confidence,
+                    sigma_d=self.sigma_d, sigma_n=self.sigma_n, sigma_p=self.sigma_p)
+
     def segments_for(self, height: int, width: int) -> int:
         """SLIC segments used for an image of this size."""
         if not self.scale_superpixels:
@@ -330,7 +279,7 @@ class CRFDepth(nn.Module):
         Returns:
             :class:`CRFOutput`; tensors in the dtype of ``sparse`` on its device.
         """
-        image, sparse, K = _check_inputs(image, sparse, K)
+        image, sparse, K = check_frames(image, sparse, K)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         if self.mode == "pixel":
@@ -341,7 +290,7 @@ class CRFDepth(nn.Module):
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         dtype, device = sparse.dtype, sparse.device
-        stage = _Stages()
+        stage = Stages()
         with stage("fill"):
             fill = nearest_fill(sparse)
         n_seg = self.segments_for(h, w)
@@ -395,21 +344,21 @@ class CRFDepth(nn.Module):
                                 torch.zeros_like(alpha), eps)
         infos: list[SolveInfo] = []
         with stage("solve"):
-            x = self._solve_edges(terms, ptr, prior, infos)
+            x = self._graph_solve(terms, ptr, prior, infos)
         K_node = K[frame]
         if "normal" in self.potentials or "distance" in self.potentials:
             for _ in range(self.rounds):
                 with stage("potentials"):
                     points = unproject_points(centroid, x[:, None], K_node)
                     if "normal" in self.potentials:
-                        fitted = _graph_normals(points.detach(), edge_index, x.shape[0])
+                        fitted = graph_normals(points.detach(), edge_index, x.shape[0])
                         normals = torch.where(normal_ok[:, None], node_normal, fitted)
                         terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
                     if "distance" in self.potentials:
                         terms.distance = distance_affinity(points[src], points[dst], self.sigma_p)
                         terms.delta = delta
                 with stage("solve"):
-                    x = self._solve_edges(terms, ptr, x.detach(), infos)
+                    x = self._graph_solve(terms, ptr, x, infos)
         with stage("painting"):
             labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
             depth = x[labels][:, None]
@@ -418,82 +367,45 @@ class CRFDepth(nn.Module):
         node_std = std = None
         if return_std:
             with stage("uncertainty"):
-                b_, d_, ew = system_terms(terms)
-                var = posterior_variance(d_.detach(), edge_index, ew.detach(), ptr=ptr, samples=self.std_samples)
-                node_std = self.std_scale * var.sqrt()
+                _, d, ew = system_terms(terms)
+                node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
                 std = node_std[labels][:, None]
         if self.refine:
             with stage("refine"):
-                depth = self._refine(image, sparse, K, depth, mean_weight, infos)
+                depth, _ = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
+                                             geometry=depth)
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds)
 
-    def _solve_edges(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
+    def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
         b, d, ew = system_terms(terms)
-        x, info = solve_laplacian(b, d, terms.edge_index, ew, ptr=ptr, x0=x0.detach(), **self.solver)
+        x, info = graph_crf(d, b, terms.edge_index, ew, ptr, x0=x0, settings=self.solver)
         infos.append(info)
         return x
 
-    # -- pixel mode ----------------------------------------------------------------------
-    def _pixel_terms(self, image, sparse, K, prior, eps, geometry) -> dict:
-        """Per-potential grids of one pixel-level round; edge grids are (B, H, W-1) and (B, H-1, W)."""
-        alpha, beta, gamma, delta, _, _ = self._scales()
-        s = sparse[:, 0]
-        img = image.permute(0, 2, 3, 1)  # (B, H, W, 3)
-        t = dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, eps=eps, z=s, prior=prior[:, 0],
-                 w=data_confidence((s > 0).to(s.dtype), self.confidence),
-                 colour=(colour_affinity(img[:, :, :-1], img[:, :, 1:], self.sigma_d),
-                         colour_affinity(img[:, :-1], img[:, 1:], self.sigma_d)),
-                 normal=None, distance=None)
-        if geometry is not None:
-            if gamma is not None:
-                n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through x1
-                n = n.permute(0, 2, 3, 1)  # (B, H, W, 3)
-                t["normal"] = (normal_affinity(n[:, :, :-1], n[:, :, 1:], self.sigma_n),
-                               normal_affinity(n[:, :-1], n[:, 1:], self.sigma_n))
-            if delta is not None:
-                p = depth_to_3d_v2(geometry[:, 0], K)  # (B, H, W, 3)
-                t["distance"] = (distance_affinity(p[:, :, :-1], p[:, :, 1:], self.sigma_p),
-                                 distance_affinity(p[:, :-1], p[:, 1:], self.sigma_p))
-        return t
-
-    @staticmethod
-    def _grid_system(t: dict):
-        """(b, d, weight_h, weight_v) of ``A x = b`` from :meth:`_pixel_terms`."""
-        wh = t["beta"] * t["colour"][0]
-        wv = t["beta"] * t["colour"][1]
-        for scale, name in (("gamma", "normal"), ("delta", "distance")):
-            if t[name] is not None:
-                wh = wh + t[scale] * t[name][0]
-                wv = wv + t[scale] * t[name][1]
-        d = t["alpha"] * t["w"] + t["eps"]
-        b = t["alpha"] * t["w"] * t["z"] + t["eps"] * t["prior"]
-        return b, d, wh, wv
-
+    # -- pixel grid (pixel mode and the refinement) --------------------------------------
     def _pixel_solve(self, image, sparse, K, prior, eps, infos, geometry=None):
-        """Pixel-level solve(s); without ``geometry`` a first pass provides it."""
+        """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
+
+        Returns the (B, 1, H, W) depth and the last round's potentials.
+        """
         rounds = 1
         if geometry is None:
-            t = self._pixel_terms(image, sparse, K, prior, eps, None)
-            x, info = solve_grid_laplacian(*self._grid_system(t), x0=prior[:, 0].detach(), **self.solver)
+            t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid())
+            x, info = grid_crf(*grid_system(t), x0=prior[:, 0], settings=self.solver)
             infos.append(info)
             if "normal" not in self.potentials and "distance" not in self.potentials:
                 return x[:, None], t
             geometry, rounds = x[:, None], self.rounds
         for _ in range(rounds):
-            t = self._pixel_terms(image, sparse, K, prior, eps, geometry)
-            x, info = solve_grid_laplacian(*self._grid_system(t), x0=geometry[:, 0].detach(), **self.solver)
+            t = grid_potentials(image, sparse, K, prior, eps, geometry, self._weights_for_grid())
+            x, info = grid_crf(*grid_system(t), x0=geometry[:, 0], settings=self.solver)
             infos.append(info)
             geometry = x[:, None]
         return x[:, None], t
 
-    def _refine(self, image, sparse, K, coarse, mean_weight, infos) -> torch.Tensor:
-        """Pixel-level solve whose prior, geometry and warm start are the painted superpixel depth."""
-        depth, _ = self._pixel_solve(image, sparse, K, coarse, self.refine_prior * mean_weight, infos, geometry=coarse)
-        return depth
-
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
-        stage = _Stages()
+        stage = Stages()
         with stage("fill"):
             fill = nearest_fill(sparse)
         eps = self._scales()[4]
@@ -503,86 +415,14 @@ class CRFDepth(nn.Module):
         std = node_std = None
         if return_std:
             with stage("uncertainty"):
-                _, d, wh, wv = self._grid_system(t)
-                var = grid_posterior_variance(d.detach(), wh.detach(), wv.detach(), samples=self.std_samples)
-                std = self.std_scale * var.sqrt()[:, None]
+                d, _, wh, wv = grid_system(t)
+                std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
+        terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],
+                                  t["beta"], t["gamma"], t["delta"], t["eps"])
         return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
-                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, _grid_energy_terms(t), infos,
-                         stage.seconds)
-
-
-def _grid_energy_terms(t: dict) -> EnergyTerms:
-    """Pixel-grid terms in edge-list form (:func:`grid_edge_index` order per image)."""
-    bsz, h, w = t["z"].shape
-    n = h * w
-    ei = grid_edge_index(h, w, device=t["z"].device)
-    edge_index = torch.cat([ei + k * n for k in range(bsz)], 1)
-
-    def flat(pair):
-        return None if pair is None else torch.cat([pair[0].reshape(bsz, -1), pair[1].reshape(bsz, -1)], 1).reshape(-1)
-
-    zero = torch.zeros_like(t["alpha"])
-    return EnergyTerms(t["z"].reshape(-1), t["w"].reshape(-1), t["prior"].reshape(-1), edge_index,
-                       flat(t["colour"]), flat(t["normal"]), flat(t["distance"]), t["alpha"], t["beta"],
-                       t["gamma"] if t["gamma"] is not None else zero,
-                       t["delta"] if t["delta"] is not None else zero, t["eps"])
-
-
-def _graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
-    """(N, 3) unit normals of planes fitted to each node's point and its neighbours' points,
-    facing the camera (``n . p < 0``); degenerate fits give the viewing direction."""
-    src, dst = edge_index
-    ones = torch.ones(num_nodes, dtype=points.dtype, device=points.device)
-    cnt = ones.index_add(0, src, ones[dst]).index_add(0, dst, ones[src])
-    total = points.index_add(0, src, points[dst]).index_add(0, dst, points[src])
-    mean = total / cnt[:, None]
-    outer = points[:, :, None] * points[:, None, :]
-    second = outer.index_add(0, src, outer[dst]).index_add(0, dst, outer[src]) / cnt[:, None, None]
-    cov = second - mean[:, :, None] * mean[:, None, :]
-    cov = cov + 1e-9 * torch.eye(3, dtype=points.dtype, device=points.device)
-    _, vecs = torch.linalg.eigh(cov)
-    n = vecs[:, :, 0]
-    view = points / points.norm(dim=1, keepdim=True).clamp_min(1e-9)
-    n = torch.where(((n * points).sum(1, keepdim=True) > 0), -n, n)
-    bad = (cnt < 3) | ~torch.isfinite(n).all(1)
-    return torch.where(bad[:, None], -view, n)
-
-
-def _check_inputs(image, sparse, K):
-    for name, t in (("image", image), ("sparse", sparse), ("K", K)):
-        if not isinstance(t, torch.Tensor):
-            raise InputError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
-    if sparse.dim() != 4 or sparse.shape[1] != 1:
-        raise InputError(f"sparse: expected shape (B, 1, H, W), got {tuple(sparse.shape)}")
-    bsz, _, h, w = sparse.shape
-    if image.dim() != 4 or image.shape[1] != 3:
-        raise InputError(f"image: expected shape (B, 3, H, W) (RGB), got {tuple(image.shape)}")
-    if tuple(image.shape[2:]) != (h, w) or image.shape[0] != bsz:
-        raise InputError(f"image: expected batch and size {(bsz, h, w)} like sparse, got "
-                         f"{(image.shape[0], *image.shape[2:])}")
-    if image.device != sparse.device or K.device != sparse.device:
-        raise InputError(f"image, K: expected the device of sparse ({sparse.device}), got {image.device} and {K.device}")
-    if not sparse.is_floating_point():
-        raise InputError(f"sparse: expected floating-point depth in metres, got {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()) or bool((sparse < 0).any()):
-        raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
-    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
-        raise InputError(f"image: expected finite RGB values in [0, 1], got range "
-                         f"[{float(image.min()):.3g}, {float(image.max()):.3g}]")
-    if tuple(K.shape) == (3, 3):
-        K = K[None].expand(bsz, 3, 3)
-    if tuple(K.shape) != (bsz, 3, 3):
-        raise InputError(f"K: expected shape (3, 3) or ({bsz}, 3, 3), got {tuple(K.shape)}")
-    if not bool(torch.isfinite(K).all()) or bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
-        raise InputError(f"K: expected finite intrinsics with focal lengths > 0, got fx {K[:, 0, 0].tolist()}, "
-                         f"fy {K[:, 1, 1].tolist()}")
-    empty = (sparse.flatten(1) > 0).sum(1) == 0
-    if bool(empty.any()):
-        raise InputError(f"sparse: frame(s) {torch.nonzero(empty).flatten().tolist()} have no LiDAR pixel; "
-                         f"the CRF needs at least one depth measurement per frame")
-    return image, sparse, K
+                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]
