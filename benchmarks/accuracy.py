@@ -45,9 +45,9 @@ shipped weights' training frames (drive 0060 and the object frames, never drive 
 the paper trains each row of its Table 1 (5 more fits, about 5 minutes each on 2 cores).
 
 Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, averaged
-over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), DESIGN.md section 7.
+over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), docs/design.md section 7.
 
-Uncertainty (DESIGN.md section 5), for ``paper`` and ``learned``: sparsification curves
+Uncertainty (docs/design.md section 5), for ``paper`` and ``learned``: sparsification curves
 of the posterior std and of the paper's count map (:func:`sparsification`; ties in the
 count map, which has 3 levels, are removed in random order in expectation), and
 :func:`ause` per image, averaged; ``ause_random`` is the AUSE of a random order, for scale.

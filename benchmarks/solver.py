@@ -1,4 +1,4 @@
-"""Benchmark of the differentiable Laplacian solve (issue: foundation; DESIGN.md section 4).
+"""Benchmark of the differentiable Laplacian solve (issue: foundation; docs/design.md section 4).
 
 Two systems, ``A = diag(d) + L(w)`` with 5% of the nodes observed (``d = 1`` there,
 ``eps = 1e-3`` elsewhere), random weights in [0.05, 1], random ``z`` on observed nodes:

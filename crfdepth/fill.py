@@ -1,9 +1,9 @@
-"""Nearest-LiDAR fill: the cheap dense initial fill ``x0`` (DESIGN.md section 3).
+"""Nearest-LiDAR fill: the cheap dense initial fill ``x0`` (docs/design.md section 3).
 
 Every pixel takes the depth of the nearest pixel (Euclidean distance in the image) that
 has a LiDAR return. It is the prior mean ``x0`` of the CRF energy, where the smoothness
 terms carry no information, the warm start of the CG solve, and the nearest-neighbour
-baseline of DESIGN.md section 6 (1386 mm RMSE on the two val_selection frames).
+baseline of docs/design.md section 6 (1386 mm RMSE on the two val_selection frames).
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
-"""KITTI depth-completion metrics (DESIGN.md section 7).
+"""KITTI depth-completion metrics (docs/design.md section 7).
 
 Computed over the pixels where the ground truth is > 0, **per image**, then averaged over
 images (the official devkit's way). Units: RMSE and MAE in millimetres, iRMSE and iMAE in
 1/km, REL unitless, ``delta1`` the fraction of pixels with ``max(p/g, g/p) < 1.25``.
 
-Uncertainty quality (DESIGN.md section 5): :func:`sparsification` curves and
+Uncertainty quality (docs/design.md section 5): :func:`sparsification` curves and
 :func:`ause`, the area between an uncertainty's curve and the oracle's.
 """
 
@@ -140,7 +140,7 @@ def sparsification(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPAR
 
 
 def ause(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS) -> dict[str, float]:
-    """Area under the sparsification error (DESIGN.md section 5) of one image.
+    """Area under the sparsification error (docs/design.md section 5) of one image.
 
     ``ause``: area between the curve of ``uncertainty`` and the oracle curve (ordered by
     ``|error|``) over the removed fraction 0..(steps-1)/steps, trapezoid rule, in the unit

@@ -40,7 +40,7 @@ def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: tor
 def normal_affinity(normal_i: torch.Tensor, normal_j: torch.Tensor, sigma_n: torch.Tensor) -> torch.Tensor:
     """``nr_ij = exp((cos_ij - 1) / sigma_n^2)``: the cosine similarity mapped to (0, 1].
 
-    A raw cosine can be negative and would break positive definiteness (DESIGN.md
+    A raw cosine can be negative and would break positive definiteness (docs/design.md
     section 3); this mapping is 1 for parallel normals and ``exp(-2 / sigma_n^2)`` for
     opposite ones.
 

@@ -1,4 +1,4 @@
-"""Posterior variance of the CRF: ``diag(A^-1)`` exactly or by sampling (DESIGN.md section 5).
+"""Posterior variance of the CRF: ``diag(A^-1)`` exactly or by sampling (docs/design.md section 5).
 
 ``exp(-E(x))`` is a Gaussian with precision ``A`` (up to the scale fitted by the model), so
 the marginal variance of node ``i`` is ``(A^-1)_ii``.
@@ -25,7 +25,13 @@ from __future__ import annotations
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.linalg import solve_grid_laplacian, solve_laplacian
+from crfdepth.linalg.autograd import solve_grid_laplacian_trusted, solve_laplacian_trusted
+from crfdepth.linalg.solve import solver_settings
+
+#: Memory the sampling estimate may use at once; the samples are solved in chunks that fit.
+MEMORY_BUDGET_BYTES = 2 * 1024**3
+# Vectors of the batched sample solve held per sample and node (CG state, xi, noise, diagonal).
+_VECTORS_PER_SAMPLE = 16
 
 
 def _generator(seed: int | None, device) -> torch.Generator:
@@ -89,8 +95,8 @@ def posterior_variance(
     ei_rep = (edge_index[:, None, :] + offsets[None, :, None]).reshape(2, -1)
     ptr_rep = torch.cat([ptr[:-1][None, :] + offsets[:, None] for _ in range(1)], 0).reshape(-1)
     ptr_rep = torch.cat([ptr_rep, torch.tensor([k * n], device=d.device)])
-    x, _ = solve_laplacian(xi.reshape(-1), d.repeat(k), ei_rep, edge_weight.repeat(k), ptr=ptr_rep,
-                           rtol=rtol, on_nonconvergence="warn")
+    x, _ = solve_laplacian_trusted(xi.reshape(-1), d.repeat(k), ei_rep, edge_weight.repeat(k), ptr_rep, None,
+                                   solver_settings(rtol=rtol))
     x = x.view(k, n)
     m = x - xi / diag
     return 1.0 / diag + (m * m).mean(0)
@@ -105,38 +111,54 @@ def grid_posterior_variance(
     samples: int = 48,
     seed: int | None = 0,
     rtol: float = 1e-4,
+    max_memory_bytes: int = MEMORY_BUDGET_BYTES,
 ) -> torch.Tensor:
     """``diag(A^-1)`` on a batch of 4-connected pixel grids, by the sampling estimator.
+
+    Memory is bounded: the samples are solved together in chunks of at most
+    ``max_memory_bytes / (16 * B * H * W * bytes per value)`` samples (all at once for a
+    KITTI frame; a 4000x3000 float32 image takes 2-3 samples per chunk under the 2 GiB
+    default), so a large image costs time, not an out-of-memory kill. One chunk draws
+    exactly the noise of the unchunked estimate; several chunks draw it in another order
+    (same distribution, another realisation).
 
     Args:
         d: (B, H, W) diagonal; weight_h: (B, H, W-1); weight_v: (B, H-1, W) (as for
             :func:`crfdepth.linalg.solve_grid_laplacian`).
         samples, seed, rtol: as in :func:`posterior_variance`.
+        max_memory_bytes: memory budget of the sample solves.
 
     Returns:
         (B, H, W) variances.
     """
     _check_samples(samples)
-    k = samples
     bsz, h, w = d.shape
+    per_sample = _VECTORS_PER_SAMPLE * bsz * h * w * d.element_size()
+    chunk = max(1, min(samples, max_memory_bytes // per_sample))
     gen = _generator(seed, d.device)
-    u = torch.randn(k, bsz, h, w, generator=gen, device=d.device, dtype=d.dtype)
-    vh = torch.randn(k, bsz, h, w - 1, generator=gen, device=d.device, dtype=d.dtype) * weight_h.sqrt()
-    vv = torch.randn(k, bsz, h - 1, w, generator=gen, device=d.device, dtype=d.dtype) * weight_v.sqrt()
-    xi = d.sqrt() * u
-    xi[..., :, :-1] += vh
-    xi[..., :, 1:] -= vh
-    xi[..., :-1, :] += vv
-    xi[..., 1:, :] -= vv
     diag = d.clone()
     diag[..., :, :-1] += weight_h
     diag[..., :, 1:] += weight_h
     diag[..., :-1, :] += weight_v
     diag[..., 1:, :] += weight_v
-    x, _ = solve_grid_laplacian(xi.reshape(k * bsz, h, w), d.repeat(k, 1, 1), weight_h.repeat(k, 1, 1),
-                                weight_v.repeat(k, 1, 1), rtol=rtol, on_nonconvergence="warn")
-    m = x.view(k, bsz, h, w) - xi / diag
-    return 1.0 / diag + (m * m).mean(0)
+    total = torch.zeros_like(d)
+    for start in range(0, samples, chunk):
+        k = min(chunk, samples - start)
+        u = torch.randn(k, bsz, h, w, generator=gen, device=d.device, dtype=d.dtype)
+        vh = torch.randn(k, bsz, h, w - 1, generator=gen, device=d.device, dtype=d.dtype) * weight_h.sqrt()
+        vv = torch.randn(k, bsz, h - 1, w, generator=gen, device=d.device, dtype=d.dtype) * weight_v.sqrt()
+        xi = d.sqrt() * u
+        del u
+        xi[..., :, :-1] += vh
+        xi[..., :, 1:] -= vh
+        xi[..., :-1, :] += vv
+        xi[..., 1:, :] -= vv
+        del vh, vv
+        x, _ = solve_grid_laplacian_trusted(xi.reshape(k * bsz, h, w), d.repeat(k, 1, 1), weight_h.repeat(k, 1, 1),
+                                            weight_v.repeat(k, 1, 1), None, solver_settings(rtol=rtol))
+        m = x.view(k, bsz, h, w) - xi / diag
+        total += (m * m).sum(0)
+    return 1.0 / diag + total / samples
 
 
 def _exact(d, edge_index, edge_weight, ptr) -> torch.Tensor:
@@ -158,48 +180,3 @@ def _exact(d, edge_index, edge_weight, ptr) -> torch.Tensor:
         out[lo:hi] = inv.diagonal().to(d.dtype)
         del m
     return out
-
-
-def calibrate_std_scale(model, frames, *, apply: bool = True) -> float:
-    """The std scale ``s`` that minimises the Gaussian NLL of ``frames``' targets, in closed form.
-
-    The predictive std is ``s * sigma`` with ``sigma = sqrt(diag(A^-1))`` (DESIGN.md
-    section 5). The per-image mean NLL averaged over images, ``log s + mean(log sigma) +
-    M / (2 s^2)`` with ``M`` the mean over images of ``mean((x - t)^2 / sigma^2)`` over
-    the target pixels, is minimal at ``s = sqrt(M)``: the same objective as the trainer's
-    NLL term, solved exactly instead of by gradient steps. The depth is not changed.
-
-    Args:
-        model: a :class:`~crfdepth.model.CRFDepth` (any mode); run under ``no_grad`` in
-            its current train/eval mode, on its device and dtype.
-        frames: iterable of :class:`~crfdepth.data.sample.Sample` (image, sparse, K and
-            a target with pixels > 0), e.g. a crfdepth dataset. Frames without target
-            pixels are skipped.
-        apply: also set the model's scale to the result.
-
-    Returns:
-        The calibrated ``s`` (> 0).
-
-    Raises:
-        InputError: no frame has a target pixel.
-    """
-    import math
-
-    param = next(model.parameters())
-    ratios = []
-    with torch.no_grad():
-        scale = float(model.std_scale)
-        for s in frames:
-            target = s.target[None].to(param)
-            valid = target > 0
-            if not bool(valid.any()):
-                continue
-            out = model(s.image[None].to(param), s.sparse[None].to(param), s.K[None].to(param), return_std=True)
-            sigma = (out.std / scale)[valid]
-            ratios.append(float(((out.depth[valid] - target[valid]) / sigma).square().mean()))
-        if not ratios:
-            raise InputError("frames: expected at least one frame with target pixels (> 0), got none")
-        calibrated = math.sqrt(sum(ratios) / len(ratios))
-        if apply:
-            model.log_std_scale.fill_(math.log(calibrated))
-    return calibrated

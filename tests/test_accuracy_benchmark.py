@@ -26,7 +26,7 @@ def test_quick_run_writes_parseable_json(accuracy, kitti_root, tmp_path, capsys)
     assert lines == json.loads(json.dumps(rows))
     assert [(r["protocol"], r["method"]) for r in lines] == [("a", "nn"), ("a", "paper"), ("a", "learned")]
     by = {r["method"]: r for r in lines}
-    # Nearest fill on the official frame: about 1.3-1.4 m RMSE (DESIGN.md section 6: 1386 mm over 2 frames).
+    # Nearest fill on the official frame: about 1.3-1.4 m RMSE (docs/design.md section 6: 1386 mm over 2 frames).
     assert 1000 < by["nn"]["rmse"] < 1700
     assert by["paper"]["rmse"] < by["nn"]["rmse"] and by["learned"]["rmse"] < by["nn"]["rmse"]
     assert "shipped weights" in by["learned"]["fit"]  # protocol a: the package's file, never trained on drive 0001

@@ -79,7 +79,7 @@ def test_real_frame_fill_is_dense_and_keeps_lidar(kitti_root):
     valid = sample.sparse > 0
     assert bool((dense > 0).all())
     assert torch.equal(dense[valid], sample.sparse[valid])
-    # DESIGN.md section 6 reports 1386 mm RMSE for this baseline averaged over both frames.
+    # docs/design.md section 6 reports 1386 mm RMSE for this baseline averaged over both frames.
     gt = sample.target > 0
     rmse_mm = 1000 * torch.sqrt(((dense[gt] - sample.target[gt]) ** 2).mean()).item()
     assert 800 < rmse_mm < 2000

@@ -1,7 +1,7 @@
 """Per-image metrics averaged over images, accumulated across batches and DDP processes.
 
 The metrics themselves are pure functions (:func:`crfdepth.metrics.depth_metrics`: KITTI
-RMSE/MAE in mm, iRMSE/iMAE in 1/km, REL, delta1, per image; DESIGN.md section 7); this
+RMSE/MAE in mm, iRMSE/iMAE in 1/km, REL, delta1, per image; docs/design.md section 7); this
 module only holds the thin ``torchmetrics`` wrapper that sums per-image values and image
 counts over an epoch, so that the epoch value is the **mean over images** (the devkit's
 way), whatever the batch size and however the images were split between processes.
@@ -68,7 +68,7 @@ class PerImageMean(Metric):
 
 
 class DepthMetrics(PerImageMean):
-    """KITTI depth-completion metrics per image, averaged over images (DESIGN.md section 7).
+    """KITTI depth-completion metrics per image, averaged over images (docs/design.md section 7).
 
     :meth:`update` takes predictions and targets and calls
     :func:`crfdepth.metrics.depth_metrics`; images without any target pixel are skipped

@@ -1,4 +1,4 @@
-"""Batched Krylov iterations on symmetrically scaled systems (DESIGN.md section 4).
+"""Batched Krylov iterations on symmetrically scaled systems (docs/design.md section 4).
 
 These are plain functions of tensors: no autograd, no knowledge of graphs. They solve
 ``M y = c`` for a batch of ``G`` independent systems stored as rows of a ``(G, n)``

@@ -1,4 +1,4 @@
-"""Matrix-free operators for ``A = diag(d) + L(w)`` (DESIGN.md sections 3 and 4).
+"""Matrix-free operators for ``A = diag(d) + L(w)`` (docs/design.md sections 3 and 4).
 
 ``L(w)`` is the weighted graph Laplacian, ``(L x)_i = sum_j w_ij (x_i - x_j)``. Two
 graph structures are supported, each as a small class that

@@ -1,4 +1,4 @@
-"""The differentiable Laplacian solve (DESIGN.md section 4) against independent oracles."""
+"""The differentiable Laplacian solve (docs/design.md section 4) against independent oracles."""
 
 from __future__ import annotations
 
