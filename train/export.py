@@ -1,4 +1,4 @@
-"""Turn a trainer checkpoint into a crfdepth weights file (JSON, :mod:`crfdepth.pretrained`).
+"""Turn a trainer checkpoint into a crfdepth weights file (JSON, :mod:`crfdepth.weights`).
 
 ::
 
@@ -14,7 +14,7 @@ the YAML config given with ``--config`` (verbatim) and the ``--command`` text. T
 what ``crfdepth/weights/README.md`` refers to for the shipped weights.
 
 ``--calibrate-std`` (needs ``--config``) first sets the std scale to its closed-form
-NLL optimum over the config's training frames (:func:`crfdepth.uncertainty.calibrate_std_scale`,
+NLL optimum over the config's training frames (:func:`train.calibrate.calibrate_std_scale`,
 no flip), and records the frames and the scale before / after in ``about``.
 """
 
@@ -27,10 +27,9 @@ from typing import Any, Sequence
 
 import torch
 
-from crfdepth.checkpoint import load_model
 from crfdepth.errors import InputError
-from crfdepth.pretrained import save_weights
-from crfdepth.uncertainty import calibrate_std_scale
+from crfdepth.weights import load_model, save_weights
+from train.calibrate import calibrate_std_scale
 
 
 def _plain(value: Any) -> Any:
@@ -75,7 +74,7 @@ def calibrate(model, config: Path) -> dict[str, Any]:
     after = calibrate_std_scale(model, (train[i] for i in range(len(train))))
     print(f"std scale calibrated on {len(train)} training frames: {before:.4g} -> {after:.4g}")
     return {"frames": len(train), "before": before, "after": after,
-            "method": "closed-form Gaussian NLL optimum (crfdepth.uncertainty.calibrate_std_scale)"}
+            "method": "closed-form Gaussian NLL optimum (train.calibrate.calibrate_std_scale)"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

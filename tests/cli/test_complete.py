@@ -24,7 +24,7 @@ from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.pretrained import weights_path
+from crfdepth.weights import weights_path
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
 # Cheap model options for tests about files and names rather than accuracy.

@@ -24,11 +24,11 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.checkpoint import save_model
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.metrics import METRICS, average_metrics, depth_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.weights import save_model
 
 COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
 

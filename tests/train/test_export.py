@@ -1,4 +1,4 @@
-"""``python -m train.export``: a trainer checkpoint -> a JSON weights file (crfdepth.pretrained)."""
+"""``python -m train.export``: a trainer checkpoint -> a JSON weights file (crfdepth.weights)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from crfdepth.checkpoint import load_model
 from crfdepth.model import CRFDepth
+from crfdepth.weights import load_model
 from train.export import main
 
 

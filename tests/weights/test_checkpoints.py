@@ -1,4 +1,4 @@
-"""Saving and loading CRFDepth models (crfdepth.checkpoint): the three file kinds, refusals."""
+"""Saving and loading CRFDepth checkpoints (crfdepth.weights): the torch file kinds, refusals."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from crfdepth.checkpoint import FORMAT, VERSION, load_model, save_model
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
+from crfdepth.weights import MODEL_FORMAT, MODEL_VERSION, load_model, save_model
 
 F64 = torch.float64
 
@@ -66,7 +66,7 @@ def test_save_then_load_gives_the_same_model(tmp_path, config):
     path = save_model(model, tmp_path / "crf.pt")
     assert path == tmp_path / "crf.pt" and sorted(os.listdir(tmp_path)) == ["crf.pt"]  # no temporary left
     raw = torch.load(path, weights_only=True)
-    assert raw["format"] == FORMAT == "crfdepth" and raw["version"] == VERSION == 1
+    assert raw["format"] == MODEL_FORMAT == "crfdepth" and raw["version"] == MODEL_VERSION == 1
     assert raw["config"] == model.config
 
     loaded = load_model(path)
@@ -170,7 +170,7 @@ def _pickle_of_other_objects(path: Path) -> None:
 def _crfdepth_file(**changes):
     def write(path: Path) -> None:
         model = CRFDepth()
-        torch.save({"format": FORMAT, "version": VERSION, "config": model.config,
+        torch.save({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": model.config,
                     "state_dict": model.state_dict(), **changes}, path)
     return write
 
@@ -277,7 +277,7 @@ def test_loads_a_lightning_checkpoint_without_lightning(tmp_path):
         "import sys\n"
         "sys.modules['lightning'] = None\n"  # import lightning -> ImportError
         "sys.modules['pytorch_lightning'] = None\n"
-        "from crfdepth.checkpoint import load_model\n"
+        "from crfdepth.weights import load_model\n"
         f"model = load_model({str(tmp_path / 'last.ckpt')!r})\n"
         "print(model.mode, float(model.alpha))\n"
     )
@@ -296,3 +296,78 @@ def test_state_dict_with_the_old_refine_prior_buffer_loads(tmp_path):
     loaded = load_model(tmp_path / "old.pt")
     assert float(loaded.refine_prior.detach()) == pytest.approx(0.02, rel=1e-6)
     assert loaded.weights() == pytest.approx(model.weights(), rel=1e-6)
+
+
+# --------------------------------------------------------------------------- non-finite tensors
+
+
+@pytest.mark.parametrize("kind", ["state dict", "crfdepth model file", "Lightning checkpoint"])
+@pytest.mark.parametrize("key, value, got", [("raw_alpha", float("nan"), "nan"),
+                                             ("log_sigma_d", float("inf"), "inf"),
+                                             ("eps", float("-inf"), "-inf")])
+def test_non_finite_tensor_is_refused_naming_file_and_parameter(tmp_path, kind, key, value, got):
+    state = {**_trained().state_dict(), key: torch.tensor(value)}
+    path = tmp_path / "x.ckpt"
+    if kind == "state dict":
+        torch.save(state, path)
+    elif kind == "crfdepth model file":
+        torch.save({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": CRFDepth().config,
+                    "state_dict": state}, path)
+    else:
+        torch.save(_lightning(state, CRFDepth().config), path)
+    with pytest.raises(InputError) as info:
+        load_model(path)
+    assert str(info.value) == f"path: {path}: parameter {key}: expected finite values, got {got}"
+
+
+def test_non_finite_old_refine_prior_is_named_as_stored(tmp_path):
+    state = {k: v for k, v in CRFDepth().state_dict().items() if k != "log_refine_prior"}
+    for value, message in ((float("nan"), "expected finite values, got nan"), (0.0, "expected values > 0, got 0.0")):
+        torch.save({**state, "refine_prior": torch.tensor(value)}, tmp_path / "old.pt")
+        with pytest.raises(InputError) as info:
+            load_model(tmp_path / "old.pt")
+        assert str(info.value) == f"path: {tmp_path / 'old.pt'}: parameter refine_prior: {message}"
+
+
+def test_non_finite_entries_of_a_larger_tensor_are_counted(tmp_path):
+    from crfdepth.weights.files import read_checkpoint
+
+    torch.save({"w": torch.tensor([1.0, float("nan"), float("nan"), 2.0]), "steps": torch.tensor([3])},
+               tmp_path / "x.pt")
+    with pytest.raises(InputError, match=r"parameter w: expected finite values, got nan \(2 of 4 values not finite\)"):
+        read_checkpoint(tmp_path / "x.pt")
+
+
+def test_tensors_outside_the_model_are_not_checked(tmp_path):
+    """A Lightning checkpoint's other modules (here a NaN loss state) are ignored, as their keys are."""
+    model = _trained(mode="pixel")
+    ckpt = _lightning(model.state_dict(), model.config)
+    ckpt["state_dict"]["loss.log_scale"] = torch.tensor(float("nan"))
+    torch.save(ckpt, tmp_path / "last.ckpt")
+    _assert_same_parameters(load_model(tmp_path / "last.ckpt"), model)
+
+
+# --------------------------------------------------------------------------- imports
+
+
+def test_weights_package_imports_while_the_model_module_is_initialising():
+    """crfdepth.model imports crfdepth.weights.files at its top, which runs crfdepth.weights'
+    __init__ before CRFDepth exists; the package must not need the class until called."""
+    script = (
+        "import sys, types\n"
+        "import crfdepth, crfdepth.model\n"
+        "real = sys.modules['crfdepth.model']\n"
+        "for name in [m for m in sys.modules if m.startswith('crfdepth.weights')]:\n"
+        "    del sys.modules[name]\n"
+        "half = types.ModuleType('crfdepth.model')  # model.py stopped at its imports: no CRFDepth yet\n"
+        "sys.modules['crfdepth.model'] = half\n"
+        "del crfdepth.model\n"
+        "from crfdepth.weights.files import pretrained_state\n"
+        "half.CRFDepth = real.CRFDepth  # model.py finishes\n"
+        "import crfdepth.weights\n"
+        "print(crfdepth.weights.load_pretrained('paper').config == real.CRFDepth().config)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True"]

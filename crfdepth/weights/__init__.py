@@ -1,0 +1,248 @@
+"""The weights of :class:`~crfdepth.model.CRFDepth`: shipped sets, weights files, checkpoints.
+
+One home for every way weights come in or go out (docs/design.md section 8); no
+Lightning needed.
+
+Shipped weight sets (:func:`load_pretrained`, ``CRFDepth.from_pretrained``, the default of
+:func:`crfdepth.api.complete_depth` and of the ``crfdepth`` commands):
+
+- ``"kitti"`` (the default): learned on real KITTI frames by the Lightning trainer in
+  ``train/``; the file is ``crfdepth/weights/kitti.json`` and ``crfdepth/weights/README.md``
+  beside it says which frames, config and command made it, and what it measured.
+- ``"paper"``: the hand-set initial values of ``CRFDepth()`` (no file).
+
+:func:`load_model` reads four kinds of file (:func:`crfdepth.weights.files.read_checkpoint`).
+The first three are read with ``torch.load(weights_only=True)`` (only tensors and plain
+containers are unpickled; no code in the file runs), and every floating tensor in them
+must be finite:
+
+(a) a Lightning checkpoint (``.ckpt``) of the trainer in ``train/``: ``{"state_dict":
+    {"model.<name>": tensor, ...}, "hyper_parameters": {"crf": {CRFDepth kwargs}}, ...}``.
+    The model is rebuilt as ``CRFDepth(**hyper_parameters["crf"])`` and given the
+    ``model.``-prefixed tensors (prefix stripped); other keys of the LightningModule (a
+    loss module, optimizer and loop states) are ignored.
+(b) crfdepth's own model file, written by :func:`save_model`: ``{"format": "crfdepth",
+    "version": 1, "config": {CRFDepth kwargs}, "state_dict": {name: tensor}}``.
+(c) a bare ``CRFDepth().state_dict()`` (``torch.save(model.state_dict(), path)``): it
+    holds no configuration, so the model is built with the default configuration
+    (superpixel mode, all potentials, refinement on) unless ``overrides`` say otherwise.
+(d) a JSON weights file, written by :func:`save_weights` (such as the shipped
+    ``kitti.json``): recognised by its first character ``{``. The CRF has ten learnable
+    numbers, so the file is not a pickle but its complete ``CRFDepth`` configuration
+    (``model.config`` with the learned values of ``alpha .. std_scale`` written in) plus
+    a free-form ``"about"`` record::
+
+        {"format": "crfdepth-weights", "version": 1,
+         "config": {"mode": "superpixel", ..., "alpha": 0.41, ...},
+         "about": {"data": ..., "command": ..., "validation": ...}}
+
+    ``CRFDepth(**config)`` rebuilds the model (the learned values are float32 values
+    written out in full, so the rebuilt parameters equal the trained ones to float32
+    rounding of the logit/log, about 1e-7 relative). ``python -m train.export`` turns a
+    trainer checkpoint into one.
+
+The configuration is ``CRFDepth.config``: the constructor's keyword arguments, JSON
+friendly. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by the stored
+tensors; the structural options (``mode``, ``potentials``, ``refine``, solver settings)
+define the model the weights run in.
+
+The file formats themselves (reading, writing, checks) are in
+:mod:`crfdepth.weights.files`, which does not import the model.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping
+
+import torch
+
+# CRFDepth.from_pretrained (crfdepth.model) imports crfdepth.weights.files, and importing that
+# submodule runs this file first, possibly while crfdepth.model is still executing. So the class
+# is looked up when a function runs (``_model.CRFDepth``), not imported by name here.
+import crfdepth.model as _model
+from crfdepth.errors import InputError
+from crfdepth.weights.files import (
+    DEFAULT_WEIGHTS,
+    LEARNED,
+    MODEL_FORMAT,
+    MODEL_VERSION,
+    WEIGHTS,
+    WEIGHTS_FORMAT,
+    WEIGHTS_VERSION,
+    pretrained_state,
+    read_checkpoint,
+    read_weights,
+    weights_path,
+    write_model_file,
+    write_weights,
+)
+
+if TYPE_CHECKING:
+    from crfdepth.model import CRFDepth
+
+__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS", "WEIGHTS_FORMAT",
+           "WEIGHTS_VERSION", "load_model", "load_pretrained", "pretrained_state", "read_checkpoint",
+           "read_weights", "save_model", "save_weights", "weights_path"]
+
+logger = logging.getLogger(__name__)
+
+
+def load_pretrained(name: str = DEFAULT_WEIGHTS, **overrides: Any) -> CRFDepth:
+    """A :class:`~crfdepth.model.CRFDepth` with a shipped weight set, in eval mode.
+
+    Args:
+        name: "kitti" (learned on KITTI; see ``crfdepth/weights/README.md``) or "paper"
+            (the hand-set initial values of ``CRFDepth()``).
+        **overrides: ``CRFDepth`` keyword arguments that replace the stored ones, e.g.
+            ``mode="pixel"`` (the learned weights on the pixel graph) or
+            ``potentials=("colour",)``. Overriding a learned value (``alpha=...``) is
+            allowed and replaces it.
+
+    Returns:
+        The model on the CPU, float32, in eval mode.
+
+    Raises:
+        InputError: an unknown ``name``, or overrides that ``CRFDepth`` rejects.
+    """
+    config, state = pretrained_state(name)
+    try:
+        model = _model.CRFDepth(**{**config, **overrides})
+    except TypeError as exc:  # an unknown keyword argument
+        raise InputError(f"overrides: not CRFDepth arguments ({exc})") from None
+    if state:  # empty for the JSON weights files shipped today
+        model = _load_state(weights_path(name), model, state)
+    return model.eval()
+
+
+def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, Any] | None = None) -> Path:
+    """Write ``model`` as a weights file (its configuration with the learned values), atomically.
+
+    Args:
+        model: a :class:`~crfdepth.model.CRFDepth`.
+        path: the output ``.json`` file; its folder must exist. An existing file is replaced.
+        about: JSON-serialisable record of how the weights were made (data, command,
+            validation metrics ...).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        InputError: ``model`` is not a CRFDepth, ``path`` is a folder, or ``about`` is not
+            JSON-serialisable.
+        FileNotFoundError: the folder of ``path`` does not exist.
+    """
+    if not isinstance(model, _model.CRFDepth):
+        raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
+    config = dict(model.config)
+    config.update(model.weights())  # the current (learned) values replace the initial ones
+    return write_weights(path, config, about)
+
+
+def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
+    """Write ``model`` as a crfdepth model file (kind (b) of this module), atomically.
+
+    The file holds ``{"format": "crfdepth", "version": 1, "config": model.config,
+    "state_dict": {name: tensor on CPU}}`` (tensors keep their dtype). It is written to a
+    temporary file in the same folder and renamed over ``path`` (``os.replace``), so a
+    reader never sees a partial file and a failed write leaves no file behind.
+
+    Args:
+        model: the :class:`~crfdepth.model.CRFDepth` to save (any device, any dtype).
+        path: the output file; its folder must exist. An existing file is replaced.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        InputError: ``model`` is not a CRFDepth, or ``path`` is a folder.
+        FileNotFoundError: the folder of ``path`` does not exist.
+    """
+    if not isinstance(model, _model.CRFDepth):
+        raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
+    file = write_model_file(path, model.config, model.state_dict())
+    logger.info("saved CRFDepth (%s mode) to %s", model.mode, file)
+    return file
+
+
+def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "cpu",
+               overrides: Mapping[str, Any] | None = None) -> CRFDepth:
+    """Rebuild a :class:`~crfdepth.model.CRFDepth` from a checkpoint file.
+
+    Reads a Lightning ``.ckpt`` (configuration from ``hyper_parameters["crf"]``), a file of
+    :func:`save_model`, a bare ``CRFDepth`` state dict (which carries no configuration:
+    the **default** ``CRFDepth()`` configuration is used) or a JSON weights file of
+    :func:`save_weights`, as described in the module docstring. Torch files are read with
+    ``torch.load(path, weights_only=True, map_location=map_location)``: a file holding
+    anything but tensors and plain containers is refused without running any of its code.
+
+    Args:
+        path: the checkpoint file.
+        map_location: device to load the tensors to and to put the model on ("cpu",
+            "cuda", "cuda:1", a ``torch.device``).
+        overrides: CRFDepth keyword arguments that replace those of the stored
+            configuration (e.g. ``{"mode": "pixel"}``: the learned weights run on the
+            pixel graph). Default: none.
+
+    Returns:
+        The model with the stored parameters and buffers, on ``map_location``, in the
+        dtype of the stored tensors, in eval mode (call ``.train()`` to fine-tune).
+        ``model.config`` is the configuration it was built with.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist (the path is named).
+        InputError: naming the file and the problem: a folder; not a checkpoint (random
+            bytes, a text file, a pickle of other objects); no state dict in it; a
+            Lightning checkpoint without ``hyper_parameters["crf"]`` or without
+            ``model.`` keys; a tensor that is not finite (``path: <file>: parameter
+            raw_alpha: expected finite values, got nan``); an invalid configuration;
+            tensors that do not fit the configured model (missing or unexpected keys,
+            wrong shapes); a CUDA ``map_location`` without CUDA.
+    """
+    file = Path(path)
+    config, state, kind = read_checkpoint(file, map_location)
+    config = {**config, **dict(overrides or {})}
+    try:
+        model = _model.CRFDepth(**config)
+    except TypeError as exc:  # unknown or missing keyword arguments
+        raise InputError(f"{file}: the {kind}'s model configuration does not fit CRFDepth ({exc})") from None
+    except InputError as exc:
+        raise InputError(f"{file}: invalid model configuration in the {kind} ({exc})") from None
+    if state:  # a weights file has none: its configuration holds the learned values
+        model = _load_state(file, model, state)
+    logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.mode, file, kind)
+    return model.to(torch.device(map_location)).eval()
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _load_state(file: Path, model: CRFDepth, state: dict[str, torch.Tensor]) -> CRFDepth:
+    """``model`` with ``state`` loaded, in the dtype of its floating tensors when they share one."""
+    _check_state(file, state, model.state_dict())
+    model.load_state_dict(state)
+    dtypes = {v.dtype for v in state.values() if v.is_floating_point()}
+    if len(dtypes) == 1:
+        model = model.to(dtypes.pop())
+    return model
+
+
+def _check_state(file: Path, state: dict[str, torch.Tensor], expected: dict[str, torch.Tensor]) -> None:
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    wrong = sorted(k for k in set(expected) & set(state) if state[k].shape != expected[k].shape)
+    if missing or unexpected or wrong:
+        details = "; ".join(
+            f"{label} ({len(keys)}): {_some(keys)}"
+            for label, keys in (("missing keys", missing), ("unexpected keys", unexpected),
+                                ("wrong shapes", [f"{k} {tuple(state[k].shape)} instead of "
+                                                  f"{tuple(expected[k].shape)}" for k in wrong]))
+            if keys)
+        raise InputError(f"{file} does not match CRFDepth, a checkpoint of another model or "
+                         f"configuration ({details})")
+
+
+def _some(keys: list[str], n: int = 5) -> str:
+    return ", ".join(keys[:n]) + (" ..." if len(keys) > n else "")
