@@ -7,14 +7,13 @@ trainer lives in the separate ``train`` package.
 """
 
 from crfdepth.api import complete_depth
-from crfdepth.checkpoint import load_model, save_model
 from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
 from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
 from crfdepth.model import CRFDepth, CRFOutput
-from crfdepth.pretrained import load_pretrained, save_weights
+from crfdepth.weights import load_model, load_pretrained, save_model, save_weights
 
-__version__ = "0.1.0"
+from crfdepth._version import __version__  # pyproject.toml's version, via the package metadata
 
 __all__ = [
     "CRFDepth",

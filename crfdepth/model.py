@@ -183,7 +183,7 @@ class CRFDepth(nn.Module):
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
-        """The model with a shipped weight set, in eval mode (:func:`crfdepth.pretrained.load_pretrained`).
+        """The model with a shipped weight set, in eval mode (:func:`crfdepth.weights.load_pretrained`).
 
         ``"kitti"``: weights learned on real KITTI frames (``crfdepth/weights/README.md``
         says how); ``"paper"``: the hand-set initial values of ``CRFDepth()``.

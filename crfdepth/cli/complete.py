@@ -17,11 +17,11 @@ exact KITTI projection) and the image undistorted when the calibration has
 ``distortion`` (:mod:`crfdepth.api`).
 
 A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous`` layout
-(``image/``, ``velodyne_raw/``, ``intrinsics/``; DESIGN.md section 7)::
+(``image/``, ``velodyne_raw/``, ``intrinsics/``; docs/design.md section 7)::
 
     crfdepth complete --input-dir val_selection_cropped --out-dir pred/ [--out-std-dir std/]
 
-Outputs (DESIGN.md sections 1 and 7): the depth is a KITTI depth PNG of the input's size
+Outputs (docs/design.md sections 1 and 7): the depth is a KITTI depth PNG of the input's size
 (uint16, metres * 256), > 0 at every pixel; the posterior standard deviation is written
 the same way (metres * 256). Both are clipped below at 1/256 m, so that no pixel reads
 as 0 ("no value"), and the depth above at 65535/256 m by the PNG format. In folder mode
@@ -49,8 +49,8 @@ be writable). Each PNG is written atomically, so a failed run leaves no partial 
 The model (:func:`build_model`): without ``--checkpoint``, the shipped weights named by
 ``--weights`` (default ``kitti``, learned on KITTI; ``paper`` = the hand-set initial
 values of ``CRFDepth()``) with the options given. ``--checkpoint`` is read by
-:func:`crfdepth.checkpoint.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
-:func:`crfdepth.checkpoint.save_model`, or a bare state dict, which gets the default
+:func:`crfdepth.weights.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
+:func:`crfdepth.weights.save_model`, or a bare state dict, which gets the default
 configuration): the checkpoint's configuration defines the model, and the model options
 given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
 override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.
@@ -70,55 +70,32 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from crfdepth.api import complete_depth
-from crfdepth.checkpoint import load_model
-from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
-from crfdepth.data.kitti import KittiTestCompletion, KittiValSelection
+from crfdepth.cli.common import (
+    add_model_arguments,
+    build_model,
+    check_output_file,
+    make_output_dir,
+    same_file,
+    vis_range_type,
+    write_pictures,
+)
+from crfdepth.data.kitti import open_completion_folder
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes
+from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
 from crfdepth.io.pointcloud import read_points
-from crfdepth.io.rig import load_any_calibration
-from crfdepth.model import POTENTIALS, CRFDepth
-from crfdepth.visualize import colorize_depth, colorize_std
 
 logger = logging.getLogger(__name__)
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
-_VIS_SUFFIXES = ("_vis_depth.png", "_vis_std.png")
 
 
 # --------------------------------------------------------------------------- arguments
-
-
-def _potentials(text: str) -> tuple[str, ...]:
-    """``--potentials`` value: comma list, a subset of POTENTIALS containing 'colour'."""
-    names = tuple(p.strip() for p in text.split(",") if p.strip())
-    unknown = [p for p in names if p not in POTENTIALS]
-    if unknown or "colour" not in names:
-        raise argparse.ArgumentTypeError(
-            f"expected a comma list of {', '.join(POTENTIALS)} that includes colour, got {text!r}")
-    return names
-
-
-def int_at_least(low: int):
-    """An argparse ``type`` accepting integers >= ``low`` (shared by the sub-commands)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = low - 1
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
-        return value
-
-    return parse
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -156,285 +133,129 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="output folder (created if missing): one <velodyne_raw name>.png per frame")
     folder.add_argument("--out-std-dir", metavar="OUT",
                         help="also write each frame's posterior std PNG here (created if missing)")
-    folder.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--vis", nargs="?", const="", default=None, metavar="DIR",
                         help="write colour pictures <stem>_vis_depth.png and <stem>_vis_std.png into "
                              "DIR (created if missing); without DIR: next to --out, or into "
                              "<out-dir>_vis")
+    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, default=None, metavar=("MIN", "MAX"),
+                        help="fixed depth colour scale of the pictures in metres (same colours for the same "
+                             "depth in every frame of a sequence); default: each frame's 2nd-98th percentile")
+    one.add_argument("--trust-transform", action="store_true",
+                     help="with --points: use T_cam_lidar even when its inverse lands more points in the image "
+                          "(by default that is refused as a probably inverted transform)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_model_arguments(parser)
     parser.set_defaults(func=run)
     return parser
 
 
-def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """The "model" option group (``--mode`` ... ``--checkpoint``, ``--device``, ``--dtype``),
-    shared by ``complete`` and ``evaluate``; :func:`build_model` reads it."""
-    model = parser.add_argument_group(
-        "model", "With --checkpoint, the checkpoint's configuration defines the model and the "
-                 "options --mode, --superpixels, --potentials and --no-refine, where given, override it.")
-    model.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
-                       help="graph nodes (default: the checkpoint's, else superpixel)")
-    model.add_argument("--superpixels", type=int_at_least(1), default=None, metavar="N",
-                       help="SLIC segments for a 1216x352 image (default: the checkpoint's, else 5500)")
-    model.add_argument("--potentials", type=_potentials, default=None, metavar="LIST",
-                       help="comma list of colour,normal,distance; colour required (default: the "
-                            "checkpoint's, else all)")
-    model.add_argument("--no-refine", action="store_true",
-                       help="superpixel mode: keep the piecewise-constant painting, no pixel refinement")
-    model.add_argument("--weights", choices=WEIGHTS, default=None,
-                       help=f"shipped weight set when no --checkpoint is given: kitti (learned on KITTI, "
-                            f"crfdepth/weights/README.md) or paper (the hand-set initial values); "
-                            f"default: {DEFAULT_WEIGHTS}")
-    model.add_argument("--checkpoint", metavar="CKPT",
-                       help="trained model instead of --weights: a Lightning .ckpt of train/ (configuration "
-                            "in hyper_parameters['crf']), a crfdepth model file (crfdepth.checkpoint."
-                            "save_model), a JSON weights file (crfdepth.pretrained) or a bare CRFDepth "
-                            "state_dict (default configuration)")
-    model.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="default: cpu")
-    model.add_argument("--dtype", choices=("float32", "float64"), default="float32",
-                       help="default: float32")
-
-
-# --------------------------------------------------------------------------- output checks
-
-
-def _check_writable_dir(directory: Path, what: str) -> None:
-    if not directory.is_dir():
-        raise FileNotFoundError(f"{what}: output folder does not exist: {directory}")
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise PermissionError(f"{what}: output folder is not writable: {directory}")
-
-
-def _check_output_file(path: str, what: str) -> Path:
-    """An output PNG path whose folder exists and is writable (nothing is created)."""
-    out = Path(path)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"{what}: expected a file name ending in .png, got {out}")
-    if out.is_dir():
-        raise IsADirectoryError(f"{what}: expected a file name, got a folder: {out}")
-    _check_writable_dir(out.parent, what)
-    return out
-
-
-def _make_output_dir(path: str | Path, what: str) -> Path:
-    """An output folder, created (with parents) if missing; must be writable."""
-    directory = Path(path)
-    if directory.exists() and not directory.is_dir():
-        raise InputError(f"{what}: expected a folder, got a file: {directory}")
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PermissionError(f"{what}: cannot create output folder {directory}: {exc.strerror}") from None
-    _check_writable_dir(directory, what)
-    return directory
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    return os.path.realpath(a) == os.path.realpath(b)
-
-
-def _write_rgb_png(path: Path, rgb: np.ndarray) -> None:
-    """Write an (H, W, 3) uint8 RGB picture as PNG, atomically (temporary file + rename)."""
-    ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:  # pragma: no cover - cv2 encodes any uint8 HxWx3 array
-        raise InputError(f"vis: could not encode a picture of shape {rgb.shape} as PNG")
-    atomic_write_bytes(path, encoded.tobytes())
-
-
-# --------------------------------------------------------------------------- model
-
-
-def _model_overrides(args: argparse.Namespace) -> dict:
-    """CRFDepth keyword arguments given explicitly on the command line."""
-    kwargs = {}
-    if args.mode is not None:
-        kwargs["mode"] = args.mode
-    if args.superpixels is not None:
-        kwargs["superpixels"] = args.superpixels
-    if args.potentials is not None:
-        kwargs["potentials"] = list(args.potentials)
-    if args.no_refine:
-        kwargs["refine"] = False
-    return kwargs
-
-
-def build_model(args: argparse.Namespace) -> CRFDepth:
-    """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
-
-    Without ``--checkpoint``: the shipped weight set ``--weights`` (default "kitti",
-    :func:`crfdepth.pretrained.load_pretrained`) with the options given overriding its
-    configuration. With it: :func:`crfdepth.checkpoint.load_model` rebuilds the model
-    from the checkpoint's configuration (the default one for a bare state dict), and the
-    explicit options (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
-    override that configuration. Raises InputError for a CUDA request without CUDA and for
-    a checkpoint that cannot be read or does not fit (file and problem named, prefixed
-    ``--checkpoint:``); FileNotFoundError for a missing checkpoint.
-    """
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: CUDA is not available in this PyTorch installation/machine; "
-                         "use --device cpu")
-    overrides = _model_overrides(args)
-    if args.checkpoint is not None:
-        if args.weights is not None:
-            raise InputError(f"--weights {args.weights} / --checkpoint: give one of them, not both")
-        try:
-            model = load_model(args.checkpoint, overrides=overrides)
-        except (InputError, FileNotFoundError) as exc:
-            raise type(exc)(f"--checkpoint: {exc}") from None
-    else:
-        model = load_pretrained(args.weights or DEFAULT_WEIGHTS, **overrides)
-    if model.mode == "pixel" and (args.superpixels is not None or args.no_refine):
-        logger.warning("--superpixels and --no-refine only apply to --mode superpixel; ignored")
-    dtype = torch.float64 if args.dtype == "float64" else torch.float32
-    return model.to(device=args.device, dtype=dtype).eval()
-
-
 # --------------------------------------------------------------------------- frames
 
 
-def _check_intrinsics(K: np.ndarray, where: str) -> None:
-    """Finite K with fx, fy > 0 and last row (0, 0, 1); ``where`` names the file."""
-    if not np.all(np.isfinite(K)):
-        raise InputError(f"intrinsics: expected finite numbers in {where}, got {K.ravel().tolist()}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(f"intrinsics: expected focal lengths fx, fy > 0 (K[0,0], K[1,1]) in {where}, "
-                         f"got fx={K[0, 0]:g}, fy={K[1, 1]:g}")
-    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
-        raise InputError(f"intrinsics: expected the last row of K to be 0 0 1 in {where}, got "
-                         f"{' '.join(f'{v:g}' for v in K[2])}")
+def _flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
+    """The API's message with its argument name (``K``, ``sparse`` ...) replaced by the user's flag."""
+    text = str(exc)
+    head, sep, rest = text.partition(":")
+    if sep and head.strip() in flags:
+        return InputError(f"{flags[head.strip()]}:{rest}")
+    return exc
 
 
-def _check_sparse(sparse: np.ndarray, where: str) -> None:
-    if not np.any(sparse > 0):
-        raise InputError(f"sparse: no LiDAR point in {where} (every pixel is 0); the CRF needs at least "
-                         f"one depth measurement")
-
-
-def _complete(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
-              with_std: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """One frame: (3, H, W) RGB in [0, 1], (1, H, W) metres, (3, 3) K -> (H, W) depth and std."""
-    param = next(model.parameters())
-    device, dtype = param.device, param.dtype
-    with torch.no_grad():
-        out = model(image[None].to(device, dtype), sparse[None].to(device, dtype), K[None].to(device, dtype),
-                    return_std=with_std)
-    depth = out.depth[0, 0].double().cpu().numpy()
-    std = out.std[0, 0].double().cpu().numpy() if with_std else None
-    return depth, std
+def _complete(args, model, image, where: dict[str, str], with_std: bool, **inputs):
+    """One frame through :func:`crfdepth.api.complete_depth`, the one inference path; errors name ``where``'s flags."""
+    try:
+        depth, std = complete_depth(image, model=model, device=args.device, return_std=with_std,
+                                    trust_transform=args.trust_transform, **inputs)
+    except InputError as exc:
+        raise _flag_names(exc, where) from None
+    as_numpy = (lambda a: a.double().cpu().numpy()) if isinstance(depth, torch.Tensor) else \
+        (lambda a: a.astype(np.float64))
+    return as_numpy(depth), (None if std is None else as_numpy(std))
 
 
 def _write_outputs(depth: np.ndarray, std: np.ndarray | None, out: Path, out_std: Path | None,
-                   vis_dir: Path | None, stem: str) -> None:
+                   vis_dir: Path | None, stem: str, vis_range) -> list[Path]:
     if not np.all(np.isfinite(depth)):
         raise InputError(f"{stem}: the model returned {int(np.sum(~np.isfinite(depth)))} non-finite "
                          f"depth value(s); nothing written")
     write_depth_png(out, np.maximum(depth, _MIN_DEPTH))
+    written = [out]
     if out_std is not None:
         write_depth_png(out_std, np.maximum(np.nan_to_num(std, nan=_MIN_DEPTH), _MIN_DEPTH))
+        written.append(out_std)
     if vis_dir is not None:
-        _write_rgb_png(vis_dir / f"{stem}{_VIS_SUFFIXES[0]}", colorize_depth(depth))
-        _write_rgb_png(vis_dir / f"{stem}{_VIS_SUFFIXES[1]}", colorize_std(std))
+        written += write_pictures(vis_dir, stem, depth, std, vis_range)
+    return written
 
 
-def _run_points(args: argparse.Namespace) -> int:
-    """One frame from ``--image``, ``--points`` and ``--calib`` (see the module docstring)."""
-    missing = [flag for flag, value in (("--image", args.image), ("--points", args.points),
-                                        ("--calib", args.calib), ("--out", args.out)) if value is None]
-    if missing:
-        raise InputError(f"point-cloud mode needs --image, --points, --calib and --out; missing {', '.join(missing)}")
-    stray = [flag for flag, value in (("--sparse", args.sparse), ("--intrinsics", args.intrinsics),
-                                      ("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir))
-             if value is not None]
-    if stray:
-        raise InputError(f"{', '.join(stray)}: cannot be combined with --points/--calib (the cloud and the "
-                         f"calibration replace --sparse and --intrinsics; one frame only)")
-    out = _check_output_file(args.out, "--out")
-    out_std = _check_output_file(args.out_std, "--out-std") if args.out_std is not None else None
-    if out_std is not None and _same_file(out, out_std):
+def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
+    """``--out`` / ``--out-std`` checked before anything is read: PNG names in writable folders, not inputs."""
+    out = check_output_file(args.out, "--out")
+    out_std = check_output_file(args.out_std, "--out-std") if args.out_std is not None else None
+    if out_std is not None and same_file(out, out_std):
         raise InputError(f"--out-std: must differ from --out, got {out_std} for both")
-    inputs = {"--image": Path(args.image), "--points": Path(args.points), "--calib": Path(args.calib)}
     for flag, path in ((f, p) for f, p in (("--out", out), ("--out-std", out_std)) if p is not None):
         for source, src_path in inputs.items():
-            if _same_file(path, src_path):
+            if same_file(path, src_path):
                 raise InputError(f"{flag}: {path} is the {source} input; refusing to overwrite it")
-    rgb = read_rgb(args.image)
-    try:
-        points = read_points(args.points)
-    except InputError as exc:
-        raise InputError(f"--points: {exc}") from None
-    try:
-        calibration = load_any_calibration(args.calib, camera=args.camera)
-    except InputError as exc:
-        raise InputError(f"--calib: {exc}") from None
-    model = build_model(args)
-    vis_dir = None
-    if args.vis is not None:
-        vis_dir = _make_output_dir(args.vis, "--vis") if args.vis else out.parent
-    start = time.perf_counter()
-    try:
-        depth, std = complete_depth(rgb, points=points, calibration=calibration, model=model,
-                                    device=args.device, return_std=out_std is not None or vis_dir is not None)
-    except InputError as exc:
-        raise InputError(f"--points {args.points} with --calib {args.calib}: {exc}") from None
-    _write_outputs(depth.astype(np.float64), None if std is None else std.astype(np.float64), out, out_std,
-                   vis_dir, out.stem)
-    logger.info("completed %s in %.2f s -> %s", args.points, time.perf_counter() - start, out)
-    return 0
+    return out, out_std
 
 
 def _run_one(args: argparse.Namespace) -> int:
-    if args.points is not None or args.calib is not None:
-        return _run_points(args)
-    missing = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse),
-                                        ("--intrinsics", args.intrinsics), ("--out", args.out)) if value is None]
+    """One frame: ``--image`` with ``--sparse`` + ``--intrinsics``, or with ``--points`` + ``--calib``."""
+    points_mode = args.points is not None or args.calib is not None
+    needed = ("--image", "--points", "--calib", "--out") if points_mode else ("--image", "--sparse", "--intrinsics",
+                                                                              "--out")
+    given = {"--image": args.image, "--sparse": args.sparse, "--intrinsics": args.intrinsics, "--points": args.points,
+             "--calib": args.calib, "--out": args.out, "--out-dir": args.out_dir, "--out-std-dir": args.out_std_dir}
+    missing = [flag for flag in needed if given[flag] is None]
     if missing:
-        raise InputError(f"one-frame mode needs --image, --sparse, --intrinsics and --out; missing "
-                         f"{', '.join(missing)}")
-    stray = [flag for flag, value in (("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir))
-             if value is not None]
+        mode = "point-cloud mode" if points_mode else "one-frame mode"
+        raise InputError(f"{mode} needs {', '.join(needed[:-1])} and --out; missing {', '.join(missing)}")
+    stray_flags = ("--sparse", "--intrinsics", "--out-dir", "--out-std-dir") if points_mode else ("--out-dir",
+                                                                                                  "--out-std-dir")
+    stray = [flag for flag in stray_flags if given[flag] is not None]
+    if stray and points_mode:
+        raise InputError(f"{', '.join(stray)}: cannot be combined with --points/--calib (the cloud and the "
+                         f"calibration replace --sparse and --intrinsics; one frame only)")
     if stray:
         raise InputError(f"{', '.join(stray)}: folder options need --input-dir; for one frame use --out / --out-std")
-    out = _check_output_file(args.out, "--out")
-    out_std = _check_output_file(args.out_std, "--out-std") if args.out_std is not None else None
-    if out_std is not None and _same_file(out, out_std):
-        raise InputError(f"--out-std: must differ from --out, got {out_std} for both")
-    inputs = {"--image": Path(args.image), "--sparse": Path(args.sparse), "--intrinsics": Path(args.intrinsics)}
-    for flag, path in ((f, p) for f, p in (("--out", out), ("--out-std", out_std)) if p is not None):
-        for source, src_path in inputs.items():
-            if _same_file(path, src_path):
-                raise InputError(f"{flag}: {path} is the {source} input; refusing to overwrite it")
+    out, out_std = _check_outputs(args, {flag: Path(given[flag]) for flag in needed[:-1]})
     rgb = read_rgb(args.image)
-    sparse = read_depth_png(args.sparse)
-    K = read_intrinsics(args.intrinsics)
-    if rgb.shape[:2] != sparse.shape:
-        raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
-                         f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
+    if points_mode:
+        try:
+            points = read_points(args.points)
+        except InputError as exc:
+            raise InputError(f"--points: {exc}") from None
+        try:
+            calibration = load_any_calibration(args.calib, camera=args.camera)
+        except InputError as exc:
+            raise InputError(f"--calib: {exc}") from None
+        inputs = dict(points=points, calibration=calibration)
+        where = {"points": f"--points {args.points}", "calibration": f"--calib {args.calib}",
+                 "K": f"--calib {args.calib}", "T_cam_lidar": f"--calib {args.calib}", "image": f"--image {args.image}"}
+    else:
+        sparse = read_depth_png(args.sparse)
+        K = read_intrinsics(args.intrinsics)
+        if rgb.shape[:2] != sparse.shape:
+            raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
+                             f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
+        inputs = dict(sparse=sparse, K=K)
+        where = {"sparse": f"--sparse {args.sparse}", "K": f"--intrinsics {args.intrinsics}",
+                 "image": f"--image {args.image}"}
     if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
         logger.warning("--image %s is greyscale; the colour potential sees intensity only", args.image)
-    _check_intrinsics(K, f"--intrinsics {args.intrinsics}")
-    _check_sparse(sparse, f"--sparse {args.sparse}")
     model = build_model(args)
     vis_dir = None
     if args.vis is not None:  # created only once inputs and model are known to be good
-        vis_dir = _make_output_dir(args.vis, "--vis") if args.vis else out.parent
-
-    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).float() / 255.0
+        vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
     start = time.perf_counter()
-    depth, std = _complete(model, image_t, torch.from_numpy(sparse)[None], torch.from_numpy(K),
-                           with_std=out_std is not None or vis_dir is not None)
-    _write_outputs(depth, std, out, out_std, vis_dir, out.stem)
-    logger.info("completed %s in %.2f s -> %s", args.sparse, time.perf_counter() - start, out)
+    depth, std = _complete(args, model, rgb, where, out_std is not None or vis_dir is not None, **inputs)
+    written = _write_outputs(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)
+    if not args.quiet:
+        print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
+              f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - start:.1f} s")
     return 0
-
-
-def _open_dataset(input_dir: str):
-    """KittiValSelection when ``input_dir`` has ``groundtruth_depth/``, else KittiTestCompletion."""
-    root = Path(input_dir)
-    if not root.exists():
-        raise FileNotFoundError(f"--input-dir: no such folder: {root}")
-    if (root / "groundtruth_depth").is_dir() or (root / KittiValSelection._folder / "groundtruth_depth").is_dir():
-        return KittiValSelection(root)
-    return KittiTestCompletion(root)
 
 
 def _run_folder(args: argparse.Namespace) -> int:
@@ -446,21 +267,23 @@ def _run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
-    dataset = _open_dataset(args.input_dir)
+    if not Path(args.input_dir).exists():
+        raise FileNotFoundError(f"--input-dir: no such folder: {args.input_dir}")
+    dataset = open_completion_folder(args.input_dir)
     inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
     targets = [("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir)]
     if args.vis is not None:
         targets.append(("--vis", args.vis or f"{Path(args.out_dir).resolve()}_vis"))
     for flag, value in targets:
-        if value is not None and any(_same_file(value, p) for p in inputs):
+        if value is not None and any(same_file(value, p) for p in inputs):
             raise InputError(f"{flag}: {value} is an input folder of {dataset.root}; refusing to write there")
     resolved = [os.path.realpath(v) for _, v in targets if v is not None]
     if len(set(resolved)) != len(resolved):
         raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
     model = build_model(args)
-    out_dir = _make_output_dir(args.out_dir, "--out-dir")
-    std_dir = _make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
-    vis_dir = _make_output_dir(targets[-1][1], "--vis") if args.vis is not None else None
+    out_dir = make_output_dir(args.out_dir, "--out-dir")
+    std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
+    vis_dir = make_output_dir(targets[-1][1], "--vis") if args.vis is not None else None
     progress = tqdm(total=len(dataset), unit="frame", desc="complete",
                     disable=args.quiet or not sys.stderr.isatty())
     written = 0
@@ -469,14 +292,15 @@ def _run_folder(args: argparse.Namespace) -> int:
         for index in range(len(dataset)):
             name = dataset.names[index]
             where = f"frame {index + 1}/{len(dataset)} {name}"
+            flags = {"K": f"{where} (intrinsics/)", "sparse": f"{where} (velodyne_raw/{name}.png)",
+                     "image": f"{where} (image/)"}
             try:
                 sample = dataset[index]
-                _check_intrinsics(sample.K.double().numpy(), f"{where} (intrinsics/)")
-                _check_sparse(sample.sparse.numpy(), f"{where} (velodyne_raw/{name}.png)")
-                depth, std = _complete(model, sample.image, sample.sparse, sample.K,
-                                       with_std=std_dir is not None or vis_dir is not None)
+                depth, std = _complete(args, model, sample.image, flags, std_dir is not None or vis_dir is not None,
+                                       sparse=sample.sparse, K=sample.K)
                 _write_outputs(depth, std, out_dir / f"{name}.png",
-                               std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name)
+                               std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name,
+                               args.vis_range)
             except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
                 raise type(exc)(f"{exc} [stopped at {where}; {written} of {len(dataset)} frame(s) written "
                                 f"to {out_dir}]") from None
@@ -485,8 +309,9 @@ def _run_folder(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     seconds = time.perf_counter() - start
-    logger.info("completed %d frame(s) in %.1f s (%.2f s/frame) -> %s", written, seconds,
-                seconds / max(written, 1), out_dir)
+    if not args.quiet:
+        print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
+              + (f", pictures to {vis_dir}" if vis_dir else "") + f" in {seconds:.1f} s")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""``crfdepth evaluate``: KITTI metrics of a trained model over a dataset (DESIGN.md section 7).
+"""``crfdepth evaluate``: KITTI metrics of a trained model over a dataset (docs/design.md section 7).
 
 ::
 
@@ -6,7 +6,7 @@
         --data depth_selection/val_selection_cropped [--limit N] [--save-png] [--out-dir DIR]
 
 Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
-:func:`crfdepth.checkpoint.load_model`; without it, the shipped ``--weights``, by default
+:func:`crfdepth.weights.load_model`; without it, the shipped ``--weights``, by default
 the ones learned on KITTI) over the
 frames of ``crfdepth.data.build_dataset(--layout, --data, ...)`` under
 ``torch.no_grad()`` and compares the float depth with the ground truth of each frame.
@@ -58,14 +58,15 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from crfdepth.cli.complete import add_model_arguments, build_model, int_at_least
+from crfdepth.api import complete_depth
+from crfdepth.cli.common import add_model_arguments, build_model, int_at_least
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS, UNITS, depth_metrics
-from crfdepth.pretrained import DEFAULT_WEIGHTS
+from crfdepth.weights import DEFAULT_WEIGHTS
 
 logger = logging.getLogger(__name__)
 
@@ -200,7 +201,6 @@ def _check_out_dir(args: argparse.Namespace, root: Path | None) -> Path:
 
 def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
     """Per-frame metrics rows (in dataset order) and the names of skipped frames."""
-    param = next(model.parameters())
     loader = DataLoader(dataset, batch_size=args.batch_size, shuffle=False, collate_fn=collate_samples)
     rows: list[dict[str, Any]] = []
     skipped: list[str] = []
@@ -215,8 +215,8 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
                     missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
                     raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
                                      f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
-                batch = batch.to(device=param.device, dtype=param.dtype)
-                depth = model(batch.image, batch.sparse, batch.K).depth
+                depth = _predict(model, batch, args.device, where)
+                batch = batch.to(device=depth.device, dtype=depth.dtype)
                 counts = (batch.target > 0).flatten(1).sum(1)
                 keep = counts > 0
                 for name in (n for n, k in zip(batch.names, keep.tolist()) if not k):
@@ -240,6 +240,20 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
     finally:
         progress.close()
     return rows, skipped
+
+
+def _predict(model, batch, device: str, where: str) -> torch.Tensor:
+    """(B, 1, H, W) depth of a batch, frame by frame through :func:`crfdepth.api.complete_depth`
+    (the one inference path), in the model's dtype."""
+    depth = []
+    for image, sparse, K in zip(batch.image, batch.sparse, batch.K):
+        try:
+            d, _ = complete_depth(image, sparse=sparse, K=K, model=model, device=device, return_std=False)
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+        depth.append(d[None])
+    param = next(model.parameters())
+    return torch.stack(depth).to(param.dtype)
 
 
 def _batches(loader: DataLoader, total: int, batch_size: int):
