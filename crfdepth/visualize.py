@@ -1,24 +1,39 @@
 """Colour pictures of depth and uncertainty maps (for the CLI's ``--vis`` and the demo).
 
 Pure functions: they take an (H, W) map (numpy array or torch tensor, metres) and return
-an (H, W, 3) uint8 **RGB** image; nothing is written and the input is never modified.
-Pixels without a value (0, negative, NaN or inf: KITTI's "no measurement") are painted
+an uint8 **RGB** image; nothing is written and the input is never modified. Pixels
+without a value (0, negative, NaN or inf: KITTI's "no measurement") are painted
 ``invalid_color`` (black by default), which neither colour map uses.
 
-- :func:`colorize_depth`: OpenCV's TURBO map on *inverse* depth, near = warm (red),
-  far = cold (blue). Inverse depth spreads the near range, where the detail is, and
-  compresses the sky and far background.
-- :func:`colorize_std`: a sequential map (VIRIDIS by default, dark purple = certain,
-  yellow = uncertain), linear in the standard deviation.
+Pictures for people, with a colour bar in metres under the map (drawn with OpenCV):
+
+- :func:`depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
+  depth, near = warm (red), far = cold (blue). Inverse depth spreads the near range,
+  where the detail is, and compresses the sky and far background.
+- :func:`std_picture`: the posterior standard deviation (docs/design.md section 5),
+  VIRIDIS (dark purple = certain, yellow = uncertain) on a *log* scale by default: the
+  std is small near the LiDAR and one or two decades larger far from it, and a linear
+  scale paints everything near the data with a single colour.
+
+Both take ``vis_range=(min_m, max_m)``: the same colours for the same metres in every
+frame of a sequence. Without it the range is robust and per frame: the 2nd to 98th
+percentile of the map's values (:func:`depth_range`, :func:`std_range`).
+
+The bare colour maps, same size as the map, no bar: :func:`colorize_depth`,
+:func:`colorize_std` (linear by default, ``scale="log"`` as in the picture). Both accept
+``vis_range`` too, or ``vmin`` / ``vmax`` (default: computed per map).
+
 - :func:`draw_points`: sparse LiDAR drawn over the camera image, coloured by depth.
 - :func:`render_point_cloud`: a dense depth map as a coloured 3D point cloud seen from a
   virtual camera above and behind the real one.
-
-To compare several maps (prediction, ground truth, LiDAR) give them the same ``vmin`` and
-``vmax``; the defaults are computed per map.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from numbers import Real
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -26,9 +41,22 @@ import torch
 
 from crfdepth.errors import InputError
 
-__all__ = ["colorize_depth", "colorize_std", "draw_points", "render_point_cloud"]
+__all__ = [
+    "colorize_depth",
+    "colorize_std",
+    "depth_picture",
+    "depth_range",
+    "draw_points",
+    "render_point_cloud",
+    "std_picture",
+    "std_range",
+]
+
+Scale = Literal["linear", "log"]
+"""Colour scale of a std map: linear in metres or linear in log(metres)."""
 
 _BLACK = (0, 0, 0)
+_WHITE = (255, 255, 255)
 
 
 def _as_map(name: str, values) -> np.ndarray:
@@ -46,10 +74,10 @@ def _as_map(name: str, values) -> np.ndarray:
     return array.astype(np.float64)
 
 
-def _check_color(invalid_color) -> np.ndarray:
-    colour = np.asarray(invalid_color)
+def _check_color(color, name: str = "invalid_color") -> np.ndarray:
+    colour = np.asarray(color)
     if colour.shape != (3,) or not np.all((colour >= 0) & (colour <= 255)):
-        raise InputError(f"invalid_color: expected an (R, G, B) triple in [0, 255], got {invalid_color!r}")
+        raise InputError(f"{name}: expected an (R, G, B) triple in [0, 255], got {color!r}")
     return colour.astype(np.uint8)
 
 
@@ -66,9 +94,108 @@ def _paint(t: np.ndarray, valid: np.ndarray, colormap: int, invalid_color) -> np
     return rgb
 
 
+def _check_vis_range(vis_range, *, positive: bool) -> tuple[float, float]:
+    """``vis_range`` as two floats ``(min, max)``: finite, min < max, min > 0 (``positive``) or >= 0."""
+    bound = "0 < min < max" if positive else "0 <= min < max"
+    expected = f"vis_range: expected two finite numbers (min, max) in metres with {bound}, got {vis_range!r}"
+    if isinstance(vis_range, (str, bytes)) or not hasattr(vis_range, "__len__") or len(vis_range) != 2:
+        raise InputError(expected)
+    lo, hi = vis_range
+    if not all(isinstance(v, Real) and not isinstance(v, bool) for v in (lo, hi)):
+        raise InputError(expected)
+    lo, hi = float(lo), float(hi)
+    if not (math.isfinite(lo) and math.isfinite(hi)) or not lo < hi or (lo <= 0 if positive else lo < 0):
+        raise InputError(expected)
+    return lo, hi
+
+
+def _range_or_bounds(vis_range, vmin, vmax, *, positive: bool):
+    """``(vmin, vmax)`` from ``vis_range`` when given (then vmin/vmax must be None)."""
+    if vis_range is None:
+        return vmin, vmax
+    if vmin is not None or vmax is not None:
+        raise InputError(f"vis_range: expected either vis_range or vmin/vmax, not both, got vis_range={vis_range!r}, "
+                         f"vmin={vmin!r}, vmax={vmax!r}")
+    return _check_vis_range(vis_range, positive=positive)
+
+
+def _check_scale(scale) -> str:
+    if scale not in ("linear", "log"):
+        raise InputError(f"scale: expected 'linear' or 'log', got {scale!r}")
+    return str(scale)
+
+
+def _check_percentiles(percentiles) -> tuple[float, float]:
+    expected = f"percentiles: expected two numbers (low, high) with 0 <= low < high <= 100, got {percentiles!r}"
+    if isinstance(percentiles, (str, bytes)) or not hasattr(percentiles, "__len__") or len(percentiles) != 2:
+        raise InputError(expected)
+    lo, hi = percentiles
+    if not all(isinstance(v, Real) and not isinstance(v, bool) for v in (lo, hi)) or not 0 <= lo < hi <= 100:
+        raise InputError(expected)
+    return float(lo), float(hi)
+
+
+def _robust_range(values: np.ndarray, percentiles, name: str, what: str) -> tuple[float, float]:
+    """Percentile range of ``values`` (already the valid ones), widened when degenerate."""
+    p_lo, p_hi = _check_percentiles(percentiles)
+    if values.size == 0:
+        raise InputError(f"{name}: expected at least one {what} to choose a colour range, got none "
+                         f"(pass vis_range)")
+    lo, hi = (float(v) for v in np.percentile(values, [p_lo, p_hi]))
+    if not hi > lo * (1.0 + 1e-6):  # a constant map: a range around its value
+        lo, hi = lo / 1.25, lo * 1.25
+    return lo, hi
+
+
+def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
+    """The default colour range of :func:`depth_picture`: robust percentiles of the valid depths.
+
+    The 2nd to 98th percentile by default, so a few very near points or the far
+    background do not squeeze the colours of the rest. To give every frame of a sequence
+    the same colours, compute it once (e.g. on the first frame) and pass it as
+    ``vis_range`` to every picture.
+
+    Args:
+        depth: (H, W) depth in metres (also (1, H, W) or (1, 1, H, W); numpy or torch);
+            0, negative or non-finite = no depth (ignored).
+        percentiles: (low, high) percentiles, 0 <= low < high <= 100.
+
+    Returns:
+        ``(min_m, max_m)`` in metres, 0 < min_m < max_m (a constant map gets its value
+        / 1.25 to its value * 1.25).
+
+    Raises:
+        InputError: not a 2-D real map, no valid depth, or bad ``percentiles``.
+    """
+    d = _as_map("depth", depth)
+    return _robust_range(d[np.isfinite(d) & (d > 0)], percentiles, "depth", "valid depth (finite, > 0 metres)")
+
+
+def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
+    """The default colour range of :func:`std_picture`: robust percentiles of the stds > 0.
+
+    Like :func:`depth_range`; zero stds are left out (the log scale has no place for
+    them; they are painted with the bottom colour).
+
+    Args:
+        std: (H, W) standard deviation in metres (numpy or torch); negative or non-finite
+            = no value (ignored).
+        percentiles: (low, high) percentiles, 0 <= low < high <= 100.
+
+    Returns:
+        ``(min_m, max_m)`` in metres, 0 < min_m < max_m.
+
+    Raises:
+        InputError: not a 2-D real map, no std > 0, or bad ``percentiles``.
+    """
+    s = _as_map("std", std)
+    return _robust_range(s[np.isfinite(s) & (s > 0)], percentiles, "std", "finite std > 0 metres")
+
+
 def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, *,
-                   colormap: int = cv2.COLORMAP_TURBO, invalid_color=_BLACK) -> np.ndarray:
-    """Colour picture of a depth map, near = warm.
+                   vis_range: tuple[float, float] | None = None, colormap: int = cv2.COLORMAP_TURBO,
+                   invalid_color=_BLACK) -> np.ndarray:
+    """Colour map of a depth map, near = warm (no colour bar: see :func:`depth_picture`).
 
     The colour is linear in inverse depth: ``t = (1/d - 1/vmax) / (1/vmin - 1/vmax)``,
     clipped to [0, 1], so ``vmin`` (and nearer) gets the warm end of ``colormap`` (dark
@@ -79,6 +206,9 @@ def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, 
             0, negative or non-finite = no depth.
         vmin: nearest depth of the scale, metres > 0; default the smallest valid depth.
         vmax: farthest depth of the scale, metres >= vmin; default the largest valid depth.
+        vis_range: ``(min_m, max_m)`` instead of ``vmin`` / ``vmax`` (then leave those
+            None), 0 < min_m < max_m: a fixed range gives the same colour to the same
+            metres in every frame.
         colormap: an OpenCV colour map id (``cv2.COLORMAP_*``), low index = far.
         invalid_color: (R, G, B) of pixels without depth; default black.
 
@@ -87,9 +217,11 @@ def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, 
         (vmin == vmax) is painted with the warm end.
 
     Raises:
-        InputError: not a 2-D real map, or vmin/vmax not finite with 0 < vmin <= vmax.
+        InputError: not a 2-D real map, vmin/vmax not finite with 0 < vmin <= vmax, or a
+            bad ``vis_range`` (or given with vmin/vmax).
     """
     d = _as_map("depth", depth)
+    vmin, vmax = _range_or_bounds(vis_range, vmin, vmax, positive=True)
     valid = np.isfinite(d) & (d > 0)
     # Computed ends never cross a given one (e.g. vmin given beyond the farthest depth).
     if vmin is None:
@@ -108,23 +240,34 @@ def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, 
     return _paint(t, valid, colormap, invalid_color)
 
 
-def colorize_std(std, vmin: float | None = 0.0, vmax: float | None = None, *,
+def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
+                 vis_range: tuple[float, float] | None = None, scale: Scale = "linear",
                  percentile: float = 99.0, colormap: int = cv2.COLORMAP_VIRIDIS,
                  invalid_color=_BLACK) -> np.ndarray:
-    """Colour picture of a standard-deviation (uncertainty) map, certain = dark.
+    """Colour map of a standard-deviation (uncertainty) map, certain = dark (no colour bar:
+    see :func:`std_picture`).
 
-    The colour is linear in the std: ``t = (std - vmin) / (vmax - vmin)``, clipped to
-    [0, 1]; with VIRIDIS, ``vmin`` is dark purple and ``vmax`` (and above) yellow.
+    ``scale="linear"``: ``t = (std - vmin) / (vmax - vmin)``; ``scale="log"``:
+    ``t = log(std / vmin) / log(vmax / vmin)``; clipped to [0, 1]. With VIRIDIS, ``vmin``
+    (and below) is dark purple and ``vmax`` (and above) yellow. The posterior std spans
+    two or more decades (small at the LiDAR points, large far from them and in the sky,
+    docs/design.md section 5); the linear scale paints everything near the data with one
+    colour, the log scale shows its structure.
 
     Args:
         std: (H, W) standard deviation in metres (also (1, H, W) or (1, 1, H, W); numpy or
-            torch); negative or non-finite = no value. 0 is a valid (fully certain) std.
-        vmin: std at the bottom of the scale, metres; default 0; None = the smallest
-            valid std.
-        vmax: std at the top of the scale, metres; default the ``percentile``-th
+            torch); negative or non-finite = no value. 0 is a valid (fully certain) std
+            (the bottom colour).
+        vmin: std at the bottom of the scale, metres; default: linear 0, log the lower
+            end of :func:`std_range` (2nd percentile of the stds > 0). Must be > 0 for log.
+        vmax: std at the top of the scale, metres; default: linear the ``percentile``-th
             percentile of the valid stds (the posterior std has a long tail in the sky and
-            far background that would otherwise flatten the rest of the picture).
-        percentile: in (0, 100], used when ``vmax`` is None.
+            far background that would otherwise flatten the rest of the picture), log the
+            upper end of :func:`std_range` (98th percentile).
+        vis_range: ``(min_m, max_m)`` instead of ``vmin`` / ``vmax`` (then leave those
+            None): a fixed range for a sequence; min_m > 0 for log, >= 0 for linear.
+        scale: "linear" or "log".
+        percentile: in (0, 100], the linear scale's default ``vmax``.
         colormap: an OpenCV colour map id (``cv2.COLORMAP_*``), low index = certain.
         invalid_color: (R, G, B) of pixels without a value; default black.
 
@@ -132,16 +275,30 @@ def colorize_std(std, vmin: float | None = 0.0, vmax: float | None = None, *,
         (H, W, 3) uint8 RGB. A constant map (vmin == vmax) is painted with the low end.
 
     Raises:
-        InputError: not a 2-D real map, vmin/vmax not finite with vmin <= vmax, or
-            ``percentile`` outside (0, 100].
+        InputError: not a 2-D real map, vmin/vmax not finite with vmin <= vmax (vmin > 0
+            for log), a bad ``vis_range`` / ``scale``, ``percentile`` outside (0, 100], or
+            (log, no range given) no std > 0.
     """
     s = _as_map("std", std)
+    scale = _check_scale(scale)
+    vmin, vmax = _range_or_bounds(vis_range, vmin, vmax, positive=scale == "log")
     if not 0.0 < float(percentile) <= 100.0:
         raise InputError(f"percentile: expected a number in (0, 100], got {percentile!r}")
     valid = np.isfinite(s) & (s >= 0)
-    if vmin is None:
-        vmin = float(s[valid].min()) if valid.any() else 0.0
-    vmin = float(vmin)
+    if scale == "log":
+        if vmin is None or vmax is None:
+            low, high = std_range(s)
+            vmin = low if vmin is None else vmin
+            vmax = max(high, float(vmin)) if vmax is None else vmax  # never below a given bottom
+        vmin, vmax = float(vmin), float(vmax)
+        _check_range(vmin, vmax, "stds in metres")
+        if vmin <= 0:
+            raise InputError(f"vmin: expected a std > 0 metres for the log scale, got {vmin!r}")
+        logs = np.log(np.maximum(np.where(valid, s, vmin), vmin))
+        span = math.log(vmax / vmin)
+        t = (logs - math.log(vmin)) / span if span > 0 else np.zeros_like(s)
+        return _paint(t, valid, colormap, invalid_color)
+    vmin = 0.0 if vmin is None else float(vmin)
     if vmax is None:  # a computed top never falls below the given bottom
         vmax = max(float(np.percentile(s[valid], percentile)), vmin) if valid.any() else vmin
     vmax = float(vmax)
@@ -149,6 +306,179 @@ def colorize_std(std, vmin: float | None = 0.0, vmax: float | None = None, *,
     span = vmax - vmin
     t = (s - vmin) / span if span > 0 else np.zeros_like(s)
     return _paint(t, valid, colormap, invalid_color)
+
+
+def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
+                  invalid_color=_BLACK) -> np.ndarray:
+    """A depth map a reader can read: :func:`colorize_depth` with a colour bar in metres below.
+
+    Near = warm (TURBO on inverse depth, see :func:`colorize_depth`). The bar under the
+    map runs from ``min_m`` (left, dark red) to ``max_m`` (right, dark blue) on the same
+    inverse-depth scale, with tick labels in metres ("5 m", "10 m", ...); depths outside
+    the range get the colour of the nearer end.
+
+    Args:
+        depth: (H, W) depth in metres (also (1, H, W) or (1, 1, H, W); numpy or torch);
+            0, negative or non-finite = no depth (``invalid_color``).
+        vis_range: ``(min_m, max_m)``, 0 < min_m < max_m: a fixed range, the same
+            colours for the same metres in every frame of a sequence. Default
+            :func:`depth_range` of this map (2nd to 98th percentile of its valid depths),
+            so colours are comparable within a frame only.
+        invalid_color: (R, G, B) of pixels without depth; default black.
+
+    Returns:
+        (H + 44, max(W, 320), 3) uint8 RGB: the map at the top left (pixel for pixel
+        :func:`colorize_depth` with the same range), the colour bar on white below it.
+
+    Raises:
+        InputError: not a 2-D real map, a bad ``vis_range``, or no valid depth when
+            ``vis_range`` is None.
+    """
+    d = _as_map("depth", depth)
+    lo, hi = depth_range(d) if vis_range is None else _check_vis_range(vis_range, positive=True)
+    rgb = colorize_depth(d, lo, hi, invalid_color=invalid_color)
+    return _with_colour_bar(rgb, _Scale("inverse", lo, hi), "depth",
+                            lambda m: colorize_depth(m, lo, hi, invalid_color=invalid_color))
+
+
+def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *, scale: Scale = "log",
+                lidar_color=_WHITE, invalid_color=_BLACK) -> np.ndarray:
+    """An uncertainty map a reader can read: :func:`colorize_std` with a colour bar in metres below.
+
+    Certain = dark (VIRIDIS). On the default log scale the bar's ticks are log-spaced
+    (1, 2, 5 per decade, "0.5 m", "1 m", "2 m", ...) and equal steps of colour are equal
+    *ratios* of std, so both the small std near the LiDAR and the large std far from it
+    are told apart (docs/design.md section 5).
+
+    Args:
+        std: (H, W) posterior standard deviation in metres (also (1, H, W) or
+            (1, 1, H, W); numpy or torch); negative or non-finite = no value
+            (``invalid_color``); 0 = the bottom colour.
+        vis_range: ``(min_m, max_m)``, min_m < max_m (> 0 for log): a fixed range for a
+            sequence. Default :func:`std_range` (2nd to 98th percentile of the stds > 0).
+        lidar: optional (H, W) sparse depth in metres (0 = no point); when given, its
+            points are drawn as single pixels of ``lidar_color`` over the map, to show
+            where the measurements are.
+        scale: "log" (default) or "linear".
+        lidar_color: (R, G, B) of the LiDAR pixels; default white (not in VIRIDIS).
+        invalid_color: (R, G, B) of pixels without a value; default black.
+
+    Returns:
+        (H + 44, max(W, 320), 3) uint8 RGB: the map at the top left (pixel for pixel
+        :func:`colorize_std` with the same range and scale, but for the LiDAR pixels), the
+        colour bar on white below it.
+
+    Raises:
+        InputError: not a 2-D real map, a bad ``vis_range`` or ``scale``, ``lidar`` not
+            of the map's shape, or no std > 0 when ``vis_range`` is None on the log scale.
+    """
+    s = _as_map("std", std)
+    scale = _check_scale(scale)
+    if vis_range is not None:
+        lo, hi = _check_vis_range(vis_range, positive=scale == "log")
+    elif scale == "log":
+        lo, hi = std_range(s)
+    else:  # linear: from 0 to the 98th percentile
+        lo, hi = 0.0, std_range(s)[1]
+    rgb = colorize_std(s, lo, hi, scale=scale, invalid_color=invalid_color)
+    if lidar is not None:
+        points = _as_map("lidar", lidar)
+        if points.shape != s.shape:
+            raise InputError(f"lidar: expected an (H, W) sparse depth map of shape {s.shape} like std, "
+                             f"got shape {points.shape}")
+        rgb[np.isfinite(points) & (points > 0)] = _check_color(lidar_color, "lidar_color")
+    return _with_colour_bar(rgb, _Scale(scale, lo, hi), "std" if scale == "linear" else "std, log",
+                            lambda m: colorize_std(m, lo, hi, scale=scale, invalid_color=invalid_color))
+
+
+# --------------------------------------------------------------------------- colour bar
+
+_BAR_PANEL_HEIGHT = 44
+_BAR_MIN_WIDTH = 320
+_BAR_TOP, _BAR_BOTTOM = 6, 20  # rows of the colour strip in the panel
+_TICK_LENGTH = 4
+_LABEL_BASELINE = 38
+_FONT, _FONT_SCALE = cv2.FONT_HERSHEY_SIMPLEX, 0.45
+_INK, _PAPER, _FRAME = (0, 0, 0), (255, 255, 255), (128, 128, 128)
+
+
+@dataclass(frozen=True)
+class _Scale:
+    """Where metres sit on a bar: position 0 = ``lo`` (left), 1 = ``hi`` (right)."""
+
+    kind: str  # "inverse" (depth), "log" or "linear" (std)
+    lo: float
+    hi: float
+
+    def position(self, metres: np.ndarray) -> np.ndarray:
+        m = np.asarray(metres, dtype=np.float64)
+        if self.kind == "inverse":
+            return (1.0 / self.lo - 1.0 / m) / (1.0 / self.lo - 1.0 / self.hi)
+        if self.kind == "log":
+            return np.log(m / self.lo) / math.log(self.hi / self.lo)
+        return (m - self.lo) / (self.hi - self.lo)
+
+    def metres(self, position: np.ndarray) -> np.ndarray:
+        t = np.asarray(position, dtype=np.float64)
+        if self.kind == "inverse":
+            return 1.0 / (1.0 / self.lo - t * (1.0 / self.lo - 1.0 / self.hi))
+        if self.kind == "log":
+            return self.lo * (self.hi / self.lo) ** t
+        return self.lo + t * (self.hi - self.lo)
+
+    def candidate_ticks(self) -> list[float]:
+        """Round values inside the range, most important first (1, 5, 2, then 3 per decade)."""
+        if self.kind == "linear":
+            raw = (self.hi - self.lo) / 5.0
+            step = min((m * 10.0 ** math.floor(math.log10(raw)) for m in (1, 2, 5, 10)),
+                       key=lambda s: abs(s - raw))
+            first = math.ceil(self.lo / step)
+            return [k * step for k in range(first, int(math.floor(self.hi / step)) + 1)]
+        decades = range(math.floor(math.log10(self.lo)), math.ceil(math.log10(self.hi)) + 1)
+        values = [m * 10.0 ** e for m in (1, 5, 2, 3) for e in decades]
+        return [v for v in values if self.lo <= v <= self.hi]
+
+
+def _format_metres(value: float) -> str:
+    if value == 0:
+        return "0 m"
+    text = f"{value:.0f}" if abs(value) >= 100 else f"{value:.2g}"
+    return f"{text} m"
+
+
+def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.ndarray:
+    """``rgb`` on top of a white panel holding ``title`` and the colour bar of ``scale``.
+
+    ``paint(metres)`` colours a (1, n) row of metres exactly as the map was coloured, so
+    the bar shows the map's own colours.
+    """
+    h, w = rgb.shape[:2]
+    width = max(w, _BAR_MIN_WIDTH)
+    out = np.full((h + _BAR_PANEL_HEIGHT, width, 3), _PAPER, np.uint8)
+    out[:h, :w] = rgb
+    panel = out[h:]
+    (title_w, title_h), _ = cv2.getTextSize(title, _FONT, _FONT_SCALE, 1)
+    middle = (_BAR_TOP + _BAR_BOTTOM) // 2
+    cv2.putText(panel, title, (8, middle + title_h // 2), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
+    x0, x1 = 8 + title_w + 28, width - 24  # bar columns [x0, x1); room for half a label each side
+    n = x1 - x0
+    positions = np.arange(n) / (n - 1)
+    panel[_BAR_TOP:_BAR_BOTTOM, x0:x1] = paint(scale.metres(positions)[None])[0]
+    cv2.rectangle(panel, (x0 - 1, _BAR_TOP - 1), (x1, _BAR_BOTTOM), _FRAME, 1)
+    # Ticks: both ends first, then round values while their labels do not overlap.
+    taken: list[tuple[int, int]] = []
+    for value in [scale.lo, scale.hi, *scale.candidate_ticks()]:
+        x = x0 + int(round(float(scale.position(value)) * (n - 1)))
+        label = _format_metres(value)
+        (label_w, _), _ = cv2.getTextSize(label, _FONT, _FONT_SCALE, 1)
+        left = min(max(x - label_w // 2, 0), width - label_w)
+        span = (left - 4, left + label_w + 4)
+        if any(span[0] < b and a < span[1] for a, b in taken):
+            continue
+        taken.append(span)
+        cv2.line(panel, (x, _BAR_BOTTOM), (x, _BAR_BOTTOM + _TICK_LENGTH - 1), _INK, 1)
+        cv2.putText(panel, label, (left, _LABEL_BASELINE), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
+    return out
 
 
 def draw_points(rgb: np.ndarray, sparse, vmin: float | None = None, vmax: float | None = None,

@@ -1,27 +1,42 @@
 """``crfdepth demo``: the whole pipeline on a built-in scene (or real KITTI frames).
 
 With no arguments it generates the built-in synthetic street scene (no download),
-completes its simulated 64-beam LiDAR with the CRF, prints the metrics against the
-scene's ground truth next to the nearest-neighbour baseline, and writes to a folder:
+completes its simulated 64-beam LiDAR with the CRF through
+:func:`crfdepth.api.complete_depth`, prints the metrics against the scene's ground truth
+next to the nearest-neighbour baseline, and writes to ``--out-dir`` (default
+``./crfdepth_demo``):
 
-- ``<name>_input.png``: the camera image with the LiDAR points drawn on it;
-- ``<name>_depth.png``: the dense depth, coloured (near = warm);
-- ``<name>_std.png``: the posterior standard deviation, coloured;
+- ``<name>_input.png``: the camera image with the LiDAR points drawn on it, coloured by
+  depth like the depth picture, with its colour bar in metres;
+- ``<name>_depth.png``: the dense depth (near = warm) with a colour bar in metres
+  (:func:`crfdepth.visualize.depth_picture`);
+- ``<name>_std.png``: the posterior standard deviation on a log scale with a colour bar in
+  metres (:func:`crfdepth.visualize.std_picture`, docs/design.md section 5);
 - ``<name>_points.png``: the completed depth as a coloured 3D point cloud seen from
   above and behind the camera;
-- ``<name>_depth16.png``: the depth as a KITTI uint16 PNG (metres * 256).
+- ``data/<name>_depth16.png``: the depth as data, a KITTI uint16 PNG (metres * 256,
+  docs/design.md section 1), in its own ``data/`` subfolder so that ``--out-dir`` itself
+  holds only pictures.
 
-With ``--kitti DIR`` it does the same for the frames of a ``val_selection_cropped``
-folder found under ``DIR`` (for instance ``../shared/data/kitti``).
+The depth colours span the 2nd to 98th percentile of each frame's depth unless
+``--vis-range MIN MAX`` fixes them (metres; the same colours for the same metres in every
+frame). With ``--kitti DIR`` it does the same for the first ``--max-frames`` frames of a
+``val_selection_cropped`` folder found under ``DIR`` (for instance ``../shared/data/kitti``).
 
 Synthetic ground truth is dense up to the horizon; metrics use its pixels below the
-first LiDAR scan line and up to 80 m, the part of the image KITTI's ground truth covers.
+first LiDAR scan line and up to 80 m, the part of the image KITTI's ground truth covers
+(docs/design.md section 7).
+
+Bad flags are refused when parsed; a ``--out-dir`` that is a file or not writable, or a
+``--kitti`` folder without frames, is refused before any computation. Nothing is created
+before the inputs and the model are known to be good, and every file appears atomically.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -29,15 +44,64 @@ import cv2
 import numpy as np
 import torch
 
+from crfdepth.api import complete_depth
+from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
+from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
-from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
-from crfdepth.visualize import colorize_depth, colorize_std, draw_points, render_point_cloud
+from crfdepth.visualize import depth_picture, depth_range, draw_points, render_point_cloud, std_picture
 
 logger = logging.getLogger(__name__)
+
+DATA_FOLDER = "data"
+"""Subfolder of ``--out-dir`` for the uint16 depth PNGs (data, not pictures)."""
+PICTURES = ("input", "depth", "std", "points")
+"""Kinds of picture written per frame, as ``<name>_<kind>.png``."""
+MAX_BEAMS = 128
+"""Most beams :func:`crfdepth.data.synthetic.make_scene` simulates (it accepts 1 to 128)."""
+
+
+# --------------------------------------------------------------------------- flag parsing
+
+
+def _int_at_least(low: int, high: int | None = None):
+    """argparse ``type=``: an integer in [low, high]."""
+    bounds = f">= {low}" if high is None else f"in [{low}, {high}]"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _positive_metres(text: str) -> float:
+    """argparse ``type=``: a finite number of metres > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number of metres > 0, got {text!r}")
+    return value
+
+
+class _VisRange(argparse.Action):
+    """``--vis-range MIN MAX``: stored as a (min, max) tuple, refused unless MIN < MAX."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        low, high = values
+        if not low < high:
+            raise argparse.ArgumentError(self, f"expected MIN < MAX in metres, got {low:g} {high:g}")
+        setattr(namespace, self.dest, (low, high))
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -47,76 +111,163 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="run the full pipeline on a built-in scene (no download) or on KITTI frames",
         description="Complete the LiDAR of the built-in synthetic street scene (or of real KITTI "
                     "frames with --kitti) and write pictures of the input, the dense depth, the "
-                    "uncertainty and the 3D point cloud.",
+                    "uncertainty and the 3D point cloud (and the depth as uint16 PNG data in "
+                    f"OUT_DIR/{DATA_FOLDER}/).",
     )
     parser.add_argument("--kitti", metavar="DIR", default=None,
                         help="a KITTI folder holding depth_selection/val_selection_cropped (or that folder)")
     parser.add_argument("--out-dir", default="crfdepth_demo", metavar="DIR",
-                        help="folder for the pictures (created; default: ./crfdepth_demo)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (default 0)")
-    parser.add_argument("--beams", type=int, default=64, help="beams of the simulated LiDAR (default 64)")
+                        help=f"folder for the pictures, created if missing; the depth data go to "
+                             f"DIR/{DATA_FOLDER}/ (default: ./crfdepth_demo)")
+    parser.add_argument("--seed", type=_int_at_least(0), default=0,
+                        help="seed of the synthetic scene, >= 0 (default 0)")
+    parser.add_argument("--beams", type=_int_at_least(1, MAX_BEAMS), default=64,
+                        help=f"beams of the simulated LiDAR, 1 to {MAX_BEAMS} (default 64)")
     parser.add_argument("--mode", choices=("superpixel", "pixel"), default="superpixel",
                         help="CRF graph (default: superpixel)")
     parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
                         help=f"shipped weight set: kitti (learned on KITTI) or paper (hand-set); "
                              f"default: {DEFAULT_WEIGHTS}")
-    parser.add_argument("--max-frames", type=int, default=2, help="KITTI frames to run (default 2)")
+    parser.add_argument("--max-frames", type=_int_at_least(1), default=2,
+                        help="KITTI frames to run, >= 1 (default 2)")
+    parser.add_argument("--vis-range", nargs=2, type=_positive_metres, action=_VisRange, default=None,
+                        metavar=("MIN", "MAX"),
+                        help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
+                             "frame (default: 2nd to 98th percentile of each frame's depth)")
     parser.set_defaults(func=run)
     return parser
 
 
-def _frames(args):
-    """Yield (name, image (1,3,H,W), sparse (1,1,H,W), K (1,3,3), target (1,1,H,W))."""
-    if args.kitti is None:
-        from crfdepth.data.synthetic import make_scene
+# --------------------------------------------------------------------------- checks and inputs
 
-        scene = make_scene(args.seed, beams=args.beams)
-        t = scene.to_tensors()
-        yield scene.name, t["image"][None], t["sparse"][None], t["K"][None], t["target"][None]
-        return
-    from crfdepth.data.kitti import KittiValSelection
 
-    root = Path(args.kitti)
+def _check_out_dir(path: str) -> Path:
+    """``--out-dir`` as a Path: an existing writable folder, or one that can be created.
+
+    Nothing is created. Raises InputError (a file in the way) or PermissionError.
+    """
+    directory = Path(path)
+    for folder in (directory, directory / DATA_FOLDER):
+        if folder.exists() and not folder.is_dir():
+            raise InputError(f"--out-dir: expected a folder (existing or to create), got a file: {folder}")
+    existing = directory.absolute()
+    while not existing.exists():  # the nearest existing folder must let us create the rest
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"--out-dir: expected a folder (existing or to create), got a path under the "
+                         f"file {existing}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out-dir: expected a writable folder, got {existing} (not writable)")
+    return directory
+
+
+def _make_dirs(directory: Path) -> Path:
+    """Create ``directory`` and its data subfolder; returns the data subfolder."""
+    data = directory / DATA_FOLDER
+    try:
+        data.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PermissionError(f"--out-dir: expected a folder that can be created, got {directory} "
+                              f"({exc.strerror})") from None
+    return data
+
+
+def _kitti_folder(root: Path) -> Path:
     candidates = [root, root / "val_selection_cropped", root / "depth_selection" / "val_selection_cropped"]
     folder = next((c for c in candidates if (c / "velodyne_raw").is_dir()), None)
     if folder is None:
         raise InputError(f"--kitti: expected a folder with depth_selection/val_selection_cropped/velodyne_raw "
                          f"under {root}, found none")
-    dataset = KittiValSelection(folder)
-    for i in range(min(len(dataset), args.max_frames)):
-        s = dataset[i]
-        yield s.name, s.image[None], s.sparse[None], s.K[None], s.target[None]
+    return folder
+
+
+def _frames(args: argparse.Namespace):
+    """The frames to run, checked now, read lazily.
+
+    Returns an iterator of (name, image (3, H, W) in [0, 1], sparse (H, W) metres,
+    K (3, 3), target (H, W) metres, 0 = no ground truth) tensors.
+    """
+    if args.kitti is None:
+        from crfdepth.data.synthetic import make_scene
+
+        def synthetic():
+            scene = make_scene(args.seed, beams=args.beams)
+            t = scene.to_tensors()
+            yield scene.name, t["image"], t["sparse"][0], t["K"], t["target"][0]
+
+        return synthetic()
+    from crfdepth.data.kitti import KittiValSelection
+
+    dataset = KittiValSelection(_kitti_folder(Path(args.kitti)))
+
+    def kitti():
+        for i in range(min(len(dataset), args.max_frames)):
+            s = dataset[i]
+            yield s.name, s.image, s.sparse[0], s.K, s.target[0]
+
+    return kitti()
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _write_picture(path: Path, rgb: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 RGB picture as PNG, atomically."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:  # pragma: no cover - cv2 encodes any uint8 HxWx3 array
+        raise InputError(f"--out-dir: could not encode a picture of shape {rgb.shape} as PNG")
+    atomic_write_bytes(path, encoded.tobytes())
+
+
+def _pictures(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, depth: np.ndarray,
+              std: np.ndarray, vis_range: tuple[float, float]) -> dict[str, np.ndarray]:
+    """The demo's pictures of one frame, keyed by :data:`PICTURES`."""
+    rgb = (image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    lidar = sparse.numpy()
+    lo, hi = vis_range
+    depth_rgb = depth_picture(depth, vis_range)
+    # The input picture shares the depth picture's colours and bar: same range, same layout.
+    input_rgb = depth_rgb.copy()
+    h, w = depth.shape
+    input_rgb[:h, :w] = draw_points(rgb, lidar, vmin=lo, vmax=hi)
+    return {
+        "input": input_rgb,
+        "depth": depth_rgb,
+        "std": std_picture(std),
+        "points": render_point_cloud(depth, rgb, K.numpy(), max_depth=min(hi, EVAL_MAX_DEPTH_M)),
+    }
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the demo; returns 0. Prints one metrics line per method and frame."""
-    out_dir = Path(args.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """Run the demo; returns 0.
+
+    Prints, per frame, one metrics line per method and one line per written file group,
+    then a last line saying what was written where.
+    """
+    out_dir = _check_out_dir(args.out_dir)
+    frames = _frames(args)
     model = load_pretrained(args.weights, mode=args.mode)
+    data_dir = _make_dirs(out_dir)
     start = time.perf_counter()
-    for name, image, sparse, K, target in _frames(args):
+    count = 0
+    for name, image, sparse, K, target in frames:
         t0 = time.perf_counter()
-        with torch.no_grad():
-            out = model(image, sparse, K, return_std=True)
+        depth, std = complete_depth(image, sparse=sparse, K=K, model=model, return_std=True)
         seconds = time.perf_counter() - t0
-        crf = average_metrics(depth_metrics(out.depth, target))
+        crf = average_metrics(depth_metrics(depth, target))
         nn = average_metrics(depth_metrics(nearest_fill(sparse), target))
         print(f"{name}  ({crf['pixels']} ground-truth pixels, CRF {seconds:.2f} s)")
-        print(f"  crfdepth         {format_metrics(crf)}")
+        print(f"  crfdepth          {format_metrics(crf)}")
         print(f"  nearest-neighbour {format_metrics(nn)}")
-        rgb = (image[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-        depth = out.depth[0, 0].numpy()
-        vmax = float(np.percentile(depth, 98))
-        pictures = {
-            "input": draw_points(rgb, sparse[0, 0].numpy(), vmax=vmax),
-            "depth": colorize_depth(depth, vmax=vmax),
-            "std": colorize_std(out.std[0, 0].numpy()),
-            "points": render_point_cloud(depth, rgb, K[0].numpy(), max_depth=min(vmax, EVAL_MAX_DEPTH_M)),
-        }
-        for kind, picture in pictures.items():
-            path = out_dir / f"{name}_{kind}.png"
-            if not cv2.imwrite(str(path), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR)):
-                raise PermissionError(f"--out-dir: could not write {path}")
-        write_depth_png(out_dir / f"{name}_depth16.png", depth)
-    print(f"wrote pictures to {out_dir.resolve()} ({time.perf_counter() - start:.1f} s in all)")
+        depth_np, std_np = depth.cpu().numpy(), std.cpu().numpy()
+        vis_range = args.vis_range if args.vis_range is not None else depth_range(depth_np)
+        for kind, picture in _pictures(image, sparse, K, depth_np, std_np, vis_range).items():
+            _write_picture(out_dir / f"{name}_{kind}.png", picture)
+        print(f"  pictures: {out_dir / name}_{{{','.join(PICTURES)}}}.png (depth colours "
+              f"{vis_range[0]:.3g}-{vis_range[1]:.3g} m)")
+        write_depth_png(data_dir / f"{name}_depth16.png", depth_np)
+        print(f"  data:     {data_dir / name}_depth16.png (uint16 KITTI PNG, metres * 256)")
+        count += 1
+    print(f"wrote {len(PICTURES)} pictures per frame for {count} frame(s) to {out_dir.resolve()} and the "
+          f"depth data to {data_dir.resolve()} ({time.perf_counter() - start:.1f} s in all)")
     return 0
