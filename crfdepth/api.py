@@ -1,4 +1,4 @@
-"""One call from your own sensors to dense depth: :func:`complete_depth` (DESIGN.md section 1).
+"""One call from your own sensors to dense depth: :func:`complete_depth` (docs/design.md section 1).
 
 Takes a camera image and either a sparse depth map or a raw LiDAR point cloud with its
 calibration, projects the cloud (z-buffer, nearest point wins), runs
@@ -11,6 +11,12 @@ With lens ``distortion`` the image is undistorted with ``cv2.undistort(image, K,
 distortion)`` (new camera matrix = ``K``, so the undistorted image keeps the same
 intrinsics; pixels that map from outside the raw image become black) and the points are
 projected with that same ``K`` and no distortion.
+
+Every input is checked here, at the public boundary, and refused with an
+:class:`~crfdepth.errors.InputError` naming the argument (docs/design.md section 8):
+besides shapes and ranges, a ``K`` that does not fit the image, a sparse map that is
+not in metres (:func:`crfdepth.checks.check_sparse_units`) and a ``T_cam_lidar`` that
+looks inverted (unless ``trust_transform=True``).
 """
 
 from __future__ import annotations
@@ -23,16 +29,18 @@ import cv2
 import numpy as np
 import torch
 
+from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_units
 from crfdepth.errors import InputError
-from crfdepth.io.rig import RigCalibration, check_intrinsics, check_rigid
+from crfdepth.io.calibration import Calibration, RigCalibration
+from crfdepth.projection import count_in_image, project_points
 
 __all__ = ["complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
 logger = logging.getLogger(__name__)
 
 # A projected LiDAR map whose median depth exceeds this is in the wrong unit (millimetres).
-MAX_PLAUSIBLE_MEDIAN_DEPTH_M = 1000.0
-# Warn of an inverted T_cam_lidar when its inverse lands this many times more points.
+MAX_PLAUSIBLE_MEDIAN_DEPTH_M = MAX_LIDAR_DEPTH_M
+# Refuse T_cam_lidar as inverted when its inverse lands this many times more points.
 INVERTED_RATIO = 1.5
 # More columns than this is taken for a transposed (3|4, N) array rather than extra fields.
 MAX_POINT_COLUMNS = 16
@@ -78,10 +86,11 @@ def _sparse_to_numpy(sparse, size: tuple[int, int]) -> np.ndarray:
                          f"{array.shape}")
     if not np.issubdtype(array.dtype, np.floating) and not np.issubdtype(array.dtype, np.integer):
         raise InputError(f"sparse: expected depth in metres as numbers, got dtype {array.dtype}")
-    array = array.astype(np.float32)
     if not np.all(np.isfinite(array)) or array.min() < 0:
         raise InputError("sparse: expected finite depth >= 0 metres (0 = no LiDAR point), got NaN, inf or "
                          "negative values")
+    check_sparse_units("sparse", array)
+    array = array.astype(np.float32)
     if not np.any(array > 0):
         raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
     return array
@@ -137,52 +146,80 @@ def no_points_message(points: np.ndarray, calibration: RigCalibration, image_siz
                                                                                 enumerate(causes)))
 
 
-def points_to_sparse(points, calibration: RigCalibration, image_size: tuple[int, int]) -> np.ndarray:
+def points_to_sparse(points, calibration: RigCalibration | Calibration, image_size: tuple[int, int], *,
+                     trust_transform: bool = False) -> np.ndarray:
     """Project a point cloud into an (H, W) float32 sparse depth map (metres, 0 = no point).
 
     NaN rows are dropped with a warning (:func:`prepare_points`); KITTI calibrations use
-    the exact KITTI projection (:meth:`RigCalibration.project`). Raises InputError with
-    :func:`no_points_message` when no point lands in the image, and when the median
-    projected depth exceeds ``MAX_PLAUSIBLE_MEDIAN_DEPTH_M`` (1 km: points in millimetres).
+    the exact KITTI projection (:func:`crfdepth.projection.project_points`).
 
     A 360-degree scan lands points in the image even with an inverted ``T_cam_lidar``;
     then the inverse transform usually lands more. When it lands more than
-    ``INVERTED_RATIO`` (1.5) times as many points, a ``UserWarning`` says so (measured on
+    ``INVERTED_RATIO`` (1.5) times as many points, the transform is refused (measured on
     the shared KITTI scans: the right transform lands 1.6-1.9x the points of its inverse;
-    on the synthetic 360-degree scans 1.2x, which the warning does not catch).
+    on the synthetic 360-degree scans 1.2x, which this test does not catch).
+
+    Args:
+        points: (N, 3+) point cloud in the LiDAR frame, metres (see :func:`prepare_points`).
+        calibration: :class:`~crfdepth.io.calibration.RigCalibration` (or a KITTI
+            :class:`~crfdepth.io.calibration.Calibration`) of the camera.
+        image_size: (height, width) of the image, pixels; K must fit it
+            (:func:`crfdepth.checks.check_intrinsics`).
+        trust_transform: use ``T_cam_lidar`` even when its inverse lands more points.
+
+    Raises:
+        InputError: ``K`` does not fit ``image_size``; no point lands in the image
+            (:func:`no_points_message`); the median projected depth exceeds
+            ``MAX_PLAUSIBLE_MEDIAN_DEPTH_M`` (300 m: points in millimetres); or
+            ``T_cam_lidar`` looks inverted and ``trust_transform`` is False.
     """
-    xyz = prepare_points(points)
-    sparse = calibration.project(xyz, image_size)
+    if not isinstance(trust_transform, bool):
+        raise InputError(f"trust_transform: expected True or False, got {trust_transform!r}")
+    if isinstance(calibration, Calibration):
+        calibration = RigCalibration.from_kitti(calibration, source="calibration")
+    if not isinstance(calibration, RigCalibration):
+        raise InputError(f"calibration: expected a crfdepth.io.calibration.RigCalibration (load_any_calibration) "
+                         f"or a KITTI Calibration, got {type(calibration).__name__}")
+    check_intrinsics(calibration.K, _named("K", calibration), image_size)
+    return _points_to_sparse(prepare_points(points), calibration, image_size, trust_transform)
+
+
+def _named(key: str, calibration: RigCalibration) -> str:
+    """The user's name of a calibration entry: ``T_cam_lidar`` (given as an argument),
+    ``calibration.T_cam_lidar`` (of a calibration object) or ``T_cam_lidar (rig.yaml)`` (read from a file)."""
+    if calibration.source == "arguments":
+        return key
+    return f"calibration.{key}" if calibration.source == "calibration" else f"{key} ({calibration.source})"
+
+
+def _points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image_size: tuple[int, int],
+                      trust_transform: bool) -> np.ndarray:
+    """:func:`points_to_sparse` on checked inputs: (N, 3) float64 finite points."""
+    sparse = project_points(xyz, calibration, image_size)
     if not np.any(sparse > 0):
         raise InputError(no_points_message(xyz, calibration, image_size))
     median = float(np.median(sparse[sparse > 0]))
     if median > MAX_PLAUSIBLE_MEDIAN_DEPTH_M:
-        raise InputError(f"points: the median projected depth is {median:.4g} m (> {MAX_PLAUSIBLE_MEDIAN_DEPTH_M:g} "
-                         f"m); the point coordinates look like millimetres: divide them by 1000")
-    landed = _count_inside(xyz, calibration.T_cam_lidar, calibration.K, image_size)
-    inverse = _count_inside(xyz, np.linalg.inv(calibration.T_cam_lidar), calibration.K, image_size)
-    if inverse > INVERTED_RATIO * landed:
-        warnings.warn(f"T_cam_lidar may be inverted: {landed} point(s) land in the image, but {inverse} with its "
-                      f"inverse; it must map LiDAR points into the camera frame", UserWarning, stacklevel=2)
+        raise InputError(f"points: expected coordinates in metres (a median depth of at most "
+                         f"{MAX_PLAUSIBLE_MEDIAN_DEPTH_M:g} m), got a median projected depth of {median:.4g} m; the "
+                         f"point coordinates look like millimetres: divide them by 1000")
+    if not trust_transform:
+        T = calibration.T_cam_lidar
+        landed = count_in_image(xyz, T, calibration.K, image_size)
+        inverse = count_in_image(xyz, np.linalg.inv(T), calibration.K, image_size)
+        if inverse > INVERTED_RATIO * landed:
+            raise InputError(f"{_named('T_cam_lidar', calibration)}: expected the transform that maps LiDAR points "
+                             f"into the camera frame, got one that looks inverted: {landed} point(s) land in the "
+                             f"image with it, {inverse} with its inverse; pass its inverse (np.linalg.inv), or "
+                             f"trust_transform=True to use it as given")
     return sparse
-
-
-def _count_inside(xyz: np.ndarray, T: np.ndarray, K: np.ndarray, image_size: tuple[int, int]) -> int:
-    """How many points ``K [I|0] T`` puts in front of the camera and inside the image (before the z-buffer)."""
-    cam = xyz @ T[:3, :3].T + T[:3, 3]
-    front = cam[:, 2] > 0
-    z = np.where(front, cam[:, 2], 1.0)
-    u = (K[0, 0] * cam[:, 0] + K[0, 1] * cam[:, 1]) / z + K[0, 2]
-    v = K[1, 1] * cam[:, 1] / z + K[1, 2]
-    height, width = image_size
-    return int(np.sum(front & (u > -0.5) & (u < width - 0.5) & (v > -0.5) & (v < height - 0.5)))
 
 
 # --------------------------------------------------------------------------- model
 
 
 def _model_on(model, device: str | torch.device):
-    from crfdepth.pretrained import load_pretrained
+    from crfdepth.weights import load_pretrained
 
     device = torch.device(device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -199,12 +236,12 @@ def _model_on(model, device: str | torch.device):
 
 
 def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
-                   calibration: RigCalibration | None = None, distortion=None, model=None,
-                   device: str | torch.device = "cpu", return_std: bool = True):
+                   calibration: RigCalibration | Calibration | None = None, distortion=None, model=None,
+                   device: str | torch.device = "cpu", return_std: bool = True, trust_transform: bool = False):
     """Dense depth (and std) for one camera image from sparse LiDAR or a raw point cloud.
 
     Give the camera either as ``K`` (+ ``T_cam_lidar`` for points, + optional
-    ``distortion``) or as one ``calibration`` (:func:`crfdepth.io.rig.load_any_calibration`:
+    ``distortion``) or as one ``calibration`` (:func:`crfdepth.io.calibration.load_any_calibration`:
     a rig YAML/JSON or KITTI calibration; KITTI keeps the exact KITTI projection
     ``P_rect R_rect T_velo_to_cam``), not both. Give the LiDAR either as ``sparse`` or as
     ``points``, not both.
@@ -212,26 +249,34 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     Args:
         image: RGB as a numpy (H, W, 3) uint8 (0-255) or float array in [0, 1], or a
             tensor (3, H, W) / (H, W, 3) of the same kinds. Any size.
-        sparse: (H, W) sparse z-depth in metres (0 = no point), numpy or tensor.
+        sparse: (H, W) sparse z-depth in metres (0 = no point), numpy or tensor, any
+            real dtype. A map plainly not in metres is refused
+            (:func:`crfdepth.checks.check_sparse_units`): the raw codes of a KITTI PNG
+            (``cv2.imread(path, -1)``, metres * 256; use
+            :func:`crfdepth.io.kitti.read_depth_png`) or millimetres.
         points: (N, 3) or (N, 4) point cloud in the LiDAR frame, metres (extra columns,
             e.g. intensity, are ignored); rows with NaN/inf are dropped with a warning
             giving the count.
         T_cam_lidar: (4, 4) rigid transform mapping LiDAR points into the camera frame
             (x right, y down, z forward), metres; required with ``points`` and ``K``.
         K: (3, 3) pinhole intrinsics of ``image`` (pixels), or 9 numbers row-major.
-        calibration: a :class:`~crfdepth.io.rig.RigCalibration` instead of ``K`` /
+        calibration: a :class:`~crfdepth.io.calibration.RigCalibration` (or a KITTI
+            :class:`~crfdepth.io.calibration.Calibration`) instead of ``K`` /
             ``T_cam_lidar`` / ``distortion``; its ``image_size``, when set, must equal the
             image's.
         distortion: OpenCV coefficients k1 k2 p1 p2 [k3 ...] of the raw image, or None.
             When given, the image is undistorted (module docstring) and the output is
             the depth of the undistorted image.
         model: a :class:`~crfdepth.model.CRFDepth` (e.g. from
-            :func:`crfdepth.checkpoint.load_model`, or ``CRFDepth.from_pretrained("paper")``
+            :func:`crfdepth.weights.load_model`, or ``CRFDepth.from_pretrained("paper")``
             for the hand-set weights); None = ``CRFDepth.from_pretrained()``, the weights
             learned on KITTI. Used in its current train/eval mode, under ``no_grad``; a
             model on another device is copied there (the caller's model is not moved).
         device: "cpu", "cuda" or a torch.device for the computation.
         return_std: also return the posterior standard deviation.
+        trust_transform: with ``points``, use ``T_cam_lidar`` as given even when its
+            inverse lands more than 1.5 times as many points in the image (which is
+            otherwise refused as an inverted transform, :func:`points_to_sparse`).
 
     Returns:
         ``(depth, std)``: (H, W) float32 z-depth in metres, > 0 everywhere, and the
@@ -239,42 +284,52 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
         numpy image; tensors on the image tensor's device for a tensor image.
 
     Raises:
-        InputError: bad shapes/dtypes/values (message names the argument), a
-            non-rigid ``T_cam_lidar``, implausible ``K``, an image size different from
-            the calibration's, or no point landing in the image (the message gives the
-            point counts and the usual causes).
+        InputError: bad shapes/dtypes/values (message names the argument), a sparse
+            map not in metres, a non-rigid or inverted ``T_cam_lidar``, a ``K`` that does
+            not fit the image (principal point far outside it), an image size different
+            from the calibration's, or no point landing in the image (the message gives
+            the point counts and the usual causes).
     """
     rgb, is_tensor, out_device = _image_to_numpy(image)
     size = rgb.shape[:2]
+    if not isinstance(trust_transform, bool):
+        raise InputError(f"trust_transform: expected True or False, got {trust_transform!r}")
     if calibration is not None:
-        if K is not None or T_cam_lidar is not None or distortion is not None:
-            raise InputError("calibration: give either calibration or K / T_cam_lidar / distortion, not both")
+        given = [name for name, value in (("K", K), ("T_cam_lidar", T_cam_lidar), ("distortion", distortion))
+                 if value is not None]
+        if given:
+            raise InputError(f"calibration: expected either calibration or K / T_cam_lidar / distortion, got both "
+                             f"(calibration and {', '.join(given)})")
+        if isinstance(calibration, Calibration):
+            calibration = RigCalibration.from_kitti(calibration, source="calibration")
         if not isinstance(calibration, RigCalibration):
-            raise InputError(f"calibration: expected a crfdepth.io.rig.RigCalibration (load_any_calibration), got "
-                             f"{type(calibration).__name__}")
+            raise InputError(f"calibration: expected a crfdepth.io.calibration.RigCalibration (load_any_calibration) "
+                             f"or a KITTI Calibration, got {type(calibration).__name__}")
         if calibration.image_size is not None and tuple(calibration.image_size) != size:
-            raise InputError(f"image: {size[1]}x{size[0]} (WxH) but the calibration ({calibration.source}) is for "
-                             f"{calibration.image_size[1]}x{calibration.image_size[0]}; resize/crop the image back "
-                             f"or use the calibration of this image size (K scales with the image)")
-        check_intrinsics(calibration.K, f"K ({calibration.source})", size)
+            raise InputError(f"image: expected the size of the calibration ({calibration.source}), "
+                             f"{calibration.image_size[1]}x{calibration.image_size[0]} (WxH), got {size[1]}x{size[0]}; "
+                             f"resize/crop the image back or use the calibration of this image size (K scales "
+                             f"with the image)")
+        check_intrinsics(calibration.K, _named("K", calibration), size)
     else:
         if K is None:
-            raise InputError("K: required (the 3x3 intrinsics of the image), or pass calibration=")
-        Kn = check_intrinsics(K.detach().cpu().numpy() if isinstance(K, torch.Tensor) else K, "K", size)
+            raise InputError("K: required: expected the 3x3 intrinsics of the image (or calibration=), got None")
+        Kn = check_intrinsics(K, "K", size)
         if points is not None and T_cam_lidar is None:
-            raise InputError("T_cam_lidar: required with points (4x4 LiDAR -> camera transform, metres)")
-        T = np.eye(4) if T_cam_lidar is None else check_rigid(
-            T_cam_lidar.detach().cpu().numpy() if isinstance(T_cam_lidar, torch.Tensor) else T_cam_lidar)
+            raise InputError("T_cam_lidar: required with points: expected the 4x4 LiDAR -> camera transform "
+                             "(metres), got None")
+        T = np.eye(4) if T_cam_lidar is None else check_rigid(T_cam_lidar, "T_cam_lidar")
         calibration = RigCalibration(K=Kn, T_cam_lidar=T, distortion=distortion, image_size=size, source="arguments")
     if (sparse is None) == (points is None):
-        raise InputError("sparse / points: give exactly one of them (a sparse depth map or a point cloud)")
+        raise InputError(f"sparse / points: expected exactly one of them (a sparse depth map or a point cloud), "
+                         f"got {'both' if sparse is not None else 'neither'}")
     if calibration.distortion is not None:
         rgb = cv2.undistort(rgb, calibration.K, calibration.distortion)
         if sparse is not None:
             logger.warning("distortion: the image is undistorted but a given sparse map is used as is; it must "
                            "already be projected with K and no distortion")
     if points is not None:
-        sparse_np = points_to_sparse(points, calibration, size)
+        sparse_np = _points_to_sparse(prepare_points(points), calibration, size, trust_transform)
     else:
         sparse_np = _sparse_to_numpy(sparse, size)
 

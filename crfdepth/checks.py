@@ -11,16 +11,28 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from crfdepth.errors import InputError
 
 __all__ = [
+    "MAX_LIDAR_DEPTH_M",
+    "RIGID_TOLERANCE",
+    "check_frames",
+    "check_intrinsics",
     "check_map",
     "check_number",
+    "check_rigid",
     "check_scalar_tensor",
+    "check_sparse_units",
     "describe",
 ]
+
+# No LiDAR sees further: a sparse map whose median depth exceeds this is not in metres.
+MAX_LIDAR_DEPTH_M = 300.0
+# Largest deviation of R^T R from I (and of the last row from 0 0 0 1) of a rigid transform.
+RIGID_TOLERANCE = 1e-3
 
 
 def describe(value: object) -> str:
@@ -118,3 +130,156 @@ def check_scalar_tensor(name: str, value: object, ref: torch.Tensor, *, positive
     if not math.isfinite(v) or (v <= 0 if positive else v < 0):
         raise InputError(f"{name}: expected a finite value {'> 0' if positive else '>= 0'}, got {v:g}")
     return t
+
+
+def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Check a batch of frames for the model; returns them with K expanded to (B, 3, 3).
+
+    ``image`` (B, 3, H, W) finite RGB in [0, 1]; ``sparse`` (B, 1, H, W) floating, finite
+    depth >= 0 in metres with at least one LiDAR pixel per frame; ``K`` (3, 3) or
+    (B, 3, 3) finite with focal lengths > 0; all on one device.
+    """
+    for name, t in (("image", image), ("sparse", sparse), ("K", K)):
+        if not isinstance(t, torch.Tensor):
+            raise InputError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+    if sparse.dim() != 4 or sparse.shape[1] != 1:
+        raise InputError(f"sparse: expected shape (B, 1, H, W), got {tuple(sparse.shape)}")
+    bsz, _, h, w = sparse.shape
+    if image.dim() != 4 or image.shape[1] != 3:
+        raise InputError(f"image: expected shape (B, 3, H, W) (RGB), got {tuple(image.shape)}")
+    if tuple(image.shape[2:]) != (h, w) or image.shape[0] != bsz:
+        raise InputError(f"image: expected batch and size {(bsz, h, w)} like sparse, got "
+                         f"{(image.shape[0], *image.shape[2:])}")
+    if image.device != sparse.device or K.device != sparse.device:
+        raise InputError(f"image, K: expected the device of sparse ({sparse.device}), got {image.device} and {K.device}")
+    if not sparse.is_floating_point():
+        raise InputError(f"sparse: expected floating-point depth in metres, got {sparse.dtype}")
+    if not bool(torch.isfinite(sparse).all()) or bool((sparse < 0).any()):
+        raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
+    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
+        raise InputError(f"image: expected finite RGB values in [0, 1], got range "
+                         f"[{float(image.min()):.3g}, {float(image.max()):.3g}]")
+    if tuple(K.shape) == (3, 3):
+        K = K[None].expand(bsz, 3, 3)
+    if tuple(K.shape) != (bsz, 3, 3):
+        raise InputError(f"K: expected shape (3, 3) or ({bsz}, 3, 3), got {tuple(K.shape)}")
+    if not bool(torch.isfinite(K).all()) or bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
+        raise InputError(f"K: expected finite intrinsics with focal lengths > 0, got fx {K[:, 0, 0].tolist()}, "
+                         f"fy {K[:, 1, 1].tolist()}")
+    empty = (sparse.flatten(1) > 0).sum(1) == 0
+    if bool(empty.any()):
+        raise InputError(f"sparse: frame(s) {torch.nonzero(empty).flatten().tolist()} have no LiDAR pixel; "
+                         f"the CRF needs at least one depth measurement per frame")
+    return image, sparse, K
+
+
+# --------------------------------------------------------------------------- camera and LiDAR
+
+
+def _as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: bool) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape`` (or of its row-major flat length)."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a {shape[0]}x{shape[1]} matrix of numbers, got {value!r:.80}") from None
+    if allow_flat and array.shape == (shape[0] * shape[1],):
+        array = array.reshape(shape)
+    if array.shape != shape:
+        flat = f" or {shape[0] * shape[1]} numbers (row-major)" if allow_flat else ""
+        raise InputError(f"{name}: expected a {shape[0]}x{shape[1]} matrix{flat}, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InputError(f"{name}: expected finite numbers, got {array.ravel().tolist()}")
+    return array
+
+
+def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """(3, 3) float64 copy of ``K`` after checking it is a plausible pinhole matrix of the image.
+
+    Accepts a 3x3 nested list, array or tensor, or 9 numbers (row-major). Requires finite
+    values, ``fx = K[0,0] > 0``, ``fy = K[1,1] > 0``, last row 0 0 1 and, when
+    ``image_size`` = (height, width) in pixels is given, the principal point within half
+    an image of the image (``-W/2 <= cx <= 1.5 W``, same for cy): further out almost always
+    means K belongs to another resolution or has cx and cy swapped (docs/design.md
+    section 1). Apply it wherever a K meets an image. ``what`` is the user's name of K
+    (``K``, ``--intrinsics``, ``K (rig.yaml)``).
+    """
+    K = _as_matrix(K, (3, 3), what, allow_flat=True)
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"{what}: expected focal lengths fx = K[0][0] > 0 and fy = K[1][1] > 0 (pixels), got "
+                         f"fx={K[0, 0]:g}, fy={K[1, 1]:g}")
+    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
+        raise InputError(f"{what}: expected the last row of K to be 0 0 1, got {' '.join(f'{v:g}' for v in K[2])}")
+    if image_size is not None:
+        height, width = image_size
+        cx, cy = K[0, 2], K[1, 2]
+        if not (-0.5 * width <= cx <= 1.5 * width and -0.5 * height <= cy <= 1.5 * height):
+            raise InputError(f"{what}: expected the principal point of the {width}x{height} (WxH) image within "
+                             f"half an image of it (cx in [{-0.5 * width:g}, {1.5 * width:g}], cy in "
+                             f"[{-0.5 * height:g}, {1.5 * height:g}] px), got (cx, cy) = ({cx:g}, {cy:g}), far "
+                             f"outside: K probably belongs to another image size (scale K with the image after a "
+                             f"resize or crop) or cx and cy are swapped")
+    return K
+
+
+def check_rigid(T: object, what: str = "T_cam_lidar", tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
+    """(4, 4) float64 copy of ``T`` after checking it is a rigid transform (metres).
+
+    Requires finite values, last row 0 0 0 1, ``R^T R = I`` (max abs deviation <=
+    ``tolerance``) and ``det R > 0`` (a rotation, not a reflection). A scaled rotation
+    (e.g. a transform meant for millimetre points) fails the orthonormality test; the
+    direction of the transform is not checked here (see :func:`crfdepth.api.points_to_sparse`).
+    """
+    T = _as_matrix(T, (4, 4), what, allow_flat=False)
+    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:
+        raise InputError(f"{what}: expected the last row of a rigid 4x4 transform to be 0 0 0 1, got "
+                         f"{' '.join(f'{v:g}' for v in T[3])}")
+    R = T[:3, :3]
+    deviation = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if deviation > tolerance:
+        raise InputError(f"{what}: expected a rigid transform (rotation + translation in metres) whose rotation "
+                         f"part T[:3, :3] is orthonormal within {tolerance:g}, got max |R^T R - I| = "
+                         f"{deviation:.3g}: not orthonormal (a projection, a scaled or a hand-typed rotation? "
+                         f"check for typos and for too few digits)")
+    if np.linalg.det(R) < 0:
+        raise InputError(f"{what}: expected a rotation part with determinant +1, got {np.linalg.det(R):.3g} (a "
+                         f"reflection): an axis is flipped; check the axis conventions of both frames")
+    return T
+
+
+def check_sparse_units(name: str, sparse: object) -> None:
+    """Refuse a sparse depth map that is plainly not in metres.
+
+    A LiDAR sees at most a few hundred metres, so a median of the non-zero values above
+    :data:`MAX_LIDAR_DEPTH_M` (300 m) is in another unit, and so is an integer map holding
+    values above it: the raw codes of a KITTI depth PNG read with ``cv2.imread(path, -1)``
+    (metres * 256) or a map in millimetres (docs/design.md section 1). Real KITTI maps,
+    divided by 256, have medians of 14-15 m and at most 80 m.
+
+    Args:
+        name: the user's name of the argument (``sparse``, ``--sparse``).
+        sparse: (H, W) array or tensor, any real dtype; 0 = no point. NaN, infinite and
+            negative values are ignored here (another check refuses them).
+
+    Raises:
+        InputError: saying which unit it looks like and what to divide by.
+    """
+    array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
+    values = array[np.isfinite(array) & (array > 0)] if array.dtype.kind == "f" else array[array > 0]
+    if values.size == 0:
+        return
+    median, largest = float(np.median(values)), float(values.max())
+    integer = array.dtype.kind in "iu"
+    if median <= MAX_LIDAR_DEPTH_M and not (integer and largest > MAX_LIDAR_DEPTH_M):
+        return
+    got = (f"a median of {median:.6g} (largest {largest:.6g}) over the {values.size} non-zero pixel(s), dtype "
+           f"{array.dtype}")
+    if integer or bool(np.all(values == np.round(values))):
+        looks = ("that looks like the raw codes of a KITTI depth PNG (metres * 256, as cv2.imread(path, -1) "
+                 "returns them): divide by 256 (crfdepth.io.kitti.read_depth_png does), or by 1000 if the map "
+                 "is in millimetres")
+    else:
+        looks = "that looks like millimetres: divide by 1000"
+    raise InputError(f"{name}: expected depth in metres (0 = no point; a median of at most {MAX_LIDAR_DEPTH_M:g} "
+                     f"m, the reach of a LiDAR), got {got}; {looks}")

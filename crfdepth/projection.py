@@ -1,4 +1,10 @@
-"""LiDAR points to a sparse camera depth map (paper Sec. 3.1, DESIGN.md section 1).
+"""LiDAR points to a sparse camera depth map (paper Sec. 3.1, docs/design.md section 1).
+
+All projection math lives here: the z-buffer (:func:`project_to_depth`), the exact
+KITTI chain (:func:`project_velodyne`), either calibration type
+(:func:`project_points`) and the in-image count used to spot an inverted transform
+(:func:`count_in_image`). Calibrations come from :mod:`crfdepth.io.calibration`, which
+knows nothing of this module.
 
 Also the subsampling transforms used to simulate sparser LiDAR: keeping every k-th
 laser ring of a raw scan (rings recovered from the scan order) or a random fraction of
@@ -8,19 +14,17 @@ complement is the held-out set.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from crfdepth.errors import InputError
-
-if TYPE_CHECKING:
-    from crfdepth.io.kitti import Calibration
+from crfdepth.io.calibration import Calibration, RigCalibration
 
 __all__ = [
+    "count_in_image",
     "fraction_mask",
     "keep_every_ring",
     "keep_fraction",
+    "project_points",
     "project_to_depth",
     "project_velodyne",
     "recover_rings",
@@ -92,7 +96,7 @@ def project_to_depth(points_cam: np.ndarray, P: np.ndarray, image_size: tuple[in
 
 def project_velodyne(points: np.ndarray, calib: Calibration,
                      image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """Sparse depth map of a Velodyne scan in one camera (DESIGN.md section 1).
+    """Sparse depth map of a Velodyne scan in one camera (docs/design.md section 1).
 
     Computes ``y = P_rect R_rect T_velo_to_cam x`` for every point, drops points behind
     the camera (z <= 0) or outside the image, rounds to the nearest pixel and keeps the
@@ -101,7 +105,7 @@ def project_velodyne(points: np.ndarray, calib: Calibration,
     Args:
         points: (N, 3) or (N, 4) Velodyne points, x, y, z in metres in the Velodyne frame
             (a fourth column, reflectance, is ignored).
-        calib: :class:`crfdepth.io.kitti.Calibration` of the target camera.
+        calib: :class:`crfdepth.io.calibration.Calibration` of the target camera.
         image_size: (height, width) of the image, pixels; defaults to
             ``calib.image_size`` (known for raw-data calibration, not for object files).
 
@@ -119,6 +123,58 @@ def project_velodyne(points: np.ndarray, calib: Calibration,
     homogeneous = np.concatenate([points[:, :3].astype(np.float64), np.ones((points.shape[0], 1))], axis=1)
     points_cam = homogeneous @ calib.velo_to_rect_cam()[:3].T
     return project_to_depth(points_cam, calib.P_rect, image_size)
+
+
+def project_points(points: np.ndarray, calibration: RigCalibration | Calibration,
+                   image_size: tuple[int, int]) -> np.ndarray:
+    """Z-buffer projection of LiDAR points with either calibration type.
+
+    Args:
+        points: (N, 3+) points in the LiDAR frame, metres; further columns are ignored.
+        calibration: a :class:`~crfdepth.io.calibration.RigCalibration` (projected with
+            ``K [I | 0] T_cam_lidar``) or a KITTI :class:`~crfdepth.io.calibration.Calibration`.
+            A KITTI calibration, or a rig one read from KITTI files (``.kitti`` set), uses
+            :func:`project_velodyne` exactly.
+        image_size: (height, width) of the image, pixels.
+
+    Returns:
+        (H, W) float32 sparse z-depth in metres, 0 where no point lands.
+    """
+    if isinstance(calibration, Calibration):
+        return project_velodyne(points, calibration, image_size)
+    if not isinstance(calibration, RigCalibration):
+        raise InputError(f"calibration: expected a RigCalibration or a KITTI Calibration "
+                         f"(crfdepth.io.calibration), got {type(calibration).__name__}")
+    if calibration.kitti is not None:
+        return project_velodyne(points, calibration.kitti, image_size)
+    T = calibration.T_cam_lidar
+    xyz = _check_points(points, "points", 3)[:, :3].astype(np.float64)
+    return project_to_depth(xyz @ T[:3, :3].T + T[:3, 3], calibration.K, image_size)
+
+
+def count_in_image(points: np.ndarray, T_cam_lidar: np.ndarray, K: np.ndarray,
+                   image_size: tuple[int, int]) -> int:
+    """How many points ``K [I | 0] T_cam_lidar`` puts in front of the camera and inside the image.
+
+    Counted before the z-buffer (several points may share a pixel), with the same
+    rounding as :func:`project_to_depth`. Comparing the count of a transform with that of
+    its inverse tells an inverted ``T_cam_lidar`` (:func:`crfdepth.api.points_to_sparse`).
+
+    Args:
+        points: (N, 3+) points in the LiDAR frame, metres.
+        T_cam_lidar: (4, 4) LiDAR -> camera transform; K: (3, 3) intrinsics, pixels.
+        image_size: (height, width), pixels.
+    """
+    height, width = _check_image_size(image_size)
+    xyz = _check_points(points, "points", 3)[:, :3].astype(np.float64)
+    T, K = np.asarray(T_cam_lidar, dtype=np.float64), np.asarray(K, dtype=np.float64)
+    cam = xyz @ T[:3, :3].T + T[:3, 3]
+    front = cam[:, 2] > 0
+    z = np.where(front, cam[:, 2], 1.0)
+    u = np.round((K[0, 0] * cam[:, 0] + K[0, 1] * cam[:, 1]) / z + K[0, 2])
+    v = np.round(K[1, 1] * cam[:, 1] / z + K[1, 2])
+    return int(np.sum(front & (u >= 0) & (u < width) & (v >= 0) & (v < height)))
+
 
 
 def recover_rings(points: np.ndarray, min_jump: float = np.pi) -> np.ndarray:

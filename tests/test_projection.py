@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 
 from crfdepth.errors import InputError
-from crfdepth.io.kitti import Calibration, load_calibration, read_depth_png, read_velodyne
+from crfdepth.io.calibration import Calibration, RigCalibration, load_calibration
+from crfdepth.io.kitti import read_depth_png, read_velodyne
 from crfdepth.projection import (
+    count_in_image,
     fraction_mask,
     keep_every_ring,
     keep_fraction,
+    project_points,
     project_to_depth,
     project_velodyne,
     recover_rings,
@@ -159,6 +162,29 @@ def test_subsampling_does_not_modify_input():
     keep_every_ring(scan, 2)[:] = 0
     keep_fraction(scan, 0.3, seed=0)[:] = 0
     np.testing.assert_array_equal(scan, before)
+
+
+def test_project_points_takes_either_calibration_type():
+    """A toy KITTI Calibration, its RigCalibration view and a plain rig with the same
+    K [I | 0] T give the same map as project_velodyne (hand-checked: 10 m ahead lands on
+    the principal point)."""
+    calib = _toy_calibration()
+    points = np.array([[10.0, 0.0, 0.0, 0.3], [5.0, -0.5, 0.2, 0.1], [-3.0, 0.0, 0.0, 0.0]])
+    expected = project_velodyne(points, calib)
+    assert expected[10, 20] == pytest.approx(10.0) and np.count_nonzero(expected) == 2
+    plain = RigCalibration(K=K, T_cam_lidar=VELO_TO_CAM)
+    for calibration in (calib, RigCalibration.from_kitti(calib), plain):
+        np.testing.assert_array_equal(project_points(points, calibration, (21, 41)), expected)
+    with pytest.raises(InputError, match="calibration: expected a RigCalibration or a KITTI Calibration"):
+        project_points(points, K, (21, 41))
+
+
+def test_count_in_image_counts_before_the_z_buffer():
+    # Two points on one pixel, one behind the camera, one outside: 2 land (1 pixel).
+    points = np.array([[10.0, 0.0, 0.0], [20.0, 0.0, 0.0], [-10.0, 0.0, 0.0], [1.0, -5.0, 0.0]])
+    assert count_in_image(points, VELO_TO_CAM, K, (21, 41)) == 2
+    assert count_in_image(points, np.linalg.inv(VELO_TO_CAM), K, (21, 41)) == 0
+    assert np.count_nonzero(project_to_depth(points @ VELO_TO_CAM[:3, :3].T, K, (21, 41))) == 1
 
 
 # --------------------------------------------------------------------------- shared KITTI

@@ -1,8 +1,15 @@
 """The ``crfdepth`` command line: one sub-command per module in this package.
 
 Each sub-command module defines ``add_parser(subparsers)`` (registers its arguments and
-sets ``func``) so this file only lists them. Errors from bad input exit with status 2 and
-a one-line message; nothing happens at import.
+sets ``func``) so this file only lists them. Nothing happens at import.
+
+Exit statuses: 0 on success; 2 for bad input, with one line on stderr naming the option
+(``crfdepth project: error: --keep-every-ring: expected ..., got ...``) and no output
+file written, whether argparse refuses an option (``SystemExit(2)``) or a sub-command
+raises :class:`~crfdepth.errors.InputError` / ``FileNotFoundError`` /
+``PermissionError`` / ``IsADirectoryError`` (``main`` returns 2); 130 on Ctrl-C, with
+one line (``crfdepth project: interrupted``). ``crfdepth --version`` prints
+``crfdepth <version>`` (:data:`crfdepth.__version__`).
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import importlib
 import logging
 import sys
 
+from crfdepth._version import __version__
 from crfdepth.errors import InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
@@ -21,13 +29,30 @@ _COMMANDS = (
     "crfdepth.cli.complete",
     "crfdepth.cli.evaluate",
 )
+# The exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line naming the option (exit status 2).
+
+    argparse prefixes the flag with ``argument``; the line reads
+    ``crfdepth project: error: --keep-every-ring: expected ...`` like the messages of
+    :class:`~crfdepth.errors.InputError`. Sub-parsers are of this class too.
+    """
+
+    def error(self, message: str):
+        if message.startswith("argument "):
+            message = message[len("argument "):]
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="crfdepth",
         description="Dense depth from a camera image and sparse LiDAR with a learnable CRF.",
     )
+    parser.add_argument("--version", action="version", version=f"crfdepth {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress at INFO level")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
@@ -36,18 +61,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+    """Run ``crfdepth`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    Usage errors, ``--help`` and ``--version`` leave through argparse's ``SystemExit``.
+    """
+    command = None
     try:
-        return int(args.func(args) or 0)
-    except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
-        print(f"crfdepth {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = args.command
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s")
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        try:
+            return int(args.func(args) or 0)
+        except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+            print(f"crfdepth {command}: error: {exc}", file=sys.stderr)
+            return 2
+    except KeyboardInterrupt:
+        print(f"crfdepth{' ' + command if command else ''}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

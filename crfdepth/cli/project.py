@@ -1,21 +1,56 @@
-"""``crfdepth project``: a Velodyne scan to a sparse KITTI depth PNG (DESIGN.md section 1).
+"""``crfdepth project``: a Velodyne scan to a sparse KITTI depth PNG (docs/design.md section 1).
 
 Example::
 
     crfdepth project --velodyne 0000000005.bin --calib raw/2011_09_26 \\
         --image image_02/data/0000000005.png --out sparse.png --keep-every-ring 4
+
+Order of the checks, so that bad input fails at once and never leaves a file behind:
+the options at parse time (``--keep-every-ring`` an integer >= 1, ``--keep-fraction`` a
+number in (0, 1]); then ``--out`` (a ``.png`` name whose folder exists and accepts a new
+file, not one of the inputs) before any input is read; then the inputs, each error
+naming its flag (``--velodyne``, ``--calib``, ``--image``), and the calibration's K
+against the image size. The PNG is written atomically and one line says what was
+written (``--quiet`` drops it).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
+from pathlib import Path
 
+from crfdepth.checks import check_intrinsics
 from crfdepth.errors import InputError
-from crfdepth.io.kitti import load_calibration, read_rgb, read_velodyne, write_depth_png
+from crfdepth.io.calibration import load_calibration
+from crfdepth.io.files import check_output_file
+from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
 from crfdepth.projection import keep_every_ring, keep_fraction, project_velodyne
 
 logger = logging.getLogger(__name__)
+
+
+def _ring_step(text: str) -> int:
+    """``--keep-every-ring`` value: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1 (keep one laser ring in K), got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    """``--keep-fraction`` value: a number in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 1:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1] (the share of points kept), got {text!r}")
+    return value
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -38,28 +73,63 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="output depth PNG (its folder must exist)")
     parser.add_argument("--camera", type=int, default=2, choices=(0, 1, 2, 3),
                         help="KITTI camera index (default: 2, left colour)")
-    parser.add_argument("--keep-every-ring", type=int, default=None, metavar="K",
+    parser.add_argument("--keep-every-ring", type=_ring_step, default=None, metavar="K",
                         help="keep one laser ring in K (rings recovered from the scan order)")
-    parser.add_argument("--keep-fraction", type=float, default=None, metavar="F",
+    parser.add_argument("--keep-fraction", type=_fraction, default=None, metavar="F",
                         help="keep a random fraction F in (0, 1] of the points")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
                         help="seed of --keep-fraction (default: 0)")
+    parser.add_argument("--quiet", action="store_true",
+                        help="do not print the line saying what was written")
     parser.set_defaults(func=run)
     return parser
+
+
+def _check_out(args: argparse.Namespace) -> Path:
+    """``--out``, checked before any input is read: a .png name, creatable, not an input."""
+    out = Path(args.out)
+    if out.suffix.lower() != ".png":
+        raise InputError(f"--out: expected a file name ending in .png, got {out}")
+    out = check_output_file(out, "--out")
+    for flag in ("--velodyne", "--calib", "--image"):
+        source = getattr(args, flag[2:])
+        if os.path.realpath(source) == os.path.realpath(out):
+            raise InputError(f"--out: expected a new file, got {out}, the {flag} input; refusing to overwrite it")
+    return out
+
+
+def _named(flag: str, prefix: str, exc: Exception) -> Exception:
+    """``exc`` with its message led by ``flag`` instead of the reader's own ``prefix:``."""
+    message = str(exc)
+    if message.startswith(f"{prefix}: "):
+        message = message[len(prefix) + 2:]
+    return type(exc)(f"{flag}: {message}")
 
 
 def run(args: argparse.Namespace) -> int:
     """Project ``args.velodyne`` into ``args.image``'s camera and write ``args.out``.
 
     Ring subsampling (on the full scan, whose order defines the rings) comes before the
-    random fraction. Returns 0; bad input raises InputError / FileNotFoundError, which
-    ``crfdepth.cli.main`` turns into exit status 2 without writing ``args.out``.
+    random fraction. Returns 0; bad input raises InputError / FileNotFoundError /
+    PermissionError naming the flag, which ``crfdepth.cli.main`` turns into exit status 2
+    with nothing written.
     """
-    points = read_velodyne(args.velodyne)
-    calib = load_calibration(args.calib, camera=args.camera)
-    height, width = read_rgb(args.image).shape[:2]
+    out = _check_out(args)
+    try:
+        points = read_velodyne(args.velodyne)
+    except (InputError, FileNotFoundError, IsADirectoryError) as exc:
+        raise _named("--velodyne", "velodyne", exc) from None
+    try:
+        calib = load_calibration(args.calib, camera=args.camera)
+    except (InputError, FileNotFoundError, IsADirectoryError) as exc:
+        raise _named("--calib", "calibration", exc) from None
+    try:
+        height, width = read_rgb(args.image).shape[:2]
+    except (InputError, FileNotFoundError, IsADirectoryError) as exc:
+        raise _named("--image", "image", exc) from None
+    check_intrinsics(calib.K, "--calib", (height, width))
     if calib.image_size is not None and calib.image_size != (height, width):
-        logger.warning("image %s is %dx%d but the calibration says %dx%d; using the image's size",
+        logger.warning("--image %s is %dx%d but --calib says %dx%d; using the image's size",
                        args.image, width, height, calib.image_size[1], calib.image_size[0])
 
     total = points.shape[0]
@@ -68,11 +138,13 @@ def run(args: argparse.Namespace) -> int:
     if args.keep_fraction is not None:
         points = keep_fraction(points, args.keep_fraction, seed=args.seed)
     if points.shape[0] == 0 and total:
-        raise InputError("subsampling: kept 0 of the scan's points; use a smaller --keep-every-ring "
-                         "or a larger --keep-fraction")
+        raise InputError("--keep-every-ring / --keep-fraction: expected to keep some of the scan's points, got 0 "
+                         "of them; use a smaller --keep-every-ring or a larger --keep-fraction")
 
     depth = project_velodyne(points, calib, (height, width))
-    write_depth_png(args.out, depth)
-    logger.info("kept %d of %d points; %d pixels with depth written to %s",
-                points.shape[0], total, int((depth > 0).sum()), args.out)
+    write_depth_png(out, depth)
+    pixels = int((depth > 0).sum())
+    logger.info("kept %d of %d points", points.shape[0], total)
+    if not args.quiet:
+        print(f"wrote {out}: {pixels} LiDAR pixels, {height}x{width}")
     return 0

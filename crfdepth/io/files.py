@@ -1,4 +1,8 @@
-"""Writing output files safely: the output-path checks and the atomic write every writer uses.
+"""Input and output paths: the checks every reader and writer makes, and the atomic write.
+
+Paths are checked before any work (docs/design.md section 8): an input must be an
+existing file, an output a file name in an existing folder where a file can be created,
+so a bad path fails at once, naming the user's argument, never after a long computation.
 
 A file is written to a new temporary file beside its destination and renamed over it
 (``os.replace``, atomic on one file system): a reader never sees a partial file, and a
@@ -14,21 +18,49 @@ from typing import Callable
 
 from crfdepth.errors import InputError
 
-__all__ = ["atomic_write", "atomic_write_bytes", "check_output_file"]
+__all__ = ["atomic_write", "atomic_write_bytes", "check_input_file", "check_output_file"]
+
+
+def check_input_file(path: str | os.PathLike, name: str = "path") -> Path:
+    """``path`` as a Path, checked as an existing file to read.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist (the message names the argument ``name``).
+        IsADirectoryError: ``path`` is a folder.
+    """
+    file = Path(path)
+    if not file.exists():
+        raise FileNotFoundError(f"{name}: no such file: {file}")
+    if file.is_dir():
+        raise IsADirectoryError(f"{name}: expected a file, got a folder: {file}")
+    return file
 
 
 def check_output_file(path: str | os.PathLike, name: str = "path") -> Path:
     """``path`` as a Path, checked as a file to create or replace.
 
+    Besides the folder's existence, a file is actually created there and removed again
+    (permission bits do not bind root, and file systems such as ``/proc`` refuse new files
+    whatever ``os.access`` says), so an unwritable folder fails here, before any work,
+    rather than at the final write.
+
     Raises:
         InputError: ``path`` is a folder (the message names the argument ``name``).
         FileNotFoundError: its folder does not exist.
+        PermissionError: no file can be created in its folder.
     """
     file = Path(path)
     if file.is_dir():
         raise InputError(f"{name}: expected a file name, got a folder: {file}")
     if not file.parent.is_dir():
         raise FileNotFoundError(f"{name}: the folder of {file} does not exist")
+    probe = file.parent / f".{file.name}.{secrets.token_hex(6)}.probe"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as exc:
+        raise PermissionError(f"{name}: cannot create {file}: the folder {file.parent} does not accept new "
+                              f"files ({exc.strerror})") from None
+    probe.unlink(missing_ok=True)
     return file
 
 

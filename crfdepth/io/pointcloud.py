@@ -1,4 +1,4 @@
-"""Point-cloud files: KITTI ``.bin``, NumPy ``.npy``, PLY and PCD (DESIGN.md section 1).
+"""Point-cloud files: KITTI ``.bin``, NumPy ``.npy``, PLY and PCD (docs/design.md section 1).
 
 :func:`read_points` returns an ``(N, 3)`` or ``(N, 4)`` float32 array (x, y, z in the
 sensor frame, metres, plus intensity when the file has it) from:
@@ -29,11 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes, check_input_file, check_output_file
 
 __all__ = ["POINT_FORMATS", "read_points", "write_pcd", "write_ply"]
 
 PathLike = str | os.PathLike
 POINT_FORMATS = (".bin", ".npy", ".ply", ".pcd")
+_NPY_MAGIC = b"\x93NUMPY"
 
 # PLY scalar type names (both spellings) -> little-endian NumPy dtype.
 _PLY_TYPES = {
@@ -45,15 +47,6 @@ _PLY_TYPES = {
 # PCD (TYPE, SIZE) -> NumPy dtype (PCD binary data is little-endian in practice).
 _PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4",
               ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
-
-
-def _existing_file(path: PathLike) -> Path:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"points: no such file: {path}")
-    if path.is_dir():
-        raise IsADirectoryError(f"points: expected a file, got a directory: {path}")
-    return path
 
 
 def _columns(fields: dict[str, np.ndarray], path: Path, what: str) -> np.ndarray:
@@ -86,7 +79,7 @@ def read_points(path: PathLike) -> np.ndarray:
         InputError: unsupported extension, malformed header, missing x/y/z fields, wrong
             column count or truncated data.
     """
-    path = _existing_file(path)
+    path = check_input_file(path, "points")
     suffix = path.suffix.lower()
     if suffix == ".bin":
         return _read_bin(path)
@@ -109,10 +102,23 @@ def _read_bin(path: Path) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
+    with open(path, "rb") as handle:
+        start = handle.read(len(_NPY_MAGIC) + 24)
+    if not start.startswith(_NPY_MAGIC):
+        text = start.decode("ascii", errors="replace").split("\n")[0][:24]
+        raise InputError(f"points: {path} is not a NumPy .npy file: expected one written by numpy.save (it starts "
+                         f"with the bytes \\x93NUMPY), got a file starting with {text!r} (a text table? read it "
+                         f"with numpy.loadtxt and save the (N, 3) or (N, 4) array with numpy.save)")
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"points: cannot read .npy {path}: {exc}") from None
+        if "pickle" in str(exc):  # an object array: never load pickles from a point-cloud file
+            raise InputError(f"points: .npy {path}: expected an array of numbers (N, 3) or (N, 4), got an array of "
+                             f"Python objects; save the points as numbers, e.g. numpy.save(path, "
+                             f"numpy.asarray(points, dtype=numpy.float32))") from None
+        raise InputError(f"points: .npy {path}: expected a complete NumPy array file, got one that cannot be "
+                         f"read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}): truncated or "
+                         f"damaged") from None
     if array.ndim != 2 or array.shape[1] not in (3, 4):
         raise InputError(f"points: .npy {path}: expected an (N, 3) or (N, 4) array (x y z [intensity]), "
                          f"got shape {array.shape}")
@@ -262,13 +268,9 @@ def _points_for_writing(points: np.ndarray) -> np.ndarray:
 
 
 def _write_atomic(path: Path, data: bytes) -> Path:
-    temporary = path.parent / f".{path.name}.{os.getpid()}.tmp"
-    try:
-        temporary.write_bytes(data)
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    """Write ``data`` to ``path`` atomically, after checking it as an output file (named ``path``)."""
+    path = check_output_file(path, "path")
+    atomic_write_bytes(path, data)
     return path
 
 

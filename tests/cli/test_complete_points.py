@@ -16,9 +16,9 @@ from crfdepth import cli
 from crfdepth.api import complete_depth, points_to_sparse
 from crfdepth.data.synthetic import make_scene
 from crfdepth.fill import nearest_fill
-from crfdepth.io.kitti import load_calibration, read_depth_png, read_rgb, read_velodyne
+from crfdepth.io.calibration import load_any_calibration, load_calibration
+from crfdepth.io.kitti import read_depth_png, read_rgb, read_velodyne
 from crfdepth.io.pointcloud import write_pcd, write_ply
-from crfdepth.io.rig import load_any_calibration
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
 from crfdepth.projection import ring_mask

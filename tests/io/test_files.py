@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write, atomic_write_bytes, check_output_file
+from crfdepth.io.files import atomic_write, atomic_write_bytes, check_input_file, check_output_file
 
 
 def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path):
@@ -34,3 +36,22 @@ def test_output_path_checks_name_the_argument(tmp_path):
         check_output_file(tmp_path, "out")
     with pytest.raises(FileNotFoundError, match="path: the folder of"):
         check_output_file(tmp_path / "missing" / "a.json")
+
+
+def test_output_check_creates_nothing_and_refuses_a_folder_that_takes_no_files(tmp_path):
+    check_output_file(tmp_path / "a.png", "--out")
+    assert list(tmp_path.iterdir()) == []  # the probe file is gone
+    if not os.path.isdir("/proc"):
+        pytest.skip("no /proc on this system")
+    with pytest.raises(PermissionError) as info:  # root passes os.access, yet /proc takes no new file
+        check_output_file("/proc/o.png", "--out")
+    assert str(info.value).startswith("--out: cannot create /proc/o.png: the folder /proc does not accept new files")
+
+
+def test_input_check_names_the_argument(tmp_path):
+    (tmp_path / "a.bin").write_bytes(b"")
+    assert check_input_file(tmp_path / "a.bin", "--velodyne") == tmp_path / "a.bin"
+    with pytest.raises(FileNotFoundError, match=r"^--velodyne: no such file: .*nope\.bin$"):
+        check_input_file(tmp_path / "nope.bin", "--velodyne")
+    with pytest.raises(IsADirectoryError, match=r"^--calib: expected a file, got a folder"):
+        check_input_file(tmp_path, "--calib")

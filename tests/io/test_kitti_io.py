@@ -1,10 +1,11 @@
-"""Tests of crfdepth.io.kitti: synthetic round trips, the shared KITTI files, bad input."""
+"""Tests of crfdepth.io.kitti: synthetic round trips, the shared KITTI files, bad input.
+
+The KITTI calibration files are tested in tests/io/test_calibration.py."""
 
 from __future__ import annotations
 
 import os
 import re
-import shutil
 from pathlib import Path
 
 import cv2
@@ -13,17 +14,8 @@ import pytest
 
 from crfdepth.errors import InputError
 from crfdepth.io import kitti
-from crfdepth.io.kitti import (
-    Calibration,
-    load_calibration,
-    read_depth_png,
-    read_intrinsics,
-    read_object_calibration,
-    read_raw_calibration,
-    read_rgb,
-    read_velodyne,
-    write_depth_png,
-)
+from crfdepth.io.calibration import read_raw_calibration
+from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_velodyne, write_depth_png
 
 DRIVE = "2011_09_26_drive_0001_sync"
 FRAME = "0000000005"
@@ -75,36 +67,6 @@ def test_write_depth_png_is_atomic(tmp_path, monkeypatch):
     # The old file is intact and no temporary file is left behind.
     np.testing.assert_array_equal(read_depth_png(path), np.full((4, 4), 2.0))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.png"]
-
-
-def test_calibration_matrices_compose():
-    rng = np.random.default_rng(1)
-    P = rng.normal(size=(3, 4))
-    R = np.eye(4)
-    R[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    T = np.eye(4)
-    T[:3] = rng.normal(size=(3, 4))
-    calib = Calibration(P_rect=P, R_rect=R, T_velo_to_cam=T)
-    assert calib.image_size is None
-    np.testing.assert_allclose(calib.K, P[:, :3])
-    np.testing.assert_allclose(calib.velo_to_rect_cam(), R @ T)
-    np.testing.assert_allclose(calib.velo_to_image(), P @ R @ T)
-    assert calib.velo_to_image().shape == (3, 4)
-    assert calib == Calibration(P_rect=P.tolist(), R_rect=R, T_velo_to_cam=T)
-    assert calib != Calibration(P_rect=P, R_rect=R, T_velo_to_cam=T, image_size=(375, 1242))
-
-
-@pytest.mark.parametrize("field, value, match", [
-    ("P_rect", np.eye(3), r"Calibration.P_rect: expected shape \(3, 4\), got \(3, 3\)"),
-    ("R_rect", np.eye(3), r"Calibration.R_rect: expected shape \(4, 4\), got \(3, 3\)"),
-    ("T_velo_to_cam", np.eye(3, 4), r"Calibration.T_velo_to_cam: expected shape \(4, 4\)"),
-    ("image_size", (375.5, 1242), r"Calibration.image_size: expected \(height, width\)"),
-    ("image_size", (375,), r"Calibration.image_size"),
-])
-def test_calibration_checks_shapes(field, value, match):
-    fields = {"P_rect": np.zeros((3, 4)), "R_rect": np.eye(4), "T_velo_to_cam": np.eye(4), field: value}
-    with pytest.raises(InputError, match=match):
-        Calibration(**fields)
 
 
 # --------------------------------------------------------------------------- shared files
@@ -182,77 +144,16 @@ def test_read_velodyne_shared_scan(kitti_root):
     assert np.abs(points[:, :3]).max() < 130.0  # metres (HDL-64E range ~120 m)
 
 
-@pytest.mark.kitti
-def test_read_raw_calibration(kitti_root):
-    calib = read_raw_calibration(kitti_root / "raw" / "2011_09_26", camera=2)
-    assert calib.image_size == (375, 1242)  # S_rect_02: 1242 375 (width height)
-    assert calib.P_rect.shape == (3, 4) and calib.R_rect.shape == (4, 4)
-    assert calib.T_velo_to_cam.shape == (4, 4)
-    np.testing.assert_array_equal(calib.P_rect[:, 3], [44.85728, 0.2163791, 0.002745884])
-    np.testing.assert_array_equal(calib.K, [[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]])
-    assert calib.R_rect[0, 1] == 0.00983776 and calib.R_rect[3, 3] == 1 and calib.R_rect[0, 3] == 0
-    np.testing.assert_array_equal(calib.T_velo_to_cam[:3, 3], [-0.004069766, -0.07631618, -0.2717806])
-    assert calib.T_velo_to_cam[0, 1] == -0.9999714
-    np.testing.assert_array_equal(calib.T_velo_to_cam[3], [0, 0, 0, 1])
-    right = read_raw_calibration(kitti_root / "raw" / "2011_09_26", camera=3)
-    assert right.P_rect[0, 3] == -339.5242
-    np.testing.assert_array_equal(right.R_rect, calib.R_rect)  # R_rect_00 for every camera
-
-
-@pytest.mark.kitti
-def test_read_object_calibration(kitti_root):
-    calib = read_object_calibration(kitti_root / "object" / "training" / "calib" / "000000.txt")
-    assert calib.image_size is None
-    np.testing.assert_array_equal(calib.P_rect[:, 3], [45.75831, -0.3454157, 0.004981016])
-    assert calib.K[0, 0] == 707.0493 and calib.K[1, 2] == 180.5066
-    assert calib.R_rect[2, 1] == 0.004123522
-    np.testing.assert_array_equal(calib.T_velo_to_cam[:3, 3], [-0.02457729, -0.06127237, -0.3321029])
-    np.testing.assert_array_equal(calib.T_velo_to_cam[3], [0, 0, 0, 1])
-    left_grey = read_object_calibration(kitti_root / "object" / "training" / "calib" / "000000.txt", camera=0)
-    np.testing.assert_array_equal(left_grey.P_rect[:, 3], [0, 0, 0])
-
-
-@pytest.mark.kitti
-def test_load_calibration_dispatch(kitti_root):
-    day = kitti_root / "raw" / "2011_09_26"
-    raw = read_raw_calibration(day, camera=3)
-    for path in (day, day / "calib_cam_to_cam.txt", day / "calib_velo_to_cam.txt", str(day)):
-        loaded = load_calibration(path, camera=3)
-        np.testing.assert_array_equal(loaded.velo_to_image(), raw.velo_to_image())
-        assert loaded.image_size == (375, 1242)
-    object_file = kitti_root / "object" / "training" / "calib" / "000010.txt"
-    loaded = load_calibration(object_file)
-    np.testing.assert_array_equal(loaded.velo_to_image(), read_object_calibration(object_file).velo_to_image())
-    assert loaded.image_size is None
-
-
-@pytest.mark.kitti
-def test_load_calibration_detects_raw_files_by_key(kitti_root, tmp_path):
-    day = kitti_root / "raw" / "2011_09_26"
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
-        shutil.copy(day / name, tmp_path / name)
-    renamed = tmp_path / "cam_to_cam_copy.txt"
-    shutil.copy(day / "calib_cam_to_cam.txt", renamed)
-    np.testing.assert_array_equal(load_calibration(renamed).P_rect, read_raw_calibration(day).P_rect)
-
-
 # --------------------------------------------------------------------------- bad input
 
 
 def test_missing_files_name_the_path(tmp_path):
     missing = tmp_path / "nope" / "0000000005"
     for reader, suffix in [(read_depth_png, ".png"), (read_rgb, ".png"), (read_intrinsics, ".txt"),
-                           (read_velodyne, ".bin"), (read_object_calibration, ".txt"),
-                           (load_calibration, ".txt"), (read_raw_calibration, "")]:
+                           (read_velodyne, ".bin")]:
         path = missing.with_suffix(suffix)
         with pytest.raises(FileNotFoundError, match=re.escape(str(path))):
             reader(path)
-
-
-def test_raw_calibration_missing_file_names_it(tmp_path):
-    (tmp_path / "calib_cam_to_cam.txt").write_text("R_rect_00: 1 0 0 0 1 0 0 0 1\n")
-    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "calib_velo_to_cam.txt"))):
-        read_raw_calibration(tmp_path)
 
 
 def test_depth_png_must_be_16_bit(tmp_path):
@@ -297,48 +198,6 @@ def test_intrinsics_must_hold_nine_numbers(tmp_path):
     path.write_text("1 0 2 0 1 3 0 0 x\n")
     with pytest.raises(InputError, match=r"non-numeric"):
         read_intrinsics(path)
-
-
-@pytest.mark.kitti
-@pytest.mark.parametrize("key", ["P2", "R0_rect", "Tr_velo_to_cam"])
-def test_object_calibration_missing_key(kitti_root, tmp_path, key):
-    source = kitti_root / "object" / "training" / "calib" / "000001.txt"
-    path = tmp_path / "000001.txt"
-    path.write_text("".join(line for line in source.read_text().splitlines(keepends=True)
-                            if not line.startswith(key + ":")))
-    with pytest.raises(InputError, match=rf"key '{key}' not found in .*000001\.txt"):
-        read_object_calibration(path)
-    with pytest.raises(InputError, match=rf"'{key}'"):
-        load_calibration(path)
-
-
-@pytest.mark.kitti
-@pytest.mark.parametrize("file_name, key", [("calib_cam_to_cam.txt", "P_rect_02"),
-                                            ("calib_cam_to_cam.txt", "S_rect_02"),
-                                            ("calib_cam_to_cam.txt", "R_rect_00"),
-                                            ("calib_velo_to_cam.txt", "T")])
-def test_raw_calibration_missing_key(kitti_root, tmp_path, file_name, key):
-    day = kitti_root / "raw" / "2011_09_26"
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
-        lines = (day / name).read_text().splitlines(keepends=True)
-        if name == file_name:
-            lines = [line for line in lines if not line.startswith(key + ":")]
-        (tmp_path / name).write_text("".join(lines))
-    with pytest.raises(InputError, match=rf"key '{key}' not found in .*{re.escape(file_name)}"):
-        read_raw_calibration(tmp_path)
-
-
-def test_calibration_key_with_wrong_count(tmp_path):
-    path = tmp_path / "calib.txt"
-    path.write_text("P2: 1 2 3\nR0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 0 0 0 0 0 0 0 0 0 0 0\n")
-    with pytest.raises(InputError, match=r"key 'P2' in .*calib\.txt: expected 12 numbers \(3, 4\), got 3"):
-        read_object_calibration(path)
-
-
-@pytest.mark.parametrize("camera", [4, -1, "2", True])
-def test_bad_camera_index(tmp_path, camera):
-    with pytest.raises(InputError, match=r"camera: expected one of 0, 1, 2, 3"):
-        read_object_calibration(tmp_path / "unused.txt", camera=camera)
 
 
 @pytest.mark.parametrize("depth, match", [

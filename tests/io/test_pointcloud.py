@@ -131,3 +131,41 @@ def test_writer_checks_shape_and_leaves_input(tmp_path):
     before = points.copy()
     write_pcd(tmp_path / "x.pcd", points)
     np.testing.assert_array_equal(points, before)
+
+
+def test_text_file_named_npy_is_named_and_never_suggests_pickle(tmp_path):
+    path = tmp_path / "cloud.npy"
+    path.write_text("1.0 2.0 3.0\n4.0 5.0 6.0\n")
+    with pytest.raises(InputError) as info:
+        read_points(path)
+    message = str(info.value)
+    assert message == (f"points: {path} is not a NumPy .npy file: expected one written by numpy.save (it starts "
+                       f"with the bytes \\x93NUMPY), got a file starting with '1.0 2.0 3.0' (a text table? read it "
+                       f"with numpy.loadtxt and save the (N, 3) or (N, 4) array with numpy.save)")
+    assert "pickle" not in message and "\n" not in message
+
+
+def test_object_array_npy_is_refused_without_suggesting_pickle(tmp_path):
+    path = tmp_path / "objects.npy"
+    np.save(path, np.array([[1.0, 2.0, 3.0], [4.0, 5.0, "x"]], dtype=object))
+    with pytest.raises(InputError) as info:
+        read_points(path)
+    message = str(info.value)
+    assert message.startswith(f"points: .npy {path}: expected an array of numbers (N, 3) or (N, 4), got an array "
+                              f"of Python objects")
+    assert "allow_pickle" not in message
+
+
+def test_truncated_npy_is_named(tmp_path):
+    path = tmp_path / "cut.npy"
+    np.save(path, POINTS)
+    path.write_bytes(path.read_bytes()[:-7])
+    with pytest.raises(InputError, match=r"points: \.npy .*cut\.npy: expected a complete NumPy array file, got one "
+                                         r"that cannot be read .*truncated or damaged"):
+        read_points(path)
+
+
+def test_writers_check_the_output_path(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"^path: the folder of .*missing/x\.ply does not exist"):
+        write_ply(tmp_path / "missing" / "x.ply", POINTS)
+    assert list(tmp_path.iterdir()) == []
