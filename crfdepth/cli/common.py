@@ -164,7 +164,8 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
         try:
             model = load_model(args.checkpoint, overrides=overrides)
         except (InputError, FileNotFoundError) as exc:
-            raise type(exc)(f"--checkpoint: {exc}") from None
+            message = str(exc).removeprefix("path: ")  # the API names its argument "path"; the user gave --checkpoint
+            raise type(exc)(f"--checkpoint: {message}") from None
     else:
         model = load_pretrained(args.weights or DEFAULT_WEIGHTS, **overrides)
     if model.mode == "pixel" and (args.superpixels is not None or args.no_refine):
@@ -174,13 +175,13 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
 
 
 def vis_range_type(text: str) -> float:
-    """One bound of ``--vis-range``: a finite number of metres >= 0."""
+    """One bound of ``--vis-range``: a finite number of metres > 0."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a depth in metres >= 0, got {text!r}")
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a depth in metres > 0, got {text!r}")
     return value
 
 

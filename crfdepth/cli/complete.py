@@ -246,11 +246,11 @@ def _run_one(args: argparse.Namespace) -> int:
     if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
         logger.warning("--image %s is greyscale; the colour potential sees intensity only", args.image)
     model = build_model(args)
-    vis_dir = None
-    if args.vis is not None:  # created only once inputs and model are known to be good
-        vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
     start = time.perf_counter()
-    depth, std = _complete(args, model, rgb, where, out_std is not None or vis_dir is not None, **inputs)
+    depth, std = _complete(args, model, rgb, where, out_std is not None or args.vis is not None, **inputs)
+    vis_dir = None
+    if args.vis is not None:  # created only once the frame is completed
+        vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
     written = _write_outputs(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)
     if not args.quiet:
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "

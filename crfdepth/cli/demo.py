@@ -51,7 +51,7 @@ from crfdepth.fill import nearest_fill
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
-from crfdepth.pretrained import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
+from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
 from crfdepth.visualize import depth_picture, depth_range, draw_points, render_point_cloud, std_picture
 
 logger = logging.getLogger(__name__)

@@ -100,8 +100,9 @@ def test_complete_real_frame_beats_nearest_fill(main, val_dir, tmp_path):
     assert _files(vis) == ["depth_vis_depth.png", "depth_vis_std.png"]
     for name in _files(vis):
         picture = cv2.imread(str(vis / name), cv2.IMREAD_UNCHANGED)
-        assert picture.dtype == np.uint8 and picture.shape == (352, 1216, 3)
-    picture = cv2.cvtColor(cv2.imread(str(vis / "depth_vis_depth.png")), cv2.COLOR_BGR2RGB).astype(int)
+        # the map (352 x 1216) with a colour bar in metres below it
+        assert picture.dtype == np.uint8 and picture.shape[1:] == (1216, 3) and 352 < picture.shape[0] < 500
+    picture = cv2.cvtColor(cv2.imread(str(vis / "depth_vis_depth.png")), cv2.COLOR_BGR2RGB).astype(int)[:352]
     near, far = picture[-10:, 500:700].mean((0, 1)), picture[:60, 500:700].mean((0, 1))
     assert near[0] > near[2] and far[2] > far[0]  # road in front: warm; background: cold
     assert _files(tmp_path) == ["depth.png", "std.png", "vis/depth_vis_depth.png", "vis/depth_vis_std.png"]
@@ -235,7 +236,7 @@ def test_complete_folder_std_and_default_vis(main, tmp_path, capsys):
     # Superpixels holding LiDAR are more certain than the scene average.
     assert np.median(std[sparse > 0]) <= np.median(std)
     picture = cv2.imread(str(tmp_path / "submission_vis" / "0000000000_vis_std.png"), cv2.IMREAD_UNCHANGED)
-    assert picture.shape == (H, W, 3) and picture.dtype == np.uint8
+    assert picture.shape[0] > H and picture.shape[2] == 3 and picture.dtype == np.uint8  # map + colour bar
 
 
 def test_complete_greyscale_image_warns(main, synth, tmp_path, caplog):
@@ -287,8 +288,8 @@ BAD_INPUTS = {
     "depth as image": (lambda p, t: {**p, "image": p["sparse"]}, ["8-bit image", "uint16", "sparse.png"]),
     "K with 8 numbers": (_k_text("60 0 32 0 60 24 0 0"), ["9 numbers", "got 8", "badK.txt"]),
     "K not numbers": (_k_text("60 0 32 0 sixty 24 0 0 1"), ["9 numbers", "non-numeric", "badK.txt"]),
-    "K fx <= 0": (_k_text("0 0 32 0 60 24 0 0 1"), ["fx, fy > 0", "fx=0", "badK.txt"]),
-    "K fy < 0": (_k_text("60 0 32 0 -60 24 0 0 1"), ["fx, fy > 0", "fy=-60", "badK.txt"]),
+    "K fx <= 0": (_k_text("0 0 32 0 60 24 0 0 1"), ["fx = K[0][0] > 0", "fx=0", "badK.txt"]),
+    "K fy < 0": (_k_text("60 0 32 0 -60 24 0 0 1"), ["fx = K[0][0] > 0", "fy=-60", "badK.txt"]),
     "K last row": (_k_text("60 0 32 0 60 24 0 1 0"), ["last row", "badK.txt"]),
     "all-zero sparse": (_zero_sparse, ["no LiDAR point", "zero.png"]),
     "missing image": (lambda p, t: {**p, "image": t / "nope.png"}, ["no such file", "nope.png"]),
