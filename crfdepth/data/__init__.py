@@ -1,5 +1,41 @@
-from crfdepth.data.kitti import KittiDepthCompletion, KittiRawScans, KittiTestCompletion, KittiValSelection
+"""Data for crfdepth: KITTI datasets, the built-in synthetic scene, samples and transforms.
+
+Every dataset returns a :class:`Sample` (docs/design.md section 1); :func:`build_dataset`
+builds one by layout name. Sub-modules: :mod:`~crfdepth.data.kitti`,
+:mod:`~crfdepth.data.synthetic`, :mod:`~crfdepth.data.sample`,
+:mod:`~crfdepth.data.transforms`, :mod:`~crfdepth.data.factory` and
+:mod:`~crfdepth.data.example` (the own-sensor example files).
+"""
+
+from crfdepth.data.kitti import (
+    KittiDepthCompletion,
+    KittiRawScans,
+    KittiTestCompletion,
+    KittiValSelection,
+    open_completion_folder,
+)
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.data.transforms import BottomCenterCrop, Compose, HorizontalFlip, SubsampleSparse
 from crfdepth.data.factory import LAYOUTS, build_dataset
-from crfdepth.data.synthetic import SyntheticScenes, make_scene
+from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
+
+__all__ = [
+    "EVAL_MAX_DEPTH_M",
+    "LAYOUTS",
+    "Batch",
+    "BottomCenterCrop",
+    "Compose",
+    "HorizontalFlip",
+    "KittiDepthCompletion",
+    "KittiRawScans",
+    "KittiTestCompletion",
+    "KittiValSelection",
+    "Sample",
+    "SubsampleSparse",
+    "SyntheticScene",
+    "SyntheticScenes",
+    "build_dataset",
+    "collate_samples",
+    "make_scene",
+    "open_completion_folder",
+]

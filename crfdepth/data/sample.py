@@ -1,4 +1,4 @@
-"""One frame of depth-completion data, and a batch of them (DESIGN.md section 1).
+"""One frame of depth-completion data, and a batch of them (docs/design.md section 1).
 
 Every dataset in :mod:`crfdepth.data.kitti` returns a :class:`Sample`; every transform in
 :mod:`crfdepth.data.transforms` maps a :class:`Sample` to a new one; :func:`collate_samples`

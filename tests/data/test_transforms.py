@@ -1,4 +1,4 @@
-"""Tests for crfdepth.data.sample and crfdepth.data.transforms."""
+"""Tests for the Sample transforms (crfdepth/data/transforms.py)."""
 
 from __future__ import annotations
 
@@ -7,25 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from torch.utils.data import DataLoader
 
-from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.data.transforms import BottomCenterCrop, Compose, HorizontalFlip, SubsampleSparse, frame_seed
 from crfdepth.errors import InputError
-from crfdepth.io.kitti import read_intrinsics, read_raw_calibration
+from crfdepth.io.calibration import read_raw_calibration
+from crfdepth.io.kitti import read_intrinsics
 
-FX, FY, CX, CY = 721.5377, 721.5377, 609.5593, 172.854  # KITTI 2011_09_26, camera 2
-
-
-def make_sample(height: int = 375, width: int = 1242, name: str = "frame", density: float = 0.05,
-                seed: int = 0) -> Sample:
-    """A synthetic frame: random image, sparse depth on ``density`` of pixels, dense target."""
-    g = torch.Generator().manual_seed(seed)
-    image = torch.rand(3, height, width, generator=g)
-    depth = 1.0 + 79.0 * torch.rand(1, height, width, generator=g)
-    sparse = torch.where(torch.rand(1, height, width, generator=g) < density, depth, torch.zeros(()))
-    K = torch.tensor([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
-    return Sample(image=image, sparse=sparse, target=depth.clone(), K=K, name=name)
+CX, CY = 609.5593, 172.854  # principal point of make_sample's K (KITTI 2011_09_26, camera 2)
 
 
 def project(K: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
@@ -34,50 +22,10 @@ def project(K: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
     return uvw[:2] / uvw[2]
 
 
-# --------------------------------------------------------------------------- Sample / Batch
-
-
-def test_sample_rejects_mismatched_shapes():
-    s = make_sample(8, 10)
-    with pytest.raises(InputError, match=r"Sample.sparse: expected a \(1, 8, 10\)"):
-        dataclasses.replace(s, sparse=torch.zeros(1, 8, 11))
-    with pytest.raises(InputError, match=r"Sample.image: expected a \(3, H, W\)"):
-        dataclasses.replace(s, image=torch.zeros(1, 8, 10))
-    with pytest.raises(InputError, match=r"Sample.K: expected a \(3, 3\)"):
-        dataclasses.replace(s, K=torch.eye(4))
-    assert s.size == (8, 10)
-
-
-def test_collate_stacks_and_dataloader_uses_it():
-    samples = [make_sample(16, 24, name=f"f{i}", seed=i) for i in range(3)]
-    samples[2] = dataclasses.replace(samples[2], target=torch.zeros(1, 16, 24), has_target=False)
-    batch = collate_samples(samples)
-    assert isinstance(batch, Batch) and len(batch) == 3
-    assert batch.image.shape == (3, 3, 16, 24) and batch.sparse.shape == (3, 1, 16, 24)
-    assert batch.target.shape == (3, 1, 16, 24) and batch.K.shape == (3, 3, 3)
-    assert batch.K.dtype == torch.float32
-    assert batch.names == ["f0", "f1", "f2"]
-    assert batch.has_target.tolist() == [True, True, False]
-    torch.testing.assert_close(batch.sparse[1], samples[1].sparse, rtol=0, atol=0)
-
-    loader = DataLoader(samples, batch_size=2, collate_fn=collate_samples)
-    sizes = [len(b) for b in loader]
-    assert sizes == [2, 1]
-    moved = batch.to(torch.float64)
-    assert moved.image.dtype == torch.float64 and moved.has_target.dtype == torch.bool
-
-
-def test_collate_errors_name_sizes():
-    with pytest.raises(InputError, match="empty list"):
-        collate_samples([])
-    with pytest.raises(InputError, match=r"'a' is \(8, 10\) but 'b' is \(8, 12\)"):
-        collate_samples([make_sample(8, 10, name="a"), make_sample(8, 12, name="b")])
-
-
 # --------------------------------------------------------------------------- BottomCenterCrop
 
 
-def test_bottom_center_crop_pixels_and_intrinsics():
+def test_bottom_center_crop_pixels_and_intrinsics(make_sample):
     s = make_sample(375, 1242)
     out = BottomCenterCrop(352, 1216)(s)
     top, left = 375 - 352, (1242 - 1216) // 2
@@ -97,7 +45,7 @@ def test_bottom_center_crop_pixels_and_intrinsics():
     assert s.size == (375, 1242) and s.K[0, 2].item() == pytest.approx(CX, abs=1e-4)
 
 
-def test_bottom_center_crop_odd_margin_and_errors():
+def test_bottom_center_crop_odd_margin_and_errors(make_sample):
     out = BottomCenterCrop(4, 5)(make_sample(10, 12))
     assert out.size == (4, 5)
     assert out.K[0, 2].item() == pytest.approx(CX - 3, abs=1e-4)  # (12 - 5) // 2 = 3
@@ -109,7 +57,7 @@ def test_bottom_center_crop_odd_margin_and_errors():
 
 
 @pytest.mark.kitti
-def test_crop_of_raw_intrinsics_equals_val_selection_intrinsics(kitti_root):
+def test_crop_of_raw_intrinsics_equals_val_selection_intrinsics(kitti_root, make_sample):
     """The benchmark crop applied to the raw 1242x375 K gives val_selection's K (cx-13, cy-23)."""
     val = kitti_root / "depth_selection" / "val_selection_cropped" / "intrinsics"
     for camera in (2, 3):
@@ -126,7 +74,7 @@ def test_crop_of_raw_intrinsics_equals_val_selection_intrinsics(kitti_root):
 # --------------------------------------------------------------------------- HorizontalFlip
 
 
-def test_horizontal_flip_twice_is_identity_and_k_follows():
+def test_horizontal_flip_twice_is_identity_and_k_follows(make_sample):
     s = make_sample(6, 9)
     flip = HorizontalFlip(p=1.0)
     once = flip(s)
@@ -146,7 +94,7 @@ def test_horizontal_flip_twice_is_identity_and_k_follows():
     assert v_f.item() == pytest.approx(v.item(), abs=1e-3)
 
 
-def test_horizontal_flip_probability_and_generator():
+def test_horizontal_flip_probability_and_generator(make_sample):
     s = make_sample(2, 3)
     assert HorizontalFlip(p=0.0)(s) is s
     flip = HorizontalFlip(p=0.5, generator=torch.Generator().manual_seed(0))
@@ -162,7 +110,7 @@ def test_horizontal_flip_probability_and_generator():
 # --------------------------------------------------------------------------- SubsampleSparse
 
 
-def test_subsample_sparse_keeps_exact_fraction_of_valid_pixels():
+def test_subsample_sparse_keeps_exact_fraction_of_valid_pixels(make_sample):
     s = make_sample(40, 50, density=0.3, name="a")
     valid = s.sparse > 0
     n = int(valid.sum())
@@ -178,7 +126,7 @@ def test_subsample_sparse_keeps_exact_fraction_of_valid_pixels():
     assert int((SubsampleSparse(0.0)(s).sparse > 0).sum()) == 0
 
 
-def test_subsample_sparse_is_deterministic_per_frame():
+def test_subsample_sparse_is_deterministic_per_frame(make_sample):
     s = make_sample(40, 50, density=0.3, name="a")
     t = SubsampleSparse(0.5, seed=1)
     assert torch.equal(t(s).sparse, t(s).sparse)
@@ -190,7 +138,7 @@ def test_subsample_sparse_is_deterministic_per_frame():
         SubsampleSparse(1.2)
 
 
-def test_compose_applies_in_order():
+def test_compose_applies_in_order(make_sample):
     s = make_sample(375, 1242)
     out = Compose([BottomCenterCrop(), HorizontalFlip(p=1.0)])(s)
     expected = HorizontalFlip(p=1.0)(BottomCenterCrop()(s))

@@ -1,0 +1,231 @@
+"""KITTI frames with full Velodyne scans, the input and the target held-out parts of one scan.
+
+Raw-data drives or the object benchmark; the scan is split into input and target points
+(a random fraction, or whole laser rings) and both are projected into the image, with no
+pixel in both (docs/design.md section 7).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from torch.utils.data import Dataset
+
+from crfdepth import projection
+from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_dir, require_root
+from crfdepth.data.sample import Sample
+from crfdepth.data.transforms import BottomCenterCrop, frame_seed
+from crfdepth.errors import InputError
+from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
+from crfdepth.io.kitti import read_rgb, read_velodyne
+
+if TYPE_CHECKING:
+    from crfdepth.io.calibration import Calibration
+
+__all__ = ["KittiRawScans"]
+
+
+@dataclass(frozen=True)
+class _ScanFrame:
+    name: str
+    image: Path
+    velodyne: Path
+    calib: Path  # day folder (raw) or calibration file (object)
+
+
+class KittiRawScans(Dataset):
+    """Frames with full Velodyne scans; input and target are disjoint parts of one scan.
+
+    Layouts:
+        ``"raw"``: ``root/<date>/<drive>/image_0X/data/<frame>.png`` and
+        ``root/<date>/<drive>/velodyne_points/data/<frame>.bin`` with the day calibration
+        ``root/<date>/calib_{cam_to_cam,velo_to_cam}.txt``; every drive of every date under
+        ``root``. Names ``<drive>_<frame>_image_0X``.
+        ``"object"``: ``root/image_X/<id>.png``, ``root/velodyne/<id>.bin``,
+        ``root/calib/<id>.txt`` with ``root`` the object benchmark's ``training`` (or
+        ``testing``) folder. Names ``<id>``.
+        Frames are the scans (``.bin``); each must have its image and calibration.
+
+    Each item projects the scan (:func:`crfdepth.projection.project_velodyne`, z-buffer,
+    camera z-depth in metres) after splitting its points:
+
+    - ``holdout="fraction"``: a random ``1 - holdout_fraction`` of the points is the input,
+      the other ``holdout_fraction`` the target. The draw is deterministic per frame: its
+      seed is derived from ``seed`` and the frame name (not the index, so a frame keeps its
+      split when other frames are added or removed).
+    - ``holdout="rings"``: the points of every ``keep_every_ring``-th laser ring (rings
+      recovered from the scan order) are the input, all other rings the target: 16 beams
+      out of 64 for ``keep_every_ring=4``, the paper's sparse-LiDAR scenario.
+
+    ``keep_fraction`` (< 1) then keeps only that random share of the *input* points (the
+    sub-sampling study); the dropped points are not added to the target, and the target
+    is the same for every ``keep_fraction`` (same seed), so densities are compared on the
+    same pixels.
+
+    No leakage: every target pixel onto which an input point projects (input before the
+    ``keep_fraction`` thinning) is set to 0 in the target, so no pixel is both input and
+    target. With ``keep_fraction == 1``, ``(sparse > 0).sum() + (target > 0).sum()``
+    equals the pixel count of the whole scan's projection. The target is thus sparse LiDAR (not KITTI's semi-dense
+    annotation): far fewer pixels, and raw-LiDAR noise.
+
+    Args:
+        root: the raw-data root (holding ``<date>/``) or the object ``training`` folder.
+        layout: "raw" or "object".
+        holdout: "fraction" or "rings".
+        holdout_fraction: share of points held out as target, in (0, 1) (``"fraction"``).
+        keep_every_ring: k >= 2; rings ``r % k == 0`` are the input (``"rings"``).
+        seed: non-negative integer seeding the per-frame random draws.
+        keep_fraction: share of input points kept, in (0, 1]; 1 = all.
+        camera: KITTI camera index, 2 (left colour, default) or 3.
+        transform: applied to every sample; default ``BottomCenterCrop(352, 1216)``.
+
+    Raises:
+        FileNotFoundError: ``root`` does not exist.
+        InputError: ``root`` does not match the layout (expected folder named); no frame;
+            a scan without its image or calibration (path named); bad option values.
+    """
+
+    def __init__(
+        self,
+        root: PathLike,
+        layout: Literal["raw", "object"] = "raw",
+        holdout: Literal["fraction", "rings"] = "fraction",
+        holdout_fraction: float = 0.2,
+        keep_every_ring: int = 4,
+        seed: int = 0,
+        keep_fraction: float = 1.0,
+        camera: int = 2,
+        transform: Transform | None = BottomCenterCrop(),
+    ) -> None:
+        if layout not in ("raw", "object"):
+            raise InputError(f"layout: expected 'raw' or 'object', got {layout!r}")
+        if holdout not in ("fraction", "rings"):
+            raise InputError(f"holdout: expected 'fraction' or 'rings', got {holdout!r}")
+        if not 0.0 < float(holdout_fraction) < 1.0:
+            raise InputError(f"holdout_fraction: expected a value in (0, 1), got {holdout_fraction}")
+        if isinstance(keep_every_ring, bool) or int(keep_every_ring) != keep_every_ring or keep_every_ring < 2:
+            raise InputError(f"keep_every_ring: expected an integer >= 2, got {keep_every_ring!r}")
+        if not 0.0 < float(keep_fraction) <= 1.0:
+            raise InputError(f"keep_fraction: expected a value in (0, 1], got {keep_fraction}")
+        if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+            raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
+        if camera not in (2, 3):
+            raise InputError(f"camera: expected 2 or 3 (KITTI colour cameras), got {camera!r}")
+        self.root = require_root(root)
+        self.layout = layout
+        self.holdout = holdout
+        self.holdout_fraction = float(holdout_fraction)
+        self.keep_every_ring = int(keep_every_ring)
+        self.seed = int(seed)
+        self.keep_fraction = float(keep_fraction)
+        self.camera = int(camera)
+        self.transform = transform
+        self._frames = self._list_raw() if layout == "raw" else self._list_object()
+        for f in self._frames:
+            for path, what in ((f.image, "RGB image"), (f.calib, "calibration")):
+                if not path.exists():
+                    raise InputError(f"KittiRawScans({layout}): missing {what} for {f.velodyne}: expected {path}")
+        self._calibrations: dict[Path, Calibration] = {}
+        if layout == "raw":
+            for f in self._frames:
+                self._calibration(f)  # one file pair per day: read (and check) now
+
+    def _list_raw(self) -> list[_ScanFrame]:
+        cam = f"image_0{self.camera}"
+        dates = sorted(p for p in self.root.iterdir() if p.is_dir() and re.fullmatch(r"\d{4}_\d{2}_\d{2}", p.name))
+        if not dates:
+            raise InputError(f"KittiRawScans(raw): expected {self.root}/<date> folders (e.g. "
+                             f"{self.root}/2011_09_26) holding <date>_drive_<NNNN>_sync/, found none")
+        frames = []
+        for day_dir in dates:
+            for drive_dir in sorted(p for p in day_dir.iterdir() if p.is_dir()):
+                for scan in sorted((drive_dir / "velodyne_points" / "data").glob("*.bin")):
+                    frames.append(_ScanFrame(
+                        name=f"{drive_dir.name}_{scan.stem}_{cam}",
+                        image=drive_dir / cam / "data" / f"{scan.stem}.png",
+                        velodyne=scan,
+                        calib=day_dir,
+                    ))
+        if not frames:
+            raise no_frames(self.root, "KittiRawScans(raw)", "<date>/<drive>/velodyne_points/data/*.bin")
+        return frames
+
+    def _list_object(self) -> list[_ScanFrame]:
+        layout = "KittiRawScans(object)"
+        velodyne_dir = require_dir(self.root / "velodyne", self.root, layout)
+        image_dir = require_dir(self.root / f"image_{self.camera}", self.root, layout)
+        calib_dir = require_dir(self.root / "calib", self.root, layout)
+        frames = [
+            _ScanFrame(name=scan.stem, image=image_dir / f"{scan.stem}.png", velodyne=scan,
+                       calib=calib_dir / f"{scan.stem}.txt")
+            for scan in sorted(velodyne_dir.glob("*.bin"))
+        ]
+        if not frames:
+            raise no_frames(self.root, layout, "velodyne/*.bin")
+        return frames
+
+    def _calibration(self, f: _ScanFrame) -> Calibration:
+        calib = self._calibrations.get(f.calib)
+        if calib is None:
+            if self.layout == "raw":
+                calib = read_raw_calibration(f.calib, camera=self.camera)
+            else:
+                calib = read_object_calibration(f.calib, camera=self.camera)
+            self._calibrations[f.calib] = calib
+        return calib
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def split_points(self, points: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Split one scan into (input, target) boolean point masks, per this dataset's options.
+
+        Args:
+            points: (N, 4) float32 Velodyne scan, in scan order.
+            name: the frame name (seeds the random draws).
+
+        Returns:
+            Two (N,) bool masks, disjoint; ``input`` already reflects ``keep_fraction``.
+        """
+        rng = np.random.default_rng(frame_seed(self.seed, name))
+        if self.holdout == "rings":
+            inp = projection.ring_mask(points, self.keep_every_ring)
+        else:
+            inp = projection.fraction_mask(points, 1.0 - self.holdout_fraction, seed=rng)
+        target = ~inp
+        if self.keep_fraction < 1.0:
+            kept = np.zeros_like(inp)
+            idx = np.flatnonzero(inp)
+            sub = projection.fraction_mask(idx, self.keep_fraction, seed=rng)
+            kept[idx[sub]] = True
+            inp = kept
+        return inp, target
+
+    def __getitem__(self, index: int) -> Sample:
+        f = self._frames[index]
+        rgb = read_rgb(f.image)
+        calib = self._calibration(f)
+        points = read_velodyne(f.velodyne)
+        size = rgb.shape[:2]
+        inp, held = self.split_points(points, f.name)
+        sparse = projection.project_velodyne(points[inp], calib, size)
+        target = projection.project_velodyne(points[held], calib, size)
+        # No leakage: a pixel is input or target, never both. The target is cleared where
+        # any input point (before keep_fraction thinning) lands, so it is the same set of
+        # pixels for every keep_fraction.
+        blocked = sparse if self.keep_fraction == 1.0 else projection.project_velodyne(points[~held], calib, size)
+        target[blocked > 0] = 0.0
+        return load_sample(
+            rgb=rgb, sparse=sparse, target=target, K=calib.K, name=f.name,
+            files={"image": f.image, "sparse": f.velodyne, "target": f.velodyne},
+            transform=self.transform,
+        )
+
+    @property
+    def names(self) -> list[str]:
+        """Sample names in dataset order."""
+        return [f.name for f in self._frames]

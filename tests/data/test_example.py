@@ -1,0 +1,121 @@
+"""Tests for the own-sensor example (crfdepth/data/example.py and the committed docs/example/)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from crfdepth import cli
+from crfdepth.api import points_to_sparse
+from crfdepth.data.example import EXAMPLE_SIZE, example_scene, main, write_example
+from crfdepth.errors import InputError
+from crfdepth.fill import nearest_fill
+from crfdepth.io.calibration import load_any_calibration
+from crfdepth.io.kitti import read_depth_png
+from crfdepth.io.pointcloud import read_points
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "example"
+FILES = ("image.png", "scan.pcd", "rig.yaml")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return example_scene()
+
+
+@pytest.fixture(scope="module")
+def regenerated(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("example") / "out"  # created by write_example
+    files = write_example(folder)
+    assert (files.image, files.points, files.calibration) == tuple(folder / name for name in FILES)
+    return folder
+
+
+def _rgb(path: Path) -> np.ndarray:
+    return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB)
+
+
+def _rmse(depth: np.ndarray, target: np.ndarray) -> float:
+    valid = target > 0
+    return float(np.sqrt(np.mean((depth[valid].astype(np.float64) - target[valid]) ** 2)))
+
+
+def test_regenerating_gives_the_committed_files(regenerated):
+    # The cloud and the calibration are byte-stable; the PNG is compared by its pixels
+    # (another OpenCV / zlib version may compress the same pixels differently).
+    for name in ("scan.pcd", "rig.yaml"):
+        assert (regenerated / name).read_bytes() == (EXAMPLE / name).read_bytes(), name
+    np.testing.assert_array_equal(_rgb(regenerated / "image.png"), _rgb(EXAMPLE / "image.png"))
+
+
+def test_files_load_and_hold_the_scene(scene):
+    image = _rgb(EXAMPLE / "image.png")
+    assert image.shape == (*EXAMPLE_SIZE, 3) == (480, 640, 3) and image.dtype == np.uint8
+    np.testing.assert_array_equal(image, np.rint(scene.image * 255).astype(np.uint8))
+    points = read_points(EXAMPLE / "scan.pcd")
+    assert points.dtype == np.float32 and points.shape[1] >= 3
+    np.testing.assert_array_equal(points[:, :3], scene.points[:, :3])
+    calib = load_any_calibration(EXAMPLE / "rig.yaml")
+    assert calib.image_size == (480, 640) and calib.distortion is None and calib.kitti is None
+    np.testing.assert_allclose(calib.K, scene.K, atol=1e-4)
+    np.testing.assert_array_equal(calib.T_cam_lidar, scene.T_cam_lidar)
+    total = sum((EXAMPLE / name).stat().st_size for name in FILES)
+    assert total < 400 * 1024
+
+
+def test_the_scan_is_a_16_beam_360_degree_sweep(scene):
+    points = read_points(EXAMPLE / "scan.pcd")
+    assert len(np.unique(scene.rings)) <= 16 and scene.rings.max() == 15
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    assert (azimuth < -170).any() and (azimuth > 170).any() and (np.abs(azimuth) < 10).any()
+    assert (points[:, 0] < -5).sum() > 1000  # behind the car too
+
+
+def test_the_rig_is_a_realistic_mount():
+    T = load_any_calibration(EXAMPLE / "rig.yaml").T_cam_lidar
+    R, t = T[:3, :3], T[:3, 3]
+    np.testing.assert_array_equal(R @ [1, 0, 0], [0, 0, 1])   # LiDAR x (forward) = camera z (forward)
+    np.testing.assert_array_equal(R @ [0, 1, 0], [-1, 0, 0])  # LiDAR y (left) = camera -x
+    np.testing.assert_array_equal(R @ [0, 0, 1], [0, -1, 0])  # LiDAR z (up) = camera -y (y down)
+    assert np.linalg.norm(t) < 0.5  # centimetres to decimetres apart, in metres
+    assert t[2] < 0 and t[1] < 0  # the LiDAR sits behind and above the camera
+
+
+def test_readme_command_runs_and_beats_nearest_fill(scene, tmp_path, monkeypatch):
+    """The README's own-sensor command on the committed files, checked against the ground truth."""
+    monkeypatch.setattr(cli, "_COMMANDS", ("crfdepth.cli.complete",))
+    out, out_std = tmp_path / "depth.png", tmp_path / "std.png"
+    status = cli.main(["complete", "--image", str(EXAMPLE / "image.png"), "--points", str(EXAMPLE / "scan.pcd"),
+                       "--calib", str(EXAMPLE / "rig.yaml"), "--out", str(out), "--out-std", str(out_std),
+                       "--vis"])
+    assert status == 0
+    for path in (out, out_std, tmp_path / "depth_vis_depth.png", tmp_path / "depth_vis_std.png"):
+        assert path.is_file(), path
+    depth, std = read_depth_png(out), read_depth_png(out_std)
+    assert depth.shape == std.shape == (480, 640) and (depth > 0).all() and (std > 0).all()
+
+    target = scene.target()  # dense ground truth below the top scan line, up to 80 m
+    assert (target > 0).mean() > 0.5
+    calib = load_any_calibration(EXAMPLE / "rig.yaml")
+    sparse = points_to_sparse(read_points(EXAMPLE / "scan.pcd"), calib, EXAMPLE_SIZE)
+    assert 0.005 < (sparse > 0).mean() < 0.02  # a 16-beam scan: about 1 % of the pixels
+    nearest = nearest_fill(torch.from_numpy(sparse)).numpy()
+    crf, baseline = _rmse(depth, target), _rmse(nearest, target)
+    # Measured: 1.17 m against 1.69 m for nearest fill.
+    assert crf < 1.5 and crf < 0.85 * baseline, (crf, baseline)
+
+
+def test_bad_folder_and_entry_point(tmp_path, capsys):
+    file = tmp_path / "a_file"
+    file.write_text("")
+    with pytest.raises(InputError, match=f"folder: expected a folder for the example files, got a file: {file}"):
+        write_example(file)
+    with pytest.raises(InputError, match="seed"):
+        write_example(tmp_path / "x", seed=-1)
+    assert not (tmp_path / "x").exists()  # nothing written before the arguments are checked
+    assert main([str(file)]) == 2
+    assert "error: folder: expected a folder" in capsys.readouterr().err
