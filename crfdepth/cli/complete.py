@@ -11,7 +11,7 @@ One frame from a raw point cloud and a calibration (instead of --sparse/--intrin
 
 ``CLOUD`` is a ``.bin`` (KITTI), ``.npy``, ``.ply`` or ``.pcd`` file
 (:func:`crfdepth.io.pointcloud.read_points`); ``CALIB`` a rig YAML/JSON file or any KITTI
-calibration (:func:`crfdepth.io.rig.load_any_calibration`; ``--camera`` picks the KITTI
+calibration (:func:`crfdepth.io.calibration.load_any_calibration`; ``--camera`` picks the KITTI
 camera). The cloud is projected by :func:`crfdepth.api.points_to_sparse` (KITTI: the
 exact KITTI projection) and the image undistorted when the calibration has
 ``distortion`` (:mod:`crfdepth.api`).
@@ -158,6 +158,8 @@ def _flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
     head, sep, rest = text.partition(":")
     if sep and head.strip() in flags:
         return InputError(f"{flags[head.strip()]}:{rest}")
+    if "*" in flags:  # a message about the inputs together (e.g. no point lands in the image)
+        return InputError(f"{flags['*']}: {text}")
     return exc
 
 
@@ -233,7 +235,8 @@ def _run_one(args: argparse.Namespace) -> int:
             raise InputError(f"--calib: {exc}") from None
         inputs = dict(points=points, calibration=calibration)
         where = {"points": f"--points {args.points}", "calibration": f"--calib {args.calib}",
-                 "K": f"--calib {args.calib}", "T_cam_lidar": f"--calib {args.calib}", "image": f"--image {args.image}"}
+                 "K": f"--calib {args.calib}", "T_cam_lidar": f"--calib {args.calib}", "image": f"--image {args.image}",
+                 "*": f"--points {args.points} with --calib {args.calib}"}
     else:
         sparse = read_depth_png(args.sparse)
         K = read_intrinsics(args.intrinsics)
