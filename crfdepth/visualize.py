@@ -5,12 +5,12 @@ an uint8 **RGB** image; nothing is written and the input is never modified. Pixe
 without a value (0, negative, NaN or inf: KITTI's "no measurement") are painted
 ``invalid_color`` (black by default), which neither colour map uses.
 
-Pictures for people, with a colour bar in metres under the map (drawn with OpenCV):
+Pictures for people, with a colour bar in metres under the map, are in :mod:`crfdepth.pictures`:
 
-- :func:`depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
+- :func:`crfdepth.pictures.depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
   depth, near = warm (red), far = cold (blue). Inverse depth spreads the near range,
   where the detail is, and compresses the sky and far background.
-- :func:`std_picture`: the posterior standard deviation (docs/design.md section 5),
+- :func:`crfdepth.pictures.std_picture`: the posterior standard deviation (docs/design.md section 5),
   VIRIDIS (dark purple = certain, yellow = uncertain) on a *log* scale by default: the
   std is small near the LiDAR and one or two decades larger far from it, and a linear
   scale paints everything near the data with a single colour.
@@ -31,7 +31,6 @@ The bare colour maps, same size as the map, no bar: :func:`colorize_depth`,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from numbers import Real
 from typing import Literal
 
@@ -44,11 +43,9 @@ from crfdepth.errors import InputError
 __all__ = [
     "colorize_depth",
     "colorize_std",
-    "depth_picture",
     "depth_range",
     "draw_points",
     "render_point_cloud",
-    "std_picture",
     "std_range",
 ]
 
@@ -148,7 +145,7 @@ def _robust_range(values: np.ndarray, percentiles, name: str, what: str) -> tupl
 
 
 def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
-    """The default colour range of :func:`depth_picture`: robust percentiles of the valid depths.
+    """The default colour range of :func:`crfdepth.pictures.depth_picture`: robust percentiles of the valid depths.
 
     The 2nd to 98th percentile by default, so a few very near points or the far
     background do not squeeze the colours of the rest. To give every frame of a sequence
@@ -172,7 +169,7 @@ def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
 
 
 def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
-    """The default colour range of :func:`std_picture`: robust percentiles of the stds > 0.
+    """The default colour range of :func:`crfdepth.pictures.std_picture`: robust percentiles of the stds > 0.
 
     Like :func:`depth_range`; zero stds are left out (the log scale has no place for
     them; they are painted with the bottom colour).
@@ -195,7 +192,7 @@ def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
 def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, *,
                    vis_range: tuple[float, float] | None = None, colormap: int = cv2.COLORMAP_TURBO,
                    invalid_color=_BLACK) -> np.ndarray:
-    """Colour map of a depth map, near = warm (no colour bar: see :func:`depth_picture`).
+    """Colour map of a depth map, near = warm (no colour bar: see :func:`crfdepth.pictures.depth_picture`).
 
     The colour is linear in inverse depth: ``t = (1/d - 1/vmax) / (1/vmin - 1/vmax)``,
     clipped to [0, 1], so ``vmin`` (and nearer) gets the warm end of ``colormap`` (dark
@@ -245,7 +242,7 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
                  percentile: float = 99.0, colormap: int = cv2.COLORMAP_VIRIDIS,
                  invalid_color=_BLACK) -> np.ndarray:
     """Colour map of a standard-deviation (uncertainty) map, certain = dark (no colour bar:
-    see :func:`std_picture`).
+    see :func:`crfdepth.pictures.std_picture`).
 
     ``scale="linear"``: ``t = (std - vmin) / (vmax - vmin)``; ``scale="log"``:
     ``t = log(std / vmin) / log(vmax / vmin)``; clipped to [0, 1]. With VIRIDIS, ``vmin``
@@ -306,179 +303,6 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
     span = vmax - vmin
     t = (s - vmin) / span if span > 0 else np.zeros_like(s)
     return _paint(t, valid, colormap, invalid_color)
-
-
-def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
-                  invalid_color=_BLACK) -> np.ndarray:
-    """A depth map a reader can read: :func:`colorize_depth` with a colour bar in metres below.
-
-    Near = warm (TURBO on inverse depth, see :func:`colorize_depth`). The bar under the
-    map runs from ``min_m`` (left, dark red) to ``max_m`` (right, dark blue) on the same
-    inverse-depth scale, with tick labels in metres ("5 m", "10 m", ...); depths outside
-    the range get the colour of the nearer end.
-
-    Args:
-        depth: (H, W) depth in metres (also (1, H, W) or (1, 1, H, W); numpy or torch);
-            0, negative or non-finite = no depth (``invalid_color``).
-        vis_range: ``(min_m, max_m)``, 0 < min_m < max_m: a fixed range, the same
-            colours for the same metres in every frame of a sequence. Default
-            :func:`depth_range` of this map (2nd to 98th percentile of its valid depths),
-            so colours are comparable within a frame only.
-        invalid_color: (R, G, B) of pixels without depth; default black.
-
-    Returns:
-        (H + 44, max(W, 320), 3) uint8 RGB: the map at the top left (pixel for pixel
-        :func:`colorize_depth` with the same range), the colour bar on white below it.
-
-    Raises:
-        InputError: not a 2-D real map, a bad ``vis_range``, or no valid depth when
-            ``vis_range`` is None.
-    """
-    d = _as_map("depth", depth)
-    lo, hi = depth_range(d) if vis_range is None else _check_vis_range(vis_range, positive=True)
-    rgb = colorize_depth(d, lo, hi, invalid_color=invalid_color)
-    return _with_colour_bar(rgb, _Scale("inverse", lo, hi), "depth",
-                            lambda m: colorize_depth(m, lo, hi, invalid_color=invalid_color))
-
-
-def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *, scale: Scale = "log",
-                lidar_color=_WHITE, invalid_color=_BLACK) -> np.ndarray:
-    """An uncertainty map a reader can read: :func:`colorize_std` with a colour bar in metres below.
-
-    Certain = dark (VIRIDIS). On the default log scale the bar's ticks are log-spaced
-    (1, 2, 5 per decade, "0.5 m", "1 m", "2 m", ...) and equal steps of colour are equal
-    *ratios* of std, so both the small std near the LiDAR and the large std far from it
-    are told apart (docs/design.md section 5).
-
-    Args:
-        std: (H, W) posterior standard deviation in metres (also (1, H, W) or
-            (1, 1, H, W); numpy or torch); negative or non-finite = no value
-            (``invalid_color``); 0 = the bottom colour.
-        vis_range: ``(min_m, max_m)``, min_m < max_m (> 0 for log): a fixed range for a
-            sequence. Default :func:`std_range` (2nd to 98th percentile of the stds > 0).
-        lidar: optional (H, W) sparse depth in metres (0 = no point); when given, its
-            points are drawn as single pixels of ``lidar_color`` over the map, to show
-            where the measurements are.
-        scale: "log" (default) or "linear".
-        lidar_color: (R, G, B) of the LiDAR pixels; default white (not in VIRIDIS).
-        invalid_color: (R, G, B) of pixels without a value; default black.
-
-    Returns:
-        (H + 44, max(W, 320), 3) uint8 RGB: the map at the top left (pixel for pixel
-        :func:`colorize_std` with the same range and scale, but for the LiDAR pixels), the
-        colour bar on white below it.
-
-    Raises:
-        InputError: not a 2-D real map, a bad ``vis_range`` or ``scale``, ``lidar`` not
-            of the map's shape, or no std > 0 when ``vis_range`` is None on the log scale.
-    """
-    s = _as_map("std", std)
-    scale = _check_scale(scale)
-    if vis_range is not None:
-        lo, hi = _check_vis_range(vis_range, positive=scale == "log")
-    elif scale == "log":
-        lo, hi = std_range(s)
-    else:  # linear: from 0 to the 98th percentile
-        lo, hi = 0.0, std_range(s)[1]
-    rgb = colorize_std(s, lo, hi, scale=scale, invalid_color=invalid_color)
-    if lidar is not None:
-        points = _as_map("lidar", lidar)
-        if points.shape != s.shape:
-            raise InputError(f"lidar: expected an (H, W) sparse depth map of shape {s.shape} like std, "
-                             f"got shape {points.shape}")
-        rgb[np.isfinite(points) & (points > 0)] = _check_color(lidar_color, "lidar_color")
-    return _with_colour_bar(rgb, _Scale(scale, lo, hi), "std" if scale == "linear" else "std, log",
-                            lambda m: colorize_std(m, lo, hi, scale=scale, invalid_color=invalid_color))
-
-
-# --------------------------------------------------------------------------- colour bar
-
-_BAR_PANEL_HEIGHT = 44
-_BAR_MIN_WIDTH = 320
-_BAR_TOP, _BAR_BOTTOM = 6, 20  # rows of the colour strip in the panel
-_TICK_LENGTH = 4
-_LABEL_BASELINE = 38
-_FONT, _FONT_SCALE = cv2.FONT_HERSHEY_SIMPLEX, 0.45
-_INK, _PAPER, _FRAME = (0, 0, 0), (255, 255, 255), (128, 128, 128)
-
-
-@dataclass(frozen=True)
-class _Scale:
-    """Where metres sit on a bar: position 0 = ``lo`` (left), 1 = ``hi`` (right)."""
-
-    kind: str  # "inverse" (depth), "log" or "linear" (std)
-    lo: float
-    hi: float
-
-    def position(self, metres: np.ndarray) -> np.ndarray:
-        m = np.asarray(metres, dtype=np.float64)
-        if self.kind == "inverse":
-            return (1.0 / self.lo - 1.0 / m) / (1.0 / self.lo - 1.0 / self.hi)
-        if self.kind == "log":
-            return np.log(m / self.lo) / math.log(self.hi / self.lo)
-        return (m - self.lo) / (self.hi - self.lo)
-
-    def metres(self, position: np.ndarray) -> np.ndarray:
-        t = np.asarray(position, dtype=np.float64)
-        if self.kind == "inverse":
-            return 1.0 / (1.0 / self.lo - t * (1.0 / self.lo - 1.0 / self.hi))
-        if self.kind == "log":
-            return self.lo * (self.hi / self.lo) ** t
-        return self.lo + t * (self.hi - self.lo)
-
-    def candidate_ticks(self) -> list[float]:
-        """Round values inside the range, most important first (1, 5, 2, then 3 per decade)."""
-        if self.kind == "linear":
-            raw = (self.hi - self.lo) / 5.0
-            step = min((m * 10.0 ** math.floor(math.log10(raw)) for m in (1, 2, 5, 10)),
-                       key=lambda s: abs(s - raw))
-            first = math.ceil(self.lo / step)
-            return [k * step for k in range(first, int(math.floor(self.hi / step)) + 1)]
-        decades = range(math.floor(math.log10(self.lo)), math.ceil(math.log10(self.hi)) + 1)
-        values = [m * 10.0 ** e for m in (1, 5, 2, 3) for e in decades]
-        return [v for v in values if self.lo <= v <= self.hi]
-
-
-def _format_metres(value: float) -> str:
-    if value == 0:
-        return "0 m"
-    text = f"{value:.0f}" if abs(value) >= 100 else f"{value:.2g}"
-    return f"{text} m"
-
-
-def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.ndarray:
-    """``rgb`` on top of a white panel holding ``title`` and the colour bar of ``scale``.
-
-    ``paint(metres)`` colours a (1, n) row of metres exactly as the map was coloured, so
-    the bar shows the map's own colours.
-    """
-    h, w = rgb.shape[:2]
-    width = max(w, _BAR_MIN_WIDTH)
-    out = np.full((h + _BAR_PANEL_HEIGHT, width, 3), _PAPER, np.uint8)
-    out[:h, :w] = rgb
-    panel = out[h:]
-    (title_w, title_h), _ = cv2.getTextSize(title, _FONT, _FONT_SCALE, 1)
-    middle = (_BAR_TOP + _BAR_BOTTOM) // 2
-    cv2.putText(panel, title, (8, middle + title_h // 2), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
-    x0, x1 = 8 + title_w + 28, width - 24  # bar columns [x0, x1); room for half a label each side
-    n = x1 - x0
-    positions = np.arange(n) / (n - 1)
-    panel[_BAR_TOP:_BAR_BOTTOM, x0:x1] = paint(scale.metres(positions)[None])[0]
-    cv2.rectangle(panel, (x0 - 1, _BAR_TOP - 1), (x1, _BAR_BOTTOM), _FRAME, 1)
-    # Ticks: both ends first, then round values while their labels do not overlap.
-    taken: list[tuple[int, int]] = []
-    for value in [scale.lo, scale.hi, *scale.candidate_ticks()]:
-        x = x0 + int(round(float(scale.position(value)) * (n - 1)))
-        label = _format_metres(value)
-        (label_w, _), _ = cv2.getTextSize(label, _FONT, _FONT_SCALE, 1)
-        left = min(max(x - label_w // 2, 0), width - label_w)
-        span = (left - 4, left + label_w + 4)
-        if any(span[0] < b and a < span[1] for a, b in taken):
-            continue
-        taken.append(span)
-        cv2.line(panel, (x, _BAR_BOTTOM), (x, _BAR_BOTTOM + _TICK_LENGTH - 1), _INK, 1)
-        cv2.putText(panel, label, (left, _LABEL_BASELINE), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
-    return out
 
 
 def draw_points(rgb: np.ndarray, sparse, vmin: float | None = None, vmax: float | None = None,

@@ -1,20 +1,19 @@
-"""crfdepth.visualize: depth and std colouring, colour bars, LiDAR points on the image, the point-cloud view."""
+"""crfdepth.visualize and crfdepth.pictures: depth and std colouring, colour bars, LiDAR points on the image, the point-cloud view."""
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from crfdepth import visualize
+from crfdepth import pictures
 from crfdepth.errors import InputError
+from crfdepth.pictures import depth_picture, std_picture
 from crfdepth.visualize import (
     colorize_depth,
     colorize_std,
-    depth_picture,
     depth_range,
     draw_points,
     render_point_cloud,
-    std_picture,
     std_range,
 )
 
@@ -127,9 +126,9 @@ def test_depth_picture_has_a_colour_bar_in_metres_below_the_map():
     tick_rows = np.flatnonzero(lut[:, columns[0]])[-1] + 2
     assert (panel[tick_rows, columns[0] - 1:columns[-1] + 2] == 0).all(-1).any()
     text = "10 m"
-    (tw, th), base = cv2.getTextSize(text, visualize._FONT, visualize._FONT_SCALE, 1)
+    (tw, th), base = cv2.getTextSize(text, pictures._FONT, pictures._FONT_SCALE, 1)
     template = np.full((th + base + 4, tw + 4, 3), 255, np.uint8)
-    cv2.putText(template, text, (2, th + 2), visualize._FONT, visualize._FONT_SCALE, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(template, text, (2, th + 2), pictures._FONT, pictures._FONT_SCALE, (0, 0, 0), 1, cv2.LINE_AA)
     score = cv2.matchTemplate(panel, template, cv2.TM_SQDIFF)
     _, _, (x, _), _ = cv2.minMaxLoc(score)
     assert score.min() == 0 and abs(x + 2 + tw / 2 - columns.mean()) <= 2

@@ -1,4 +1,4 @@
-"""The Lightning module that learns the CRF's potential weights (DESIGN.md sections 3, 5, 7).
+"""The Lightning module that learns the CRF's potential weights (docs/design.md sections 3, 5, 7).
 
 :class:`CRFDepthModule` wraps one :class:`crfdepth.model.CRFDepth` as ``self.model`` and
 fits its few parameters (alpha..delta, the sigmas, the data confidence, the refinement
@@ -69,7 +69,7 @@ def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l
 
 
 def gaussian_nll(depth: torch.Tensor, std: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Per-image Gaussian negative log-likelihood of the targets (DESIGN.md section 5).
+    """Per-image Gaussian negative log-likelihood of the targets (docs/design.md section 5).
 
     ``log std + (x - t)^2 / (2 std^2)`` (the constant ``log sqrt(2 pi)`` left out),
     averaged over each image's target pixels. ``depth`` is used as given: detach it to
@@ -100,7 +100,7 @@ class CRFDepthModule(pl.LightningModule):
     ``depth_loss`` is the per-image mean over target pixels (``t > 0``) of
     ``(x - t)^2`` (``"l2"``, m^2) or ``|x - t|`` (``"l1"``, m). The NLL term sees the
     depth detached, so it fits the std scale ``s`` only (the std's only learnable factor;
-    DESIGN.md section 5) and the depth loss alone decides the potential weights. With
+    docs/design.md section 5) and the depth loss alone decides the potential weights. With
     ``nll_weight = 0`` the std is not computed and ``s`` stays frozen.
 
     Args:

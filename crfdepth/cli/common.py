@@ -22,7 +22,7 @@ import torch
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.model import POTENTIALS, CRFDepth
-from crfdepth.visualize import depth_picture, std_picture
+from crfdepth.pictures import depth_picture, std_picture
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_model, load_pretrained
 
 logger = logging.getLogger(__name__)

@@ -9,9 +9,9 @@ next to the nearest-neighbour baseline, and writes to ``--out-dir`` (default
 - ``<name>_input.png``: the camera image with the LiDAR points drawn on it, coloured by
   depth like the depth picture, with its colour bar in metres;
 - ``<name>_depth.png``: the dense depth (near = warm) with a colour bar in metres
-  (:func:`crfdepth.visualize.depth_picture`);
+  (:func:`crfdepth.pictures.depth_picture`);
 - ``<name>_std.png``: the posterior standard deviation on a log scale with a colour bar in
-  metres (:func:`crfdepth.visualize.std_picture`, docs/design.md section 5);
+  metres (:func:`crfdepth.pictures.std_picture`, docs/design.md section 5);
 - ``<name>_points.png``: the completed depth as a coloured 3D point cloud seen from
   above and behind the camera;
 - ``data/<name>_depth16.png``: the depth as data, a KITTI uint16 PNG (metres * 256,
@@ -52,7 +52,8 @@ from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
-from crfdepth.visualize import depth_picture, depth_range, draw_points, render_point_cloud, std_picture
+from crfdepth.pictures import depth_picture, std_picture
+from crfdepth.visualize import depth_range, draw_points, render_point_cloud
 
 logger = logging.getLogger(__name__)
 
