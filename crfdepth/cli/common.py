@@ -181,7 +181,7 @@ def vis_range_type(text: str) -> float:
     except ValueError:
         value = float("nan")
     if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a depth in metres > 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a finite number of metres > 0, got {text!r}")
     return value
 
 

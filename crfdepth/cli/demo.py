@@ -40,15 +40,14 @@ import os
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
+from crfdepth.cli.common import vis_range_type, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
-from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
@@ -82,17 +81,6 @@ def _int_at_least(low: int, high: int | None = None):
         return value
 
     return parse
-
-
-def _positive_metres(text: str) -> float:
-    """argparse ``type=``: a finite number of metres > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number of metres > 0, got {text!r}")
-    return value
 
 
 class _VisRange(argparse.Action):
@@ -131,7 +119,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                              f"default: {DEFAULT_WEIGHTS}")
     parser.add_argument("--max-frames", type=_int_at_least(1), default=2,
                         help="KITTI frames to run, >= 1 (default 2)")
-    parser.add_argument("--vis-range", nargs=2, type=_positive_metres, action=_VisRange, default=None,
+    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=_VisRange, default=None,
                         metavar=("MIN", "MAX"),
                         help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
                              "frame (default: 2nd to 98th percentile of each frame's depth)")
@@ -212,14 +200,6 @@ def _frames(args: argparse.Namespace):
 # --------------------------------------------------------------------------- outputs
 
 
-def _write_picture(path: Path, rgb: np.ndarray) -> None:
-    """Write an (H, W, 3) uint8 RGB picture as PNG, atomically."""
-    ok, encoded = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:  # pragma: no cover - cv2 encodes any uint8 HxWx3 array
-        raise InputError(f"--out-dir: could not encode a picture of shape {rgb.shape} as PNG")
-    atomic_write_bytes(path, encoded.tobytes())
-
-
 def _pictures(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, depth: np.ndarray,
               std: np.ndarray, vis_range: tuple[float, float]) -> dict[str, np.ndarray]:
     """The demo's pictures of one frame, keyed by :data:`PICTURES`."""
@@ -263,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         depth_np, std_np = depth.cpu().numpy(), std.cpu().numpy()
         vis_range = args.vis_range if args.vis_range is not None else depth_range(depth_np)
         for kind, picture in _pictures(image, sparse, K, depth_np, std_np, vis_range).items():
-            _write_picture(out_dir / f"{name}_{kind}.png", picture)
+            write_rgb_png(out_dir / f"{name}_{kind}.png", picture)
         print(f"  pictures: {out_dir / name}_{{{','.join(PICTURES)}}}.png (depth colours "
               f"{vis_range[0]:.3g}-{vis_range[1]:.3g} m)")
         write_depth_png(data_dir / f"{name}_depth16.png", depth_np)
