@@ -291,6 +291,8 @@ BAD_INPUTS = {
     "K fx <= 0": (_k_text("0 0 32 0 60 24 0 0 1"), ["fx = K[0][0] > 0", "fx=0", "badK.txt"]),
     "K fy < 0": (_k_text("60 0 32 0 -60 24 0 0 1"), ["fx = K[0][0] > 0", "fy=-60", "badK.txt"]),
     "K last row": (_k_text("60 0 32 0 60 24 0 1 0"), ["last row", "badK.txt"]),
+    "K principal point far outside": (_k_text("60 0 600 0 60 150 0 0 1"),
+                                      ["--intrinsics", "principal point", "far outside", "badK.txt"]),
     "all-zero sparse": (_zero_sparse, ["no LiDAR point", "zero.png"]),
     "missing image": (lambda p, t: {**p, "image": t / "nope.png"}, ["no such file", "nope.png"]),
     "missing sparse": (lambda p, t: {**p, "sparse": t / "nope.png"}, ["no such file", "nope.png"]),
