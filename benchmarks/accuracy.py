@@ -16,6 +16,8 @@ annotation; each frame's input and target pixels are disjoint.
 Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 
 - ``nn``: nearest-LiDAR fill (:func:`crfdepth.fill.nearest_fill`);
+- ``ipbasic``: IP-Basic (Ku et al. 2018), fast configuration, as written here in torch
+  (:func:`crfdepth.classical.ip_basic_fill`); the classical baseline to beat;
 - ``inpaint``: OpenCV ``cv2.inpaint`` (Telea, radius 5) of the sparse map as float32
   metres (OpenCV 5 takes 1-channel float32), clipped to the input's depth range (Telea
   overshoots below 0 near the image border otherwise);
@@ -84,6 +86,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from crfdepth.classical import ip_basic_fill
 from crfdepth.data.factory import build_dataset
 from crfdepth.fill import nearest_fill
 from crfdepth.metrics import SPARSIFY_STEPS, ause, average_metrics, depth_metrics
@@ -119,7 +122,7 @@ CRF_METHODS = {
     "sp1200": dict(superpixels=1200, refine=False),
     "sp2400": dict(superpixels=2400, refine=False),
 }
-METHODS = ("nn", "inpaint", *CRF_METHODS)
+METHODS = ("nn", "ipbasic", "inpaint", *CRF_METHODS)
 WITH_STD = ("paper", "learned")
 # The Table 1 ablations with weights learned for each configuration (protocol a only:
 # ``--learn-ablations``), as the paper does.
@@ -202,6 +205,8 @@ def predict(method: str, model: CRFDepth | None, image, sparse, K, device: str):
     with torch.no_grad():
         if method == "nn":
             depth = nearest_fill(sparse)
+        elif method == "ipbasic":
+            depth = ip_basic_fill(sparse)
         elif method == "inpaint":
             depth = inpaint(sparse)
         else:
