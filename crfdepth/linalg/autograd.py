@@ -7,6 +7,7 @@ arguments of the public functions; the library's own callers pass trusted tensor
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -46,14 +47,24 @@ class SolveInfo:
                 f"converged {self.converged.tolist()}")
 
 
+# Forward tolerance of a solve that will be differentiated (docs/design.md section 4). The
+# shipped model's gradients (L1 loss, adjoint at rtol 1e-5) against tight-tolerance ones,
+# worst parameter, float64, forward rtol 1e-5 / 1e-7 / 1e-8 / 1e-9: 18% / 0.7% / 0.03% /
+# 0.02% on the real KITTI val frame, 210% / 4.6% / 0.5% / 0.05% on the synthetic scene.
+GRAD_RTOL = 1e-8
+
+
 @dataclass
 class _Settings:
+    """Checked solve settings (:func:`crfdepth.linalg.solver_settings` documents them)."""
+
     method: str
     rtol: float
     max_iter: int | None
     check_every: int
     on_nonconvergence: str
     restarts: int = 3
+    grad_rtol: float = GRAD_RTOL
 
 
 # ----------------------------------------------------------------------------------------
@@ -110,9 +121,13 @@ def _report(info: SolveInfo, settings: _Settings, what: str) -> None:
 class _LaplacianSolve(torch.autograd.Function):
     """``x = A^-1 b`` with ``A = diag(d) + L(w)``, differentiated implicitly.
 
-    Forward: Krylov solve under ``no_grad``.
+    Forward: Krylov solve under ``no_grad``. A solve whose result will be differentiated
+    runs to ``min(rtol, grad_rtol)`` and, for float32 (or half) inputs, in float64: the
+    gradient below is exact only at ``A x = b``, and an early-stopped ``x`` biases it
+    (docs/design.md section 4). ``x`` is returned in the inputs' dtype.
 
-    Backward (A is symmetric): with ``g = dLoss/dx`` solve ``A lam = g`` once; then, from
+    Backward (A is symmetric): with ``g = dLoss/dx`` solve ``A lam = g`` once (to ``rtol``
+    relative to ``||g||``, in the forward's working precision); then, from
     ``dx = A^-1 (db - dA x)``,
 
     - ``dLoss/db = lam``
@@ -124,36 +139,49 @@ class _LaplacianSolve(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, structure, settings, info_box, x0, b, d, *weights):
+    def forward(ctx, structure, settings, differentiable, info_box, x0, b, d, *weights):
+        work = torch.float64 if differentiable and b.dtype in _LOW_PRECISION else b.dtype
+        forward_settings = settings
+        if differentiable and settings.grad_rtol < settings.rtol:
+            forward_settings = dataclasses.replace(settings, rtol=settings.grad_rtol)
         with torch.no_grad():
-            x, info, solver_state = _forward_solve(structure, settings, x0, b, d, weights)
+            x, info, solver_state = _forward_solve(structure, forward_settings, None if x0 is None else x0.to(work),
+                                                   b.to(work), d.to(work), [w.to(work) for w in weights])
         info_box.append(info)
-        ctx.structure, ctx.settings, ctx.info = structure, settings, info
-        ctx.solver_state = solver_state
-        ctx.save_for_backward(x)
+        ctx.settings, ctx.info, ctx.solver_state = settings, info, solver_state
+        ctx.save_for_backward(x)  # in the working precision
         ctx.num_weights = len(weights)
-        return x
+        ctx.dtype = b.dtype
+        return x.to(b.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x):
         (x,) = ctx.saved_tensors
-        needs = ctx.needs_input_grad
-        if not any(needs[4:]):
-            return (None,) * (6 + ctx.num_weights)
+        needs = ctx.needs_input_grad  # (structure, settings, differentiable, info_box, x0, b, d, *weights)
+        if not any(needs[5:]):
+            return (None,) * (7 + ctx.num_weights)
         layout, scaled_matvec, s_rows, diag_rows = ctx.solver_state
-        g_rows = layout.to_rows(grad_x.contiguous())
+        g_rows = layout.to_rows(grad_x.to(x.dtype).contiguous())
         lam_rows, info = _krylov_solve(layout, scaled_matvec, s_rows, diag_rows, g_rows, None, ctx.settings)
         ctx.info.adjoint = info
         _report(info, ctx.settings, "adjoint solve")
         lam = layout.from_rows(lam_rows)
-        grad_b = lam if needs[4] else None
-        grad_d = -lam * x if needs[5] else None
+        grad_b = lam.to(ctx.dtype) if needs[5] else None
+        grad_d = (-lam * x).to(ctx.dtype) if needs[6] else None
         grad_w = [None] * ctx.num_weights
-        if any(needs[6:]):
+        if any(needs[7:]):
             gw = layout.weight_grad(lam, x)
-            grad_w = list(gw) if isinstance(gw, tuple) else [gw]
-        return (None, None, None, None, grad_b, grad_d, *grad_w)
+            grad_w = [g.to(ctx.dtype) for g in (gw if isinstance(gw, tuple) else (gw,))]
+        return (None, None, None, None, None, grad_b, grad_d, *grad_w)
+
+
+_LOW_PRECISION = (torch.float16, torch.bfloat16, torch.float32)
+
+
+def _differentiable(*tensors: torch.Tensor) -> bool:
+    """Will the solve's result be differentiated (grad mode on and an input requiring grad)?"""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
 def _forward_solve(structure, settings, x0, b, d, weights):
@@ -180,7 +208,8 @@ def _forward_solve(structure, settings, x0, b, d, weights):
 def solve_laplacian_trusted(b, d, edge_index, edge_weight, ptr, x0, settings: _Settings):
     """:func:`crfdepth.linalg.solve_laplacian` without input checks (``ptr`` required, ``x0`` detached or None)."""
     box: list[SolveInfo] = []
-    x = _LaplacianSolve.apply(EdgeGraph(edge_index, ptr), settings, box, x0, b, d, edge_weight)
+    x = _LaplacianSolve.apply(EdgeGraph(edge_index, ptr), settings, _differentiable(b, d, edge_weight), box, x0, b,
+                              d, edge_weight)
     return x, box[0]
 
 
@@ -188,5 +217,6 @@ def solve_grid_laplacian_trusted(b, d, weight_h, weight_v, x0, settings: _Settin
     """:func:`crfdepth.linalg.solve_grid_laplacian` without input checks."""
     box: list[SolveInfo] = []
     bsz, h, w = b.shape
-    x = _LaplacianSolve.apply(PixelGrid(bsz, h, w), settings, box, x0, b, d, weight_h, weight_v)
+    x = _LaplacianSolve.apply(PixelGrid(bsz, h, w), settings, _differentiable(b, d, weight_h, weight_v), box, x0,
+                              b, d, weight_h, weight_v)
     return x, box[0]

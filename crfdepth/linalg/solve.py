@@ -20,6 +20,7 @@ import torch
 from crfdepth.errors import InputError
 from crfdepth.linalg.autograd import (
     _METHODS,
+    GRAD_RTOL,
     SolveInfo,
     _Settings,
     solve_grid_laplacian_trusted,
@@ -59,23 +60,29 @@ def _check_float(name: str, t: torch.Tensor, ref: torch.Tensor, nonneg: bool) ->
 
 
 def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
-                    on_nonconvergence: OnFail = "warn") -> _Settings:
-    """The checked settings of a solve, for :mod:`crfdepth.linalg.autograd`'s trusted solves."""
-    return _check_settings(method, rtol, max_iter, check_every, on_nonconvergence)
+                    on_nonconvergence: OnFail = "warn", grad_rtol: float = GRAD_RTOL) -> _Settings:
+    """The checked settings of a solve, for :mod:`crfdepth.linalg.autograd`'s trusted solves.
+
+    The arguments are those of :func:`solve_laplacian`.
+    """
+    return _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol)
 
 
-def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence) -> _Settings:
+def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol=GRAD_RTOL) -> _Settings:
     if method not in _METHODS:
         raise InputError(f"method: expected one of {sorted(_METHODS)}, got {method!r}")
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise InputError(f"rtol: expected a number in (0, 1), got {rtol!r}")
+    if not (isinstance(grad_rtol, (int, float)) and 0 < grad_rtol < 1):
+        raise InputError(f"grad_rtol: expected a number in (0, 1), got {grad_rtol!r}")
     if max_iter is not None and (not isinstance(max_iter, int) or max_iter < 0):
         raise InputError(f"max_iter: expected a non-negative int or None, got {max_iter!r}")
     if not isinstance(check_every, int) or check_every < 1:
         raise InputError(f"check_every: expected a positive int, got {check_every!r}")
     if on_nonconvergence not in ("warn", "raise", "ignore"):
         raise InputError(f"on_nonconvergence: expected 'warn', 'raise' or 'ignore', got {on_nonconvergence!r}")
-    return _Settings(str(method), float(rtol), max_iter, check_every, on_nonconvergence)
+    return _Settings(str(method), float(rtol), max_iter, check_every, on_nonconvergence,
+                     grad_rtol=float(grad_rtol))
 
 
 def _check_positive_definite(d: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray,
@@ -118,6 +125,7 @@ def solve_laplacian(
     max_iter: int | None = None,
     check_every: int = 8,
     on_nonconvergence: OnFail = "warn",
+    grad_rtol: float = GRAD_RTOL,
 ) -> tuple[torch.Tensor, SolveInfo]:
     """Solve ``(diag(d) + L(edge_index, edge_weight)) x = b`` for a batch of graphs.
 
@@ -141,22 +149,30 @@ def solve_laplacian(
         x0: (N,) warm start (no gradient flows to it); None starts from zero.
         method: "cg" (Jacobi-preconditioned Conjugate Gradient, default) or "cgs"
             (Conjugate Gradient Squared as in the paper; can diverge in float32).
-        rtol: relative tolerance on ``||b - A x|| / ||b||`` per graph.
+        rtol: relative tolerance on ``||b - A x|| / ||b||`` per graph; the adjoint solve
+            of the backward pass stops at ``||g - A lam|| <= rtol ||g||``.
         max_iter: iteration cap per solve; default ``10 sqrt(n) + 100`` for the largest
             graph of ``n`` nodes.
         check_every: iterations between convergence checks (each is a host sync).
         on_nonconvergence: "warn" (a :class:`ConvergenceWarning` with the numbers),
-            "raise" (:class:`ConvergenceError`) or "ignore".
+            "raise" (:class:`ConvergenceError`) or "ignore"; the adjoint solve too.
+        grad_rtol: tolerance of the forward solve when its result will be differentiated
+            (grad mode on and ``b``, ``d`` or ``edge_weight`` requiring grad): the tighter
+            of ``rtol`` and ``grad_rtol`` is used, and float32 inputs are solved in
+            float64. The implicit gradient is exact only at ``A x = b``; on a real
+            KITTI frame the shipped model's gradients at a forward ``rtol`` of 1e-5 were
+            up to 18% off, at 1e-8 within 0.1% (docs/design.md section 4).
 
     Returns:
-        ``x`` (N,) with b's dtype and device, and :class:`SolveInfo` (per graph).
+        ``x`` (N,) with b's dtype and device, and :class:`SolveInfo` (per graph; the
+        adjoint's diagnostics appear in its ``adjoint`` field once backward has run).
 
     Raises:
         InputError: on mismatched shapes, dtypes or devices, indices out of range or
             across graphs, negative ``d`` or ``edge_weight``, NaN/inf anywhere, or a
             singular system; raised before iterating.
     """
-    settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence)
+    settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol)
     _check_tensor("b", b)
     if b.dim() != 1:
         raise InputError(f"b: expected a 1-D tensor (N,), got shape {tuple(b.shape)}")
@@ -217,6 +233,7 @@ def solve_grid_laplacian(
     max_iter: int | None = None,
     check_every: int = 8,
     on_nonconvergence: OnFail = "warn",
+    grad_rtol: float = GRAD_RTOL,
 ) -> tuple[torch.Tensor, SolveInfo]:
     """Solve ``(diag(d) + L) x = b`` on a batch of 4-connected pixel grids.
 
@@ -229,13 +246,13 @@ def solve_grid_laplacian(
         d: (B, H, W) diagonal, >= 0 (see :func:`solve_laplacian` for positivity).
         weight_h: (B, H, W-1) weights >= 0 between pixel (r, c) and (r, c+1).
         weight_v: (B, H-1, W) weights >= 0 between pixel (r, c) and (r+1, c).
-        x0, method, rtol, max_iter, check_every, on_nonconvergence: as in
+        x0, method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol: as in
             :func:`solve_laplacian`.
 
     Returns:
         ``x`` (B, H, W) and :class:`SolveInfo` with one entry per image.
     """
-    settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence)
+    settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol)
     _check_tensor("b", b)
     if b.dim() != 3 or b.shape[1] < 1 or b.shape[2] < 1:
         raise InputError(f"b: expected a (B, H, W) tensor, got shape {tuple(b.shape)}")
