@@ -8,17 +8,20 @@ import torch
 
 from crfdepth import projection
 from crfdepth.data.kitti import KittiRawScans
+from crfdepth.data.kitti.raw_scans import remove_see_through
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
 from crfdepth.io.kitti import read_velodyne
+from crfdepth.occlusion import see_through_mask
 
 DRIVE = "2011_09_26_drive_0001_sync"
 
 
 @pytest.mark.kitti
 def test_raw_scans_fraction_holdout_partitions_the_projection(kitti_root, check_sample):
+    # Uncleaned targets: input and target pixels together are the whole projection.
     ds = KittiRawScans(kitti_root / "raw", layout="raw", holdout="fraction", holdout_fraction=0.2,
-                       seed=0, transform=None)
+                       seed=0, transform=None, clean_target=False)
     assert len(ds) == 14  # drive 0001 (1 frame) + drive 0060 (13 frames)
     assert ds.names[0] == f"{DRIVE}_0000000005_image_02"
     assert ds.names[1] == "2011_09_26_drive_0060_sync_0000000000_image_02"
@@ -37,6 +40,52 @@ def test_raw_scans_fraction_holdout_partitions_the_projection(kitti_root, check_
     assert torch.equal(again.sparse, s.sparse) and torch.equal(again.target, s.target)
     other_seed = KittiRawScans(kitti_root / "raw", seed=1, transform=None)[0]
     assert not torch.equal(other_seed.sparse, s.sparse)
+
+
+def test_remove_see_through_drops_a_leaked_target_and_keeps_a_slanted_road():
+    """A hand-built scan: a box at 8 m before a wall at 25 m, a background return leaked
+    1 px inside the box (between its returns), and a road 1.65 m below the camera
+    (f = 720 px, principal row 40) on scan rows 5 px apart, 59 m to 22 m."""
+    full = np.zeros((100, 60), np.float32)
+    full[0:36:5, 0:60:2] = 25.0                        # wall
+    full[5:31:5, 20:41:2] = 8.0                        # box, rows 5-30, columns 20-40
+    full[15, 21] = 25.0                                # leaked background between box returns
+    rows = np.arange(60, 100, 5)
+    full[rows[:, None], np.arange(0, 60, 2)[None, :]] = (720.0 * 1.65 / (rows - 40.0))[:, None]
+    target = np.zeros_like(full)
+    for r, c in ((15, 21), (70, 30), (85, 30), (20, 30), (0, 10)):  # leaked, road x2, box, wall
+        target[r, c] = full[r, c]
+    before = target.copy()
+    cleaned = remove_see_through(target, full)
+    np.testing.assert_array_equal(target, before)       # input untouched
+    assert cleaned[15, 21] == 0.0                        # the leaked return is gone
+    for r, c in ((70, 30), (85, 30), (20, 30), (0, 10)):
+        assert cleaned[r, c] == full[r, c]              # road, box and wall stay
+    assert full[65, 30] - full[70, 30] > 5.0            # metres between road rings (47.5 / 39.6 m)
+
+
+@pytest.mark.kitti
+@pytest.mark.parametrize("holdout", ["fraction", "rings"])
+def test_clean_target_drops_only_see_through_target_pixels(kitti_root, holdout):
+    raw = KittiRawScans(kitti_root / "raw", holdout=holdout, transform=None, clean_target=False)
+    clean = KittiRawScans(kitti_root / "raw", holdout=holdout, transform=None)
+    assert clean.clean_target  # the default
+    calib = read_raw_calibration(kitti_root / "raw" / "2011_09_26", camera=2)
+    shares = []
+    for i in (0, 7):  # drive 0001 frame 5, drive 0060 frame 36
+        a, b = raw[i], clean[i]
+        assert torch.equal(a.sparse, b.sparse)                      # the input is never cleaned
+        assert not ((b.target > 0) & (a.target == 0)).any()         # nothing added
+        kept = b.target > 0
+        assert torch.equal(b.target[kept], a.target[kept])          # kept values unchanged
+        drive, frame = raw.names[i].rsplit("_", 3)[0], raw.names[i].split("_")[-3]
+        points = read_velodyne(kitti_root / "raw" / "2011_09_26" / drive / "velodyne_points" / "data" / f"{frame}.bin")
+        full = torch.from_numpy(projection.project_velodyne(points, calib, (375, 1242)))[None]
+        removed = (a.target > 0) & (b.target == 0)
+        assert torch.equal(removed, see_through_mask(full[None])[0] & (a.target > 0))  # exactly the flagged ones
+        shares.append(int(removed.sum()) / int((a.target > 0).sum()))
+    # Drive 0001 frame 5 has few occluders, drive 0060 frame 36 many (module docstring).
+    assert 0.002 < shares[0] < 0.015 and 0.02 < shares[1] < 0.06, shares
 
 
 @pytest.mark.kitti
@@ -88,6 +137,7 @@ def test_object_layout_crop_follows_image_size(kitti_root, check_sample):
         ({"keep_fraction": 0.0}, r"keep_fraction: expected a value in \(0, 1\], got 0.0"),
         ({"seed": -1}, "seed: expected a non-negative integer, got -1"),
         ({"camera": 0}, "camera: expected 2 or 3 \\(KITTI colour cameras\\), got 0"),
+        ({"clean_target": "yes"}, "clean_target: expected True or False, got 'yes'"),
     ],
 )
 def test_bad_options_name_the_argument(tmp_path, kwargs, message):
