@@ -16,6 +16,7 @@ import torch
 
 from crfdepth.errors import ConvergenceError, ConvergenceWarning
 from crfdepth.linalg.krylov import conjugate_gradient, conjugate_gradient_squared
+from crfdepth.linalg.multigrid import GridMultigrid
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 
 _METHODS = {"cg": conjugate_gradient, "cgs": conjugate_gradient_squared}
@@ -65,6 +66,7 @@ class _Settings:
     on_nonconvergence: str
     restarts: int = 3
     grad_rtol: float = GRAD_RTOL
+    preconditioner: str = "auto"
 
 
 # ----------------------------------------------------------------------------------------
@@ -77,8 +79,12 @@ def _default_max_iter(n: int) -> int:
 
 
 def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, x0_rows,
-                  settings: _Settings) -> tuple[torch.Tensor, SolveInfo]:
-    """Solve on (G, n) rows; restarts from the true residual when the recurrence drifted."""
+                  settings: _Settings, precondition=None) -> tuple[torch.Tensor, SolveInfo]:
+    """Solve on (G, n) rows; restarts from the true residual when the recurrence drifted.
+
+    With a ``precondition`` (multigrid) convergence is checked after every iteration: one
+    costs more than a host synchronisation.
+    """
     s = inv_sqrt_diag_rows
     c = b_rows * s
     y = None if x0_rows is None else x0_rows / s
@@ -87,9 +93,11 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     total = torch.zeros(b_rows.shape[0], dtype=torch.int64, device=b_rows.device)
     b_norm = torch.linalg.vector_norm(b_rows, dim=1)
     budget = max_iter
+    extra = {} if precondition is None else {"precondition": precondition}
+    check_every = settings.check_every if precondition is None else 1
     for attempt in range(settings.restarts + 1):
         with torch.inference_mode():  # skips autograd bookkeeping on every operation
-            y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, settings.check_every)
+            y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, check_every, **extra)
         y = y.clone()  # a normal tensor again, usable by autograd
         total += res.iterations
         # True residual of the original system: r = D^1/2 (c - M y).
@@ -124,10 +132,13 @@ class _LaplacianSolve(torch.autograd.Function):
     Forward: Krylov solve under ``no_grad``. A solve whose result will be differentiated
     runs to ``min(rtol, grad_rtol)`` and, for float32 (or half) inputs, in float64: the
     gradient below is exact only at ``A x = b``, and an early-stopped ``x`` biases it
-    (docs/design.md section 4). ``x`` is returned in the inputs' dtype.
+    (docs/design.md section 4). ``x`` is returned in the inputs' dtype. On pixel grids
+    such a solve is preconditioned by multigrid (:mod:`crfdepth.linalg.multigrid`; the
+    ``preconditioner`` setting), other solves by Jacobi.
 
     Backward (A is symmetric): with ``g = dLoss/dx`` solve ``A lam = g`` once (to ``rtol``
-    relative to ``||g||``, in the forward's working precision); then, from
+    relative to ``||g||``, in the forward's working precision and with its
+    preconditioner); then, from
     ``dx = A^-1 (db - dA x)``,
 
     - ``dLoss/db = lam``
@@ -145,8 +156,9 @@ class _LaplacianSolve(torch.autograd.Function):
         if differentiable and settings.grad_rtol < settings.rtol:
             forward_settings = dataclasses.replace(settings, rtol=settings.grad_rtol)
         with torch.no_grad():
-            x, info, solver_state = _forward_solve(structure, forward_settings, None if x0 is None else x0.to(work),
-                                                   b.to(work), d.to(work), [w.to(work) for w in weights])
+            x, info, solver_state = _forward_solve(structure, forward_settings, differentiable,
+                                                   None if x0 is None else x0.to(work), b.to(work), d.to(work),
+                                                   [w.to(work) for w in weights])
         info_box.append(info)
         ctx.settings, ctx.info, ctx.solver_state = settings, info, solver_state
         ctx.save_for_backward(x)  # in the working precision
@@ -161,9 +173,10 @@ class _LaplacianSolve(torch.autograd.Function):
         needs = ctx.needs_input_grad  # (structure, settings, differentiable, info_box, x0, b, d, *weights)
         if not any(needs[5:]):
             return (None,) * (7 + ctx.num_weights)
-        layout, scaled_matvec, s_rows, diag_rows = ctx.solver_state
+        layout, scaled_matvec, s_rows, diag_rows, precondition = ctx.solver_state
         g_rows = layout.to_rows(grad_x.to(x.dtype).contiguous())
-        lam_rows, info = _krylov_solve(layout, scaled_matvec, s_rows, diag_rows, g_rows, None, ctx.settings)
+        lam_rows, info = _krylov_solve(layout, scaled_matvec, s_rows, diag_rows, g_rows, None, ctx.settings,
+                                       precondition)
         ctx.info.adjoint = info
         _report(info, ctx.settings, "adjoint solve")
         lam = layout.from_rows(lam_rows)
@@ -184,12 +197,22 @@ def _differentiable(*tensors: torch.Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
-def _forward_solve(structure, settings, x0, b, d, weights):
+def _use_multigrid(structure, settings: _Settings, differentiable: bool) -> bool:
+    """Multigrid for CG on pixel grids: when asked, or ("auto") for solves that will be differentiated."""
+    if not isinstance(structure, PixelGrid) or settings.method != "cg":
+        return False
+    return settings.preconditioner == "multigrid" or (settings.preconditioner == "auto" and differentiable)
+
+
+def _forward_solve(structure, settings, differentiable, x0, b, d, weights):
+    precondition = None
     if isinstance(structure, PixelGrid):
         weight_h, weight_v = weights
         diag = d + PixelGrid.degree(weight_h, weight_v)
         s = diag.rsqrt()
         matvec = structure.scaled_matvec(weight_h, weight_v, s)
+        if _use_multigrid(structure, settings, differentiable):
+            precondition = _scaled_multigrid(GridMultigrid(d, weight_h, weight_v), structure.to_rows(diag.sqrt()))
     else:
         (edge_weight,) = weights
         diag = d + structure.degree(edge_weight)
@@ -199,9 +222,19 @@ def _forward_solve(structure, settings, x0, b, d, weights):
     diag_rows = structure.to_rows(diag, fill=1.0)
     b_rows = structure.to_rows(b)
     x0_rows = None if x0 is None else structure.to_rows(x0)
-    x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, settings)
+    x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, settings, precondition)
     _report(info, settings, "solve")
-    return structure.from_rows(x_rows), info, (structure, matvec, s_rows, diag_rows)
+    return structure.from_rows(x_rows), info, (structure, matvec, s_rows, diag_rows, precondition)
+
+
+def _scaled_multigrid(cycle: GridMultigrid, sqrt_diag_rows: torch.Tensor):
+    """The V-cycle ``B ~ A^-1`` as a preconditioner of the scaled ``M = D^-1/2 A D^-1/2``: ``D^1/2 B D^1/2``."""
+    shape = cycle.levels[0].shape
+
+    def precondition(r_rows: torch.Tensor) -> torch.Tensor:
+        return sqrt_diag_rows * cycle((sqrt_diag_rows * r_rows).view(shape)).reshape(r_rows.shape)
+
+    return precondition
 
 
 

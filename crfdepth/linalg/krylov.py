@@ -11,6 +11,8 @@ The caller passes the system already scaled by its Jacobi preconditioner,
 Jacobi-preconditioned CG on ``A`` with one element-wise product less per iteration. The
 convergence test is on the residual of the *original* system,
 ``||b - A x|| = ||D^1/2 (c - M y)||``, which is why ``residual_weight = D`` is passed.
+CG also accepts a further preconditioner of ``M`` (the pixel grid's multigrid V-cycle,
+:mod:`crfdepth.linalg.multigrid`).
 
 Host synchronisation (the only way to stop a loop) happens once every ``check_every``
 iterations; between checks everything stays on the device.
@@ -95,6 +97,7 @@ def conjugate_gradient(
     rtol: float,
     max_iter: int,
     check_every: int = 8,
+    precondition: MatVec | None = None,
 ) -> tuple[torch.Tensor, KrylovResult]:
     """Conjugate Gradient on a batch of SPD systems ``M y = c`` (rows of ``c``).
 
@@ -107,6 +110,9 @@ def conjugate_gradient(
         rtol: relative tolerance.
         max_iter: iteration cap.
         check_every: iterations between convergence checks (host syncs).
+        precondition: None (plain CG on ``M``), or an SPD approximation of ``M^-1``
+            applied to (G, n) rows, row by row (preconditioned CG; its result may be
+            a buffer that the next call overwrites).
 
     Returns:
         y (G, n) and a :class:`KrylovResult`.
@@ -115,6 +121,8 @@ def conjugate_gradient(
     y, r, monitor = _start(matvec, c, y0, residual_weight, rtol)
     if monitor.check(r, 0) or max_iter == 0:
         return y, monitor.result()
+    if precondition is not None:
+        return _preconditioned_cg(matvec, precondition, y, r, monitor, max_iter, check_every)
     p = r.clone()
     if c.shape[0] == 1 and c.device.type == "cpu" and c.shape[1] <= _HOST_LOOP_MAX_NODES:
         return _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every)
@@ -131,6 +139,27 @@ def conjugate_gradient(
         p.mul_(beta).add_(r)
         if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
             break
+    return y, monitor.result()
+
+
+def _preconditioned_cg(matvec, precondition, y, r, monitor, max_iter, check_every):
+    """The CG loop with ``z = precondition(r)`` in place of ``r`` in the search directions."""
+    tiny = torch.finfo(r.dtype).tiny
+    z = precondition(r)
+    p = z.clone()
+    rz = _rowdot(r, z)
+    for it in range(1, max_iter + 1):
+        q = matvec(p)
+        alpha = rz / _rowdot(p, q).clamp_min(tiny) * monitor.active
+        y.addcmul_(p, alpha)
+        r.addcmul_(q, alpha, value=-1.0)
+        if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
+            break
+        z = precondition(r)
+        rz_new = _rowdot(r, z)
+        beta = rz_new / rz.clamp_min(tiny)
+        rz = rz_new
+        p.mul_(beta).add_(z)
     return y, monitor.result()
 
 
