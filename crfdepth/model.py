@@ -27,11 +27,14 @@ from torch import nn
 from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
+from crfdepth.classical import ip_basic_fill
 from crfdepth.fill import nearest_fill
 from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
+from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
+from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW, gate_or_fallback
 from crfdepth.potentials import (
     EnergyTerms,
     colour_affinity,
@@ -43,10 +46,15 @@ from crfdepth.potentials import (
     grid_system,
     normal_affinity,
     system_terms,
+    to_depth,
+    to_unknown,
+    VARIABLES,
+    Variable,
 )
 from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
+PRIORS = ("nearest", "ip_basic")
 POTENTIALS = ("colour", "normal", "distance")
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
 
@@ -109,6 +117,12 @@ class CRFDepth(nn.Module):
         std_samples: samples of the posterior-variance estimate on large graphs
             (:mod:`crfdepth.uncertainty`); graphs up to 1,000 nodes are exact.
         rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
+        variable: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper) or
+            ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly).
+            Data, prior and warm start are mapped to it, depth and std are mapped back
+            (``std_z = z^2 std_(1/z)``); ``CRFOutput.terms`` hold the system in it.
+        head: add the small learned :class:`~crfdepth.head.PotentialHead` (per-pixel data
+            and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
     """
 
     def __init__(
@@ -135,6 +149,13 @@ class CRFDepth(nn.Module):
         rtol: float = 1e-5,
         max_iter: int | None = None,
         method: Literal["cg", "cgs"] = "cg",
+        variable: Variable = "depth",
+        head: bool = False,
+        gate: bool = False,
+        gate_window: int = DEFAULT_WINDOW,
+        gate_threshold: float = DEFAULT_THRESHOLD,
+        gate_softness: float = DEFAULT_SOFTNESS,
+        prior: Literal["nearest", "ip_basic"] = "nearest",
     ) -> None:
         super().__init__()
         # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
@@ -143,7 +164,9 @@ class CRFDepth(nn.Module):
                            alpha=alpha, beta=beta, gamma=gamma, delta=delta, sigma_d=sigma_d, sigma_n=sigma_n,
                            sigma_p=sigma_p, confidence=confidence, eps=eps, refine_prior=refine_prior,
                            std_scale=std_scale, std_samples=std_samples, rtol=rtol, max_iter=max_iter,
-                           method=method)
+                           method=method, variable=variable, head=head,
+                           gate=gate, gate_window=gate_window, gate_threshold=gate_threshold,
+                           gate_softness=gate_softness, prior=prior)
         if mode not in ("superpixel", "pixel"):
             raise InputError(f"mode: expected 'superpixel' or 'pixel', got {mode!r}")
         if not isinstance(superpixels, int) or superpixels < 1:
@@ -152,13 +175,23 @@ class CRFDepth(nn.Module):
         if unknown or "colour" not in potentials:
             raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
                              f"got {tuple(potentials)!r}")
+        if variable not in VARIABLES:
+            raise InputError(f"variable: expected one of {VARIABLES}, got {variable!r}")
+        if prior not in PRIORS:
+            raise InputError(f"prior: expected one of {PRIORS}, got {prior!r}")
+        if gate and aggregate != "mean":
+            raise InputError(f"aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
+                             f"got {aggregate!r}")
+        if isinstance(gate_window, bool) or not isinstance(gate_window, int) or gate_window < 3 or gate_window % 2 == 0:
+            raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {gate_window!r}")
         if not isinstance(rounds, int) or rounds < 1:
             raise InputError(f"rounds: expected an int >= 1, got {rounds!r}")
         for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
             check_number(name, value, low=0.0, high=1.0)
         for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
                             ("confidence", confidence), ("eps", eps), ("refine_prior", refine_prior),
-                            ("std_scale", std_scale)):
+                            ("std_scale", std_scale), ("gate_threshold", gate_threshold),
+                            ("gate_softness", gate_softness)):
             check_number(name, value, low=0.0)
         self.mode = mode
         self.superpixels = superpixels
@@ -168,6 +201,11 @@ class CRFDepth(nn.Module):
         self.refine = refine
         self.rounds = rounds
         self.std_samples = std_samples
+        self.variable = variable
+        self.head = PotentialHead() if head else None
+        self.gate = gate
+        self.gate_window = gate_window
+        self.prior = prior
         self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
         self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
         self.raw_beta = nn.Parameter(torch.tensor(_logit(beta)))
@@ -180,6 +218,9 @@ class CRFDepth(nn.Module):
         self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
         self.register_buffer("eps", torch.tensor(float(eps)))
         self.log_refine_prior = nn.Parameter(torch.tensor(math.log(refine_prior)))
+        if gate:  # parameters exist only where they are used (every parameter gets a gradient)
+            self.log_gate_threshold = nn.Parameter(torch.tensor(math.log(gate_threshold)))
+            self.log_gate_softness = nn.Parameter(torch.tensor(math.log(gate_softness)))
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -191,8 +232,8 @@ class CRFDepth(nn.Module):
         """
         config, state = pretrained_state(name)
         model = cls(**{**config, **overrides})
-        if state:
-            model.load_state_dict(state)
+        if state:  # the learned head's tensors (the scalars are in ``config``)
+            model.load_state_dict(state, strict=False)
         return model.eval()
 
     # -- constrained parameters ----------------------------------------------------------
@@ -236,10 +277,18 @@ class CRFDepth(nn.Module):
     def std_scale(self) -> torch.Tensor:
         return self.log_std_scale.exp()
 
+    @property
+    def gate_threshold(self) -> torch.Tensor:
+        return self.log_gate_threshold.exp()
+
+    @property
+    def gate_softness(self) -> torch.Tensor:
+        return self.log_gate_softness.exp()
+
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
         names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
-                 "std_scale")
+                 "std_scale") + (("gate_threshold", "gate_softness") if self.gate else ())
         return {n: float(getattr(self, n).detach()) for n in names}
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
@@ -286,13 +335,24 @@ class CRFDepth(nn.Module):
             return self._forward_pixel(image, sparse, K, return_std)
         return self._forward_superpixel(image, sparse, K, return_std)
 
+    def _evidence(self, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+        """``(gate, kept, fill)``: the occlusion gate (None when off; docs/design.md section 3b),
+        the LiDAR map without the returns it rejects (gate < 1/2; for the fill, normals and
+        head, which take hard evidence), and the prior fill ``x0`` of ``kept``."""
+        gate, kept = None, sparse
+        if self.gate:
+            gate = gate_or_fallback(sparse, self.gate_threshold, self.gate_softness, window=self.gate_window).gate
+            kept = torch.where(gate.detach() >= 0.5, sparse, torch.zeros_like(sparse))
+        fill = nearest_fill(kept) if self.prior == "nearest" else ip_basic_fill(kept)
+        return gate, kept, fill
+
     # -- superpixel mode -----------------------------------------------------------------
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         dtype, device = sparse.dtype, sparse.device
         stage = Stages()
         with stage("fill"):
-            fill = nearest_fill(sparse)
+            gate, kept, fill = self._evidence(sparse)
         n_seg = self.segments_for(h, w)
         graphs, offsets = [], [0]
         z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
@@ -300,7 +360,7 @@ class CRFDepth(nn.Module):
             with stage("slic"):
                 labels = slic_segments(image[b].detach(), n_seg)
             with stage("graph"):
-                g = build_superpixel_graph(image[b].detach(), sparse[b].detach(), aggregate=self.aggregate,
+                g = build_superpixel_graph(image[b].detach(), kept[b].detach(), aggregate=self.aggregate,
                                            labels=labels)
                 graphs.append(g)
                 flat = g.labels.reshape(-1)
@@ -310,8 +370,17 @@ class CRFDepth(nn.Module):
                     0, flat, image[b].reshape(3, -1).T) / area
                 x0 = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
                     0, flat, fill[b, 0].reshape(-1)) / area[:, 0]
-                z.append(g.lidar_depth.to(dtype))
-                count.append(g.lidar_count)
+                if gate is None:
+                    z.append(to_unknown(g.lidar_depth.to(dtype), self.variable))
+                    count.append(g.lidar_count)
+                else:  # gate-weighted mean and count, differentiable in the gate's parameters
+                    s = sparse[b, 0].reshape(-1)
+                    gw = gate[b, 0].reshape(-1) * (s > 0).to(dtype)
+                    n = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(0, flat, gw)
+                    zs = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
+                        0, flat, gw * to_unknown(s, self.variable))
+                    z.append(torch.where(n > 0, zs / n.clamp_min(1e-12), torch.zeros_like(n)))
+                    count.append(n)
                 colour.append(col)
                 centroid.append(g.centroid.to(dtype))
                 prior.append(x0)
@@ -320,7 +389,7 @@ class CRFDepth(nn.Module):
                 offsets.append(offsets[-1] + g.num_nodes)
             if "normal" in self.potentials:
                 with stage("normals"):
-                    pn, pv = lidar_normals(sparse[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
+                    pn, pv = lidar_normals(kept[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
                     nn_, nv = aggregate_normals(pn, pv, g.labels, g.num_nodes)
                     nrm.append(nn_.to(dtype))
                     nrm_ok.append(nv)
@@ -328,6 +397,7 @@ class CRFDepth(nn.Module):
             ptr = torch.tensor(offsets, device=device)
             z, count, colour = torch.cat(z), torch.cat(count), torch.cat(colour)
             centroid, prior, frame = torch.cat(centroid), torch.cat(prior), torch.cat(frame)
+            prior = to_unknown(prior, self.variable)
             edge_index = torch.cat(edges, 1)
             src, dst = edge_index
             alpha, beta, gamma, delta, eps, mean_weight = self._scales()
@@ -349,7 +419,7 @@ class CRFDepth(nn.Module):
         if "normal" in self.potentials or "distance" in self.potentials:
             for _ in range(self.rounds):
                 with stage("potentials"):
-                    points = unproject_points(centroid, x[:, None], K_node)
+                    points = unproject_points(centroid, to_depth(x, self.variable)[:, None], K_node)
                     if "normal" in self.potentials:
                         fitted = graph_normals(points.detach(), edge_index, x.shape[0])
                         normals = torch.where(normal_ok[:, None], node_normal, fitted)
@@ -360,21 +430,28 @@ class CRFDepth(nn.Module):
                 with stage("solve"):
                     x = self._graph_solve(terms, ptr, x, infos)
         with stage("painting"):
+            x = to_depth(x, self.variable)  # node depths in metres from here on
             labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
             depth = x[labels][:, None]
-            node_count = torch.where(count == 0, 1.0, torch.where(count == 1, 0.5, 0.0)).to(dtype)
+            lidar = torch.cat([g.lidar_count for g in graphs])
+            node_count = torch.where(lidar == 0, 1.0, torch.where(lidar == 1, 0.5, 0.0)).to(dtype)
             count_map = node_count[labels][:, None]
         node_std = std = None
         if return_std:
             with stage("uncertainty"):
                 _, d, ew = system_terms(terms)
                 node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
+                node_std = self._std_in_metres(node_std, x)
                 std = node_std[labels][:, None]
         if self.refine:
             with stage("refine"):
                 depth, _ = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
-                                             geometry=depth)
+                                             geometry=depth, gate=gate, kept=kept)
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds)
+
+    def _std_in_metres(self, std: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """The std of the unknown as a std of depth (first order: ``std_z = z^2 std_(1/z)``)."""
+        return std if self.variable == "depth" else std * depth.detach() ** 2
 
     def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
         b, d, ew = system_terms(terms)
@@ -383,40 +460,43 @@ class CRFDepth(nn.Module):
         return x
 
     # -- pixel grid (pixel mode and the refinement) --------------------------------------
-    def _pixel_solve(self, image, sparse, K, prior, eps, infos, geometry=None):
+    def _pixel_solve(self, image, sparse, K, prior, eps, infos, geometry=None, gate=None, kept=None):
         """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
 
         Returns the (B, 1, H, W) depth and the last round's potentials.
         """
-        rounds = 1
+        rounds, v = 1, self.variable
+        kept = sparse if kept is None else kept
+        extra = dict(variable=v, gate=gate, factors=None if self.head is None else self.head(image, kept, prior))
         if geometry is None:
-            t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid())
-            x, info = grid_crf(*grid_system(t), x0=prior[:, 0], settings=self.solver)
+            t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid(), **extra)
+            x, info = grid_crf(*grid_system(t), x0=t["prior"], settings=self.solver)
             infos.append(info)
             if "normal" not in self.potentials and "distance" not in self.potentials:
-                return x[:, None], t
-            geometry, rounds = x[:, None], self.rounds
+                return to_depth(x, v)[:, None], t
+            geometry, rounds = to_depth(x, v)[:, None], self.rounds
         for _ in range(rounds):
-            t = grid_potentials(image, sparse, K, prior, eps, geometry, self._weights_for_grid())
-            x, info = grid_crf(*grid_system(t), x0=geometry[:, 0], settings=self.solver)
+            t = grid_potentials(image, sparse, K, prior, eps, geometry, self._weights_for_grid(), **extra)
+            x, info = grid_crf(*grid_system(t), x0=to_unknown(geometry[:, 0], v), settings=self.solver)
             infos.append(info)
-            geometry = x[:, None]
-        return x[:, None], t
+            geometry = to_depth(x, v)[:, None]
+        return geometry, t
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         stage = Stages()
         with stage("fill"):
-            fill = nearest_fill(sparse)
+            gate, kept, fill = self._evidence(sparse)
         eps = self._scales()[4]
         infos: list[SolveInfo] = []
         with stage("solve"):  # potentials, normals and solves of all rounds
-            depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos)
+            depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos, gate=gate, kept=kept)
         std = node_std = None
         if return_std:
             with stage("uncertainty"):
                 d, _, wh, wv = grid_system(t)
-                std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
+                std = self._std_in_metres(grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None],
+                                          depth)
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
         terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],

@@ -16,12 +16,37 @@ delta dp)`` and ``b = alpha w z + eps x0`` (:func:`system_terms`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 
 from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.normals import dense_normals
+
+
+#: The CRF's unknown (docs/design.md section 3b): ``"depth"`` solves for z (the paper),
+#: ``"inverse"`` for 1/z, on which a membrane prior reproduces planes exactly.
+Variable = Literal["depth", "inverse"]
+VARIABLES = ("depth", "inverse")
+
+
+def to_unknown(depth: torch.Tensor, variable: Variable) -> torch.Tensor:
+    """The CRF's unknown for a depth map in metres: ``z`` or ``1/z`` (0 stays 0: no data there)."""
+    if variable == "depth":
+        return depth
+    return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
+
+
+def to_depth(x: torch.Tensor, variable: Variable) -> torch.Tensor:
+    """Depth in metres from the CRF's unknown (inverse of :func:`to_unknown` where ``x > 0``).
+
+    The solution of an inverse-depth system is positive (``A`` is an M-matrix and ``b > 0``
+    wherever the prior is), the clamp only guards against round-off.
+    """
+    if variable == "depth":
+        return x
+    return 1.0 / x.clamp_min(1e-6)
 
 
 def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: torch.Tensor) -> torch.Tensor:
@@ -175,7 +200,9 @@ def energy(x: torch.Tensor, t: EnergyTerms) -> dict[str, torch.Tensor]:
 
 
 def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, prior: torch.Tensor,
-                    eps: torch.Tensor, geometry: torch.Tensor | None, weights: dict) -> dict:
+                    eps: torch.Tensor, geometry: torch.Tensor | None, weights: dict, *,
+                    variable: Variable = "depth", gate: torch.Tensor | None = None,
+                    factors: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict:
     """The potentials of one pixel-grid round (pixel mode and the refinement; docs/design.md sections 3 and 6).
 
     Args:
@@ -185,16 +212,29 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
             first pass: then only the colour term is on).
         weights: ``alpha, beta, gamma, delta`` (``gamma`` / ``delta`` None when that
             potential is off), ``confidence``, ``sigma_d, sigma_n, sigma_p``.
+        variable: the unknown, ``"depth"`` or ``"inverse"`` (:func:`to_unknown`); ``z`` and
+            ``prior`` of the result are in it, ``geometry`` stays depth.
+        gate: (B, 1, H, W) per-pixel factor on the data weight (the occlusion gate of
+            :mod:`crfdepth.occlusion`) or None.
+        factors: ``(data (B, 1, H, W), edge (B, 2, H, W))`` of :class:`crfdepth.head.PotentialHead`
+            or None: the data weight is multiplied by ``data``, the pairwise weights of the
+            edge to the right / downwards of a pixel by ``edge[:, 0]`` / ``edge[:, 1]``.
 
     Returns:
         The weights and ``z, w, prior`` (B, H, W) and ``colour, normal, distance`` as
         ``(horizontal (B, H, W-1), vertical (B, H-1, W))`` pairs or None, for :func:`grid_system`.
     """
     s = sparse[:, 0]
+    w = data_confidence((s > 0).to(s.dtype), weights["confidence"])
+    if gate is not None:
+        w = w * gate[:, 0]
+    if factors is not None:
+        w = w * factors[0][:, 0]
     t = dict(alpha=weights["alpha"], beta=weights["beta"], gamma=weights["gamma"], delta=weights["delta"], eps=eps,
-             z=s, prior=prior[:, 0], w=data_confidence((s > 0).to(s.dtype), weights["confidence"]),
+             z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
              colour=grid_pairs(image.permute(0, 2, 3, 1), colour_affinity, weights["sigma_d"]),
-             normal=None, distance=None)
+             normal=None, distance=None,
+             edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
     if geometry is not None:
         if t["gamma"] is not None:
             n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through the geometry
@@ -212,5 +252,8 @@ def grid_system(t: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torc
         if t[name] is not None:
             wh = wh + t[scale] * t[name][0]
             wv = wv + t[scale] * t[name][1]
+    if t.get("edge_factor") is not None:
+        wh = wh * t["edge_factor"][0]
+        wv = wv * t["edge_factor"][1]
     d, b = unary_system((t["alpha"] * t["w"], t["z"]), (t["eps"], t["prior"]))
     return d, b, wh, wv

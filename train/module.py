@@ -47,6 +47,7 @@ PARAMETERS = {
     "alpha": "raw_alpha", "beta": "raw_beta", "gamma": "raw_gamma", "delta": "raw_delta",
     "sigma_d": "log_sigma_d", "sigma_n": "log_sigma_n", "sigma_p": "log_sigma_p",
     "confidence": "log_confidence", "refine_prior": "log_refine_prior", "std_scale": "log_std_scale",
+    "gate_threshold": "log_gate_threshold", "gate_softness": "log_gate_softness",
 }
 
 
@@ -111,7 +112,10 @@ class CRFDepthModule(pl.LightningModule):
         lr: Adam learning rate on the free (unconstrained) parameters: logits of
             alpha..delta, logs of the sigmas, confidence and std scale.
         freeze: names of weights to keep at their initial value (any of alpha, beta,
-            gamma, delta, sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale).
+            gamma, delta, sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale,
+            gate_threshold, gate_softness).
+        head_lr: Adam learning rate of the small learned head (``crf: {head: true}``), whose
+            weights are ordinary network weights rather than logs of scalars.
 
     Batches are :class:`~crfdepth.data.sample.Batch` objects; Lightning moves them to the
     device through ``Batch.to`` (its default ``transfer_batch_to_device``).
@@ -128,14 +132,16 @@ class CRFDepthModule(pl.LightningModule):
         nll_weight: float = 0.0,
         lr: float = 0.05,
         freeze: list[str] | None = None,
+        head_lr: float = 2e-3,
     ) -> None:
         super().__init__()
         if loss not in ("l2", "l1"):
             raise InputError(f"loss: expected 'l2' or 'l1', got {loss!r}")
         if not isinstance(nll_weight, (int, float)) or nll_weight < 0:
             raise InputError(f"nll_weight: expected a number >= 0, got {nll_weight!r}")
-        if not isinstance(lr, (int, float)) or lr <= 0:
-            raise InputError(f"lr: expected a learning rate > 0, got {lr!r}")
+        for name, value in (("lr", lr), ("head_lr", head_lr)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+                raise InputError(f"{name}: expected a learning rate > 0, got {value!r}")
         unknown = set(freeze or ()) - set(PARAMETERS)
         if unknown:
             raise InputError(f"freeze: expected names among {', '.join(PARAMETERS)}, got {sorted(unknown)}")
@@ -146,6 +152,7 @@ class CRFDepthModule(pl.LightningModule):
         self.loss_kind = loss
         self.nll_weight = float(nll_weight)
         self.lr = float(lr)
+        self.head_lr = float(head_lr)
         frozen = set(freeze or ())
         if self.nll_weight == 0:
             frozen.add("std_scale")
@@ -156,7 +163,8 @@ class CRFDepthModule(pl.LightningModule):
         if self.model.mode == "pixel" or not self.model.refine:
             frozen.add("refine_prior")
         for name in frozen:
-            getattr(self.model, PARAMETERS[name]).requires_grad_(False)
+            if hasattr(self.model, PARAMETERS[name]):  # the gate's exist only with gate=True
+                getattr(self.model, PARAMETERS[name]).requires_grad_(False)
         self.frozen = tuple(n for n in PARAMETERS if n in frozen)
         self.val_metrics = DepthMetrics(extra=("loss",))
 
@@ -220,8 +228,10 @@ class CRFDepthModule(pl.LightningModule):
             return self.model.weights()
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        return torch.optim.Adam(params, lr=self.lr)
+        scalars = [p for n, p in self.model.named_parameters() if p.requires_grad and not n.startswith("head.")]
+        head = [p for n, p in self.model.named_parameters() if p.requires_grad and n.startswith("head.")]
+        groups = [dict(params=scalars, lr=self.lr)] + ([dict(params=head, lr=self.head_lr)] if head else [])
+        return torch.optim.Adam(groups)
 
 
 def _describe(metrics: dict[str, float]) -> str:

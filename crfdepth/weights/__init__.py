@@ -138,7 +138,8 @@ def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, A
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
     config = dict(model.config)
     config.update(model.weights())  # the current (learned) values replace the initial ones
-    return write_weights(path, config, about)
+    head = {k: v for k, v in model.state_dict().items() if k.startswith("head.")}
+    return write_weights(path, config, about, state=head)
 
 
 def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
@@ -221,8 +222,12 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
 
 def _load_state(file: Path, model: CRFDepth, state: dict[str, torch.Tensor]) -> CRFDepth:
     """``model`` with ``state`` loaded, in the dtype of its floating tensors when they share one."""
-    _check_state(file, state, model.state_dict())
-    model.load_state_dict(state)
+    expected = model.state_dict()
+    partial = all(k.startswith("head.") for k in state)  # a weights file: the head's tensors only
+    if partial:
+        expected = {k: v for k, v in expected.items() if k.startswith("head.")}
+    _check_state(file, state, expected)
+    model.load_state_dict(state, strict=not partial)
     dtypes = {v.dtype for v in state.values() if v.is_floating_point()}
     if len(dtypes) == 1:
         model = model.to(dtypes.pop())

@@ -48,6 +48,10 @@ LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "
            "std_scale")
 """The learnable values in a configuration (the keys of ``CRFDepth.weights()``)."""
 
+#: What a configuration written before these options existed meant: an old checkpoint is
+#: rebuilt as it was trained (docs/design.md section 3b).
+_OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "nearest"}
+
 _FOLDER = Path(__file__).resolve().parent  # the shipped files lie beside this module
 _LIGHTNING_PREFIX = "model."  # the trainer's LightningModule stores the CRF as ``self.model``
 
@@ -132,8 +136,12 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
     return data
 
 
-def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Mapping[str, Any] | None = None) -> Path:
+def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Mapping[str, Any] | None = None,
+                  state: Mapping[str, torch.Tensor] | None = None) -> Path:
     """Write a weights file holding ``config`` (with the learned values) and ``about``, atomically.
+
+    ``state``: the tensors that are not constructor arguments (the weights of the learned
+    head, :mod:`crfdepth.head`), stored as nested lists under ``"state"``.
 
     Raises:
         InputError: ``path`` is a folder, or ``config`` / ``about`` are not
@@ -143,6 +151,8 @@ def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Map
     file = check_output_file(path)
     payload = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "config": dict(config),
                "about": dict(about or {})}
+    if state:
+        payload["state"] = {k: v.detach().cpu().float().tolist() for k, v in state.items()}
     for name in ("about", "config"):
         try:
             json.dumps(payload[name])
@@ -214,10 +224,13 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise InputError(f"{file}: expected a checkpoint file, got a folder")
     device = _check_device(map_location)
     if _is_json(file):
-        return dict(read_weights(file)["config"]), {}, "weights file"
+        data = read_weights(file)
+        state = _tensors(file, data.get("state", {}), device)
+        return _upgrade_config(dict(data["config"]), state), state, "weights file"
     config, state, kind = _unpack(file, _torch_load(file, device))
     _check_finite(file, state)
-    return config, _upgrade(file, state), kind
+    state = _upgrade(file, state)
+    return _upgrade_config(config, state), state, kind
 
 
 # --------------------------------------------------------------------------- helpers
@@ -330,6 +343,29 @@ def _check_finite(file: Path, state: Mapping[str, torch.Tensor]) -> None:
             if value.numel() > 1:
                 got += f" ({bad.numel()} of {value.numel()} values not finite)"
             raise InputError(f"path: {file}: parameter {key}: expected finite values, got {got}")
+
+
+def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -> dict[str, Any]:
+    """Options a configuration predates take their old meaning; a bare state dict (no
+    configuration) says by its keys whether it has a gate and a head."""
+    if config:
+        return {**_OLD_DEFAULTS, **config}
+    if state:
+        return {"gate": "log_gate_threshold" in state, "head": any(k.startswith("head.") for k in state)}
+    return config
+
+
+def _tensors(file: Path, value: Any, device: torch.device) -> dict[str, torch.Tensor]:
+    """The ``"state"`` of a weights file (name -> nested lists) as float32 tensors, checked finite."""
+    if not _is_config(value):
+        raise InputError(f"{file}: expected \"state\" to map parameter names to nested lists of numbers, "
+                         f"got {type(value).__name__}")
+    try:
+        state = {k: torch.tensor(v, dtype=torch.float32, device=device) for k, v in value.items()}
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{file}: \"state\": expected nested lists of numbers ({exc})") from None
+    _check_finite(file, state)
+    return state
 
 
 def _upgrade(file: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
