@@ -27,14 +27,13 @@ from torch import nn
 from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
-from crfdepth.classical import ip_basic_fill
-from crfdepth.fill import nearest_fill
+from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
 from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
-from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW, gate_or_fallback
+from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
 from crfdepth.potentials import (
     EnergyTerms,
     colour_affinity,
@@ -45,6 +44,7 @@ from crfdepth.potentials import (
     grid_potentials,
     grid_system,
     normal_affinity,
+    std_in_metres,
     system_terms,
     to_depth,
     to_unknown,
@@ -54,13 +54,17 @@ from crfdepth.potentials import (
 from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
-PRIORS = ("nearest", "ip_basic")
 POTENTIALS = ("colour", "normal", "distance")
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
 
 
 def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
+
+
+def _constrained(raw: str, constraint) -> property:
+    """A read-only property: ``constraint`` of the free parameter named ``raw``."""
+    return property(lambda self: constraint(getattr(self, raw)), doc=f"``{constraint.__name__}({raw})``")
 
 
 class CRFDepth(nn.Module):
@@ -159,26 +163,18 @@ class CRFDepth(nn.Module):
     ) -> None:
         super().__init__()
         # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
-        self.config = dict(mode=mode, superpixels=superpixels, scale_superpixels=scale_superpixels,
-                           potentials=list(potentials), aggregate=aggregate, refine=refine, rounds=rounds,
-                           alpha=alpha, beta=beta, gamma=gamma, delta=delta, sigma_d=sigma_d, sigma_n=sigma_n,
-                           sigma_p=sigma_p, confidence=confidence, eps=eps, refine_prior=refine_prior,
-                           std_scale=std_scale, std_samples=std_samples, rtol=rtol, max_iter=max_iter,
-                           method=method, variable=variable, head=head,
-                           gate=gate, gate_window=gate_window, gate_threshold=gate_threshold,
-                           gate_softness=gate_softness, prior=prior)
-        if mode not in ("superpixel", "pixel"):
-            raise InputError(f"mode: expected 'superpixel' or 'pixel', got {mode!r}")
+        self.config = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        self.config["potentials"] = list(potentials)
+        for name, value, choices in (("mode", mode, ("superpixel", "pixel")), ("variable", variable, VARIABLES),
+                                     ("prior", prior, PRIORS)):
+            if value not in choices:
+                raise InputError(f"{name}: expected one of {choices}, got {value!r}")
         if not isinstance(superpixels, int) or superpixels < 1:
             raise InputError(f"superpixels: expected a positive int, got {superpixels!r}")
         unknown = set(potentials) - set(POTENTIALS)
         if unknown or "colour" not in potentials:
             raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
                              f"got {tuple(potentials)!r}")
-        if variable not in VARIABLES:
-            raise InputError(f"variable: expected one of {VARIABLES}, got {variable!r}")
-        if prior not in PRIORS:
-            raise InputError(f"prior: expected one of {PRIORS}, got {prior!r}")
         if gate and aggregate != "mean":
             raise InputError(f"aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
                              f"got {aggregate!r}")
@@ -193,19 +189,11 @@ class CRFDepth(nn.Module):
                             ("std_scale", std_scale), ("gate_threshold", gate_threshold),
                             ("gate_softness", gate_softness)):
             check_number(name, value, low=0.0)
-        self.mode = mode
-        self.superpixels = superpixels
-        self.scale_superpixels = scale_superpixels
+        self.mode, self.superpixels, self.scale_superpixels = mode, superpixels, scale_superpixels
         self.potentials = tuple(p for p in POTENTIALS if p in potentials)
-        self.aggregate = aggregate
-        self.refine = refine
-        self.rounds = rounds
-        self.std_samples = std_samples
-        self.variable = variable
+        self.aggregate, self.refine, self.rounds, self.std_samples = aggregate, refine, rounds, std_samples
+        self.variable, self.gate, self.gate_window, self.prior = variable, gate, gate_window, prior
         self.head = PotentialHead() if head else None
-        self.gate = gate
-        self.gate_window = gate_window
-        self.prior = prior
         self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
         self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
         self.raw_beta = nn.Parameter(torch.tensor(_logit(beta)))
@@ -237,53 +225,19 @@ class CRFDepth(nn.Module):
         return model.eval()
 
     # -- constrained parameters ----------------------------------------------------------
-    @property
-    def alpha(self) -> torch.Tensor:
-        return torch.sigmoid(self.raw_alpha)
-
-    @property
-    def beta(self) -> torch.Tensor:
-        return torch.sigmoid(self.raw_beta)
-
-    @property
-    def gamma(self) -> torch.Tensor:
-        return torch.sigmoid(self.raw_gamma)
-
-    @property
-    def delta(self) -> torch.Tensor:
-        return torch.sigmoid(self.raw_delta)
-
-    @property
-    def sigma_d(self) -> torch.Tensor:
-        return self.log_sigma_d.exp()
-
-    @property
-    def sigma_n(self) -> torch.Tensor:
-        return self.log_sigma_n.exp()
-
-    @property
-    def sigma_p(self) -> torch.Tensor:
-        return self.log_sigma_p.exp()
-
-    @property
-    def confidence(self) -> torch.Tensor:
-        return self.log_confidence.exp()
-
-    @property
-    def refine_prior(self) -> torch.Tensor:
-        return self.log_refine_prior.exp()
-
-    @property
-    def std_scale(self) -> torch.Tensor:
-        return self.log_std_scale.exp()
-
-    @property
-    def gate_threshold(self) -> torch.Tensor:
-        return self.log_gate_threshold.exp()
-
-    @property
-    def gate_softness(self) -> torch.Tensor:
-        return self.log_gate_softness.exp()
+    # Each weight through its constraint: logits for the (0, 1) weights, logs for the positive ones.
+    alpha = _constrained("raw_alpha", torch.sigmoid)
+    beta = _constrained("raw_beta", torch.sigmoid)
+    gamma = _constrained("raw_gamma", torch.sigmoid)
+    delta = _constrained("raw_delta", torch.sigmoid)
+    sigma_d = _constrained("log_sigma_d", torch.exp)
+    sigma_n = _constrained("log_sigma_n", torch.exp)
+    sigma_p = _constrained("log_sigma_p", torch.exp)
+    confidence = _constrained("log_confidence", torch.exp)
+    refine_prior = _constrained("log_refine_prior", torch.exp)
+    std_scale = _constrained("log_std_scale", torch.exp)
+    gate_threshold = _constrained("log_gate_threshold", torch.exp)
+    gate_softness = _constrained("log_gate_softness", torch.exp)
 
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
@@ -336,15 +290,9 @@ class CRFDepth(nn.Module):
         return self._forward_superpixel(image, sparse, K, return_std)
 
     def _evidence(self, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-        """``(gate, kept, fill)``: the occlusion gate (None when off; docs/design.md section 3b),
-        the LiDAR map without the returns it rejects (gate < 1/2; for the fill, normals and
-        head, which take hard evidence), and the prior fill ``x0`` of ``kept``."""
-        gate, kept = None, sparse
-        if self.gate:
-            gate = gate_or_fallback(sparse, self.gate_threshold, self.gate_softness, window=self.gate_window).gate
-            kept = torch.where(gate.detach() >= 0.5, sparse, torch.zeros_like(sparse))
-        fill = nearest_fill(kept) if self.prior == "nearest" else ip_basic_fill(kept)
-        return gate, kept, fill
+        """``(gate, kept, fill)`` of :func:`crfdepth.evidence.lidar_evidence` (docs/design.md section 3b)."""
+        gate = (self.gate_threshold, self.gate_softness) if self.gate else None
+        return lidar_evidence(sparse, gate, self.gate_window, self.prior)
 
     # -- superpixel mode -----------------------------------------------------------------
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
@@ -374,12 +322,8 @@ class CRFDepth(nn.Module):
                     z.append(to_unknown(g.lidar_depth.to(dtype), self.variable))
                     count.append(g.lidar_count)
                 else:  # gate-weighted mean and count, differentiable in the gate's parameters
-                    s = sparse[b, 0].reshape(-1)
-                    gw = gate[b, 0].reshape(-1) * (s > 0).to(dtype)
-                    n = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(0, flat, gw)
-                    zs = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
-                        0, flat, gw * to_unknown(s, self.variable))
-                    z.append(torch.where(n > 0, zs / n.clamp_min(1e-12), torch.zeros_like(n)))
+                    zn, n = node_lidar(sparse[b, 0], gate[b, 0], g.labels, g.num_nodes, self.variable)
+                    z.append(zn)
                     count.append(n)
                 colour.append(col)
                 centroid.append(g.centroid.to(dtype))
@@ -441,17 +385,13 @@ class CRFDepth(nn.Module):
             with stage("uncertainty"):
                 _, d, ew = system_terms(terms)
                 node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
-                node_std = self._std_in_metres(node_std, x)
+                node_std = std_in_metres(node_std, x, self.variable)
                 std = node_std[labels][:, None]
         if self.refine:
             with stage("refine"):
                 depth, _ = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
                                              geometry=depth, gate=gate, kept=kept)
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds)
-
-    def _std_in_metres(self, std: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-        """The std of the unknown as a std of depth (first order: ``std_z = z^2 std_(1/z)``)."""
-        return std if self.variable == "depth" else std * depth.detach() ** 2
 
     def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
         b, d, ew = system_terms(terms)
@@ -495,8 +435,8 @@ class CRFDepth(nn.Module):
         if return_std:
             with stage("uncertainty"):
                 d, _, wh, wv = grid_system(t)
-                std = self._std_in_metres(grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None],
-                                          depth)
+                std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
+                std = std_in_metres(std, depth, self.variable)
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
         terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],

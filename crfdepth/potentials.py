@@ -49,6 +49,11 @@ def to_depth(x: torch.Tensor, variable: Variable) -> torch.Tensor:
     return 1.0 / x.clamp_min(1e-6)
 
 
+def std_in_metres(std: torch.Tensor, depth: torch.Tensor, variable: Variable) -> torch.Tensor:
+    """A std of the unknown as a std of depth (first order: ``std_z = z^2 std_(1/z)``; no gradient to ``depth``)."""
+    return std if variable == "depth" else std * depth.detach() ** 2
+
+
 def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: torch.Tensor) -> torch.Tensor:
     """``e_ij = exp(-||c_i - c_j||^2 / sigma_d^2)``.
 

@@ -1,0 +1,63 @@
+"""What the LiDAR tells the CRF: gated returns, the prior fill and per-node aggregates.
+
+Shared by both graphs of :class:`crfdepth.model.CRFDepth` (docs/design.md sections 3 and 3b):
+the occlusion gate of :mod:`crfdepth.occlusion` scales each return's data weight, the
+returns it rejects (gate < 1/2) are left out of everything that takes hard evidence (the
+prior fill, LiDAR normals, the learned head's inputs), and a superpixel's LiDAR value is
+the gate-weighted mean of its returns.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+
+from crfdepth.classical import ip_basic_fill
+from crfdepth.fill import nearest_fill
+from crfdepth.occlusion import gate_or_fallback
+from crfdepth.potentials import Variable, to_unknown
+
+__all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
+
+PRIORS = ("nearest", "ip_basic")
+"""The prior fills ``x0``: nearest LiDAR return (:mod:`crfdepth.fill`) or IP-Basic (:mod:`crfdepth.classical`)."""
+
+
+def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor] | None, window: int,
+                   prior: Literal["nearest", "ip_basic"]
+                   ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+    """``(gate, kept, fill)`` of a checked (B, 1, H, W) LiDAR map.
+
+    Args:
+        sparse: LiDAR depth in metres, 0 = none.
+        gate: ``(threshold, softness)`` of the occlusion gate, or None for no gate.
+        window: the gate's window (pixels).
+        prior: which fill is ``x0``.
+
+    Returns:
+        The (B, 1, H, W) gate (None without one; all ones in a frame it would empty, with a
+        warning), ``sparse`` without the returns the gate rejects, and the prior fill of those.
+    """
+    g, kept = None, sparse
+    if gate is not None:
+        g = gate_or_fallback(sparse, gate[0], gate[1], window=window).gate
+        kept = torch.where(g.detach() >= 0.5, sparse, torch.zeros_like(sparse))
+    fill = nearest_fill(kept) if prior == "nearest" else ip_basic_fill(kept)
+    return g, kept, fill
+
+
+def node_lidar(sparse: torch.Tensor, gate: torch.Tensor, labels: torch.Tensor, num_nodes: int,
+               variable: Variable) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(z, n)`` per superpixel: the gate-weighted mean of its returns in the CRF's unknown
+    and the sum of their gates, both (S,), differentiable in the gate (0 where none).
+
+    Args:
+        sparse, gate: (H, W) one frame's LiDAR depth and gate; labels: (H, W) node of each pixel.
+    """
+    s = sparse.reshape(-1)
+    flat = labels.reshape(-1)
+    weight = gate.reshape(-1) * (s > 0).to(s.dtype)
+    n = s.new_zeros(num_nodes).index_add(0, flat, weight)
+    total = s.new_zeros(num_nodes).index_add(0, flat, weight * to_unknown(s, variable))
+    return torch.where(n > 0, total / n.clamp_min(1e-12), torch.zeros_like(n)), n
