@@ -11,7 +11,9 @@ repository), through :func:`crfdepth.data.factory.build_dataset`, all 1216 x 352
   the other rings as the target (``holdout="rings", keep_every_ring=4``).
 
 Targets in b and c are raw LiDAR points (sparse, noisy), not KITTI's semi-dense
-annotation; each frame's input and target pixels are disjoint.
+annotation, cleaned of see-through points against the whole scan
+(``KittiRawScans(clean_target=True)``, the default); each frame's input and target pixels
+are disjoint.
 
 Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 
@@ -38,7 +40,10 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   3D distance), superpixel 5500, piecewise-constant painting (``refine=False``);
   ``sp-c+r``, ``sp-cn+r``: the same with the pixel refinement (``sp-cnd+r`` is ``paper``);
 - ``sp1200``, ``sp2400``: the paper's Table 2 segment counts, all potentials, no
-  refinement (5500 is ``sp-cnd``).
+  refinement (5500 is ``sp-cnd``);
+- ``inv``, ``inv+gate``, ``pixel+gate``, ``pixel+inv+gate``, ``pixel+inv+gate+ipb``: the
+  extensions of docs/design.md section 3b with hand-set weights (``variable="inverse"``,
+  ``gate=True``, ``mode="pixel"``, ``prior="ip_basic"``).
 
 The ablations and segment counts use the hand-set weights, as ``paper`` does. With
 ``--learn-ablations``, protocol a also gets ``sp-c/learned`` .. ``sp-cn+r/learned``: each
@@ -121,6 +126,12 @@ CRF_METHODS = {
     "sp-cn+r": dict(potentials=("colour", "normal")),
     "sp1200": dict(superpixels=1200, refine=False),
     "sp2400": dict(superpixels=2400, refine=False),
+    # docs/design.md section 3b, hand-set weights: 1/z unknown, occlusion gate, on both graphs
+    "inv": dict(variable="inverse"),
+    "inv+gate": dict(variable="inverse", gate=True),
+    "pixel+gate": dict(mode="pixel", gate=True),
+    "pixel+inv+gate": dict(mode="pixel", variable="inverse", gate=True),
+    "pixel+inv+gate+ipb": dict(mode="pixel", variable="inverse", gate=True, prior="ip_basic"),
 }
 METHODS = ("nn", "ipbasic", "inpaint", *CRF_METHODS)
 WITH_STD = ("paper", "learned")
