@@ -132,6 +132,34 @@ def check_scalar_tensor(name: str, value: object, ref: torch.Tensor, *, positive
     return t
 
 
+def check_depth_frames(sparse: object, *, above: float = 0.0, what: str = "the fill") -> torch.Tensor:
+    """A (B, 1, H, W), (1, H, W) or (H, W) LiDAR depth map as a detached (B, 1, H, W) view.
+
+    Checks a floating dtype, finite values >= 0 and, in every frame, at least one pixel
+    deeper than ``above`` metres; the errors name ``sparse`` and say that ``what`` is
+    undefined in an empty frame (named by its batch index).
+    """
+    if not isinstance(sparse, torch.Tensor) or not (
+        sparse.ndim == 2 or (sparse.ndim == 3 and sparse.shape[0] == 1) or (sparse.ndim == 4 and sparse.shape[1] == 1)
+    ):
+        got = f"shape {tuple(sparse.shape)}" if isinstance(sparse, torch.Tensor) else type(sparse).__name__
+        raise InputError(f"sparse: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {got}")
+    if not sparse.is_floating_point():
+        raise InputError(f"sparse: expected floating-point depth in metres, got dtype {sparse.dtype}")
+    if not bool(torch.isfinite(sparse).all()):
+        raise InputError("sparse: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
+    if bool((sparse < 0).any()):
+        raise InputError(f"sparse: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
+    h, w = sparse.shape[-2:]
+    frames = sparse.detach().reshape(-1, 1, h, w)
+    has_return = (frames > above).flatten(1).any(dim=1)
+    if not bool(has_return.all()):
+        empty = torch.nonzero(~has_return).flatten().tolist()
+        raise InputError(f"sparse: expected at least one pixel > {above:g}{' m' if above else ''} in every frame, "
+                         f"got none in frame(s) {empty} (batch index); {what} is undefined there")
+    return frames
+
+
 def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Check a batch of frames for the model; returns them with K expanded to (B, 3, 3).
 

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import bilateral_blur, gaussian_blur2d, median_blur
 
-from crfdepth.checks import check_number
+from crfdepth.checks import check_depth_frames, check_number
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
 
@@ -109,25 +109,7 @@ def ip_basic_fill(sparse: torch.Tensor, *, config: Config = "fast", max_depth: f
 
 def _check_sparse(sparse: object) -> torch.Tensor:
     """``sparse`` as a detached (B, 1, H, W) view, or an InputError naming it."""
-    if not isinstance(sparse, torch.Tensor) or not (
-        sparse.ndim == 2 or (sparse.ndim == 3 and sparse.shape[0] == 1) or (sparse.ndim == 4 and sparse.shape[1] == 1)
-    ):
-        got = f"shape {tuple(sparse.shape)}" if isinstance(sparse, torch.Tensor) else type(sparse).__name__
-        raise InputError(f"sparse: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {got}")
-    if not sparse.is_floating_point():
-        raise InputError(f"sparse: expected floating-point depth in metres, got dtype {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()):
-        raise InputError("sparse: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
-    if bool((sparse < 0).any()):
-        raise InputError(f"sparse: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
-    h, w = sparse.shape[-2:]
-    frames = sparse.detach().reshape(-1, 1, h, w)
-    has_return = (frames > MIN_DEPTH_M).flatten(1).any(dim=1)
-    if not bool(has_return.all()):
-        empty = torch.nonzero(~has_return).flatten().tolist()
-        raise InputError(f"sparse: expected at least one pixel > {MIN_DEPTH_M:g} m in every frame, got none in "
-                         f"frame(s) {empty} (batch index); the fill is undefined there")
-    return frames
+    return check_depth_frames(sparse, above=MIN_DEPTH_M)
 
 
 # --------------------------------------------------------------------------- the two configurations

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from scipy.ndimage import distance_transform_edt
 
-from crfdepth.errors import InputError
+from crfdepth.checks import check_depth_frames
 
 __all__ = ["nearest_fill"]
 
@@ -45,26 +45,7 @@ def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
         InputError: wrong shape, NaN/inf or negative depth, or a frame without any valid
             pixel (named by its batch index), instead of returning a silent all-zero map.
     """
-    if not isinstance(sparse, torch.Tensor) or not (
-        sparse.ndim == 2 or (sparse.ndim == 3 and sparse.shape[0] == 1) or (sparse.ndim == 4 and sparse.shape[1] == 1)
-    ):
-        got = f"shape {tuple(sparse.shape)}" if isinstance(sparse, torch.Tensor) else type(sparse).__name__
-        raise InputError(f"sparse: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {got}")
-    if not sparse.is_floating_point():
-        raise InputError(f"sparse: expected floating-point depth in metres, got dtype {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()):
-        raise InputError("sparse: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
-    if bool((sparse < 0).any()):
-        raise InputError(f"sparse: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
-    h, w = sparse.shape[-2:]
-    frames = sparse.detach().reshape(-1, h, w)
-    valid_per_frame = (frames > 0).flatten(1).any(dim=1)
-    if not bool(valid_per_frame.all()):
-        empty = torch.nonzero(~valid_per_frame).flatten().tolist()
-        raise InputError(
-            f"sparse: expected at least one pixel > 0 in every frame, got none in frame(s) {empty} "
-            f"(batch index); nearest fill is undefined there"
-        )
+    frames = check_depth_frames(sparse, what="nearest fill")[:, 0]
     host = frames.to("cpu").numpy()
     filled = np.stack([_fill_frame(frame) for frame in host])
     return torch.from_numpy(filled).to(device=sparse.device, dtype=sparse.dtype).reshape(sparse.shape)
