@@ -4,7 +4,8 @@ Datasets come from :func:`crfdepth.data.build_dataset` (one entry point for the 
 ``crfdepth evaluate`` and the benchmarks), so validation sees exactly the frames and the
 preprocessing that ``crfdepth evaluate --layout <layout> --data <root>`` sees: each
 dataset's own default transform (the KITTI bottom-centre crop where it has one), nothing
-else. Training adds a random horizontal flip (``K`` follows) after that transform.
+else. Training adds the augmentation after that transform: a random horizontal flip, and
+optionally a random crop and LiDAR thinning (``K`` follows the pixels).
 
 Train / validation split, per layout:
 
@@ -32,7 +33,7 @@ from typing import Any
 import lightning.pytorch as pl
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Subset
 
-from crfdepth.data import HorizontalFlip, build_dataset, collate_samples
+from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, build_dataset, collate_samples
 from crfdepth.data.factory import LAYOUTS
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
@@ -127,6 +128,11 @@ class CRFDataModule(pl.LightningDataModule):
             ``val_names_contain`` and ``val_fraction``.
         flip: probability of the horizontal-flip augmentation of training frames
             (``crfdepth.data.HorizontalFlip``); 0 = none.
+        crop: ``[height, width]`` of a random crop of each training frame
+            (``crfdepth.data.RandomCrop``, after the flip); None = whole frames. A crop
+            keeps the pixel scale and makes a step cheaper in proportion to its area.
+        thin: ``[low, high]`` range of the share of LiDAR pixels kept in each training
+            frame (``crfdepth.data.RandomThinning``, drawn afresh per frame); None = all.
         batch_size: frames per batch (all frames of a dataset must share one size: the
             KITTI layouts crop to 1216 x 352).
         val_batch_size: frames per validation batch; None = ``batch_size``.
@@ -158,6 +164,8 @@ class CRFDataModule(pl.LightningDataModule):
         val_names_contain: str | list[str] | None = None,
         val_fraction: float | None = None,
         flip: float = 0.5,
+        crop: list[int] | None = None,
+        thin: list[float] | None = None,
         batch_size: int = 1,
         val_batch_size: int | None = None,
         num_workers: int = 0,
@@ -174,6 +182,13 @@ class CRFDataModule(pl.LightningDataModule):
             raise InputError(f"val_fraction: expected a value in (0, 1), got {val_fraction!r}")
         if not 0.0 <= float(flip) <= 1.0:
             raise InputError(f"flip: expected a probability in [0, 1], got {flip!r}")
+        if crop is not None and (not isinstance(crop, (list, tuple)) or len(crop) != 2
+                                 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in crop)):
+            raise InputError(f"crop: expected [height, width], two integers > 0, got {crop!r}")
+        if thin is not None and (not isinstance(thin, (list, tuple)) or len(thin) != 2
+                                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in thin)
+                                 or not 0.0 < float(thin[0]) <= float(thin[1]) <= 1.0):
+            raise InputError(f"thin: expected [low, high] with 0 < low <= high <= 1, got {thin!r}")
         for name, value in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
@@ -192,6 +207,8 @@ class CRFDataModule(pl.LightningDataModule):
         self.val_names_contain = None if val_names_contain is None else list(val_names_contain)
         self.val_fraction = val_fraction
         self.flip = float(flip)
+        self.crop = None if crop is None else (int(crop[0]), int(crop[1]))
+        self.thin = None if thin is None else (float(thin[0]), float(thin[1]))
         self.batch_size = batch_size
         self.val_batch_size = val_batch_size or batch_size
         self.num_workers = num_workers
@@ -277,8 +294,15 @@ class CRFDataModule(pl.LightningDataModule):
         if self.train_set is not None:
             return
         train, val = self.build_datasets()
+        augment: list[Callable[[Sample], Sample]] = []
         if self.flip > 0:
-            train = TransformedDataset(train, HorizontalFlip(p=self.flip))
+            augment.append(HorizontalFlip(p=self.flip))
+        if self.crop is not None:
+            augment.append(RandomCrop(*self.crop))
+        if self.thin is not None:
+            augment.append(RandomThinning(*self.thin))
+        if augment:
+            train = TransformedDataset(train, augment[0] if len(augment) == 1 else Compose(augment))
         self.train_set, self.val_set = train, val
         log.info("data: %d training frames (%s), %d validation frames (%s)",
                  len(train), self.layout, len(val), self.val_layout)

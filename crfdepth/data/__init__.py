@@ -15,7 +15,14 @@ from crfdepth.data.kitti import (
     open_completion_folder,
 )
 from crfdepth.data.sample import Batch, Sample, collate_samples
-from crfdepth.data.transforms import BottomCenterCrop, Compose, HorizontalFlip, SubsampleSparse
+from crfdepth.data.transforms import (
+    BottomCenterCrop,
+    Compose,
+    HorizontalFlip,
+    RandomCrop,
+    RandomThinning,
+    SubsampleSparse,
+)
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
 
@@ -30,6 +37,8 @@ __all__ = [
     "KittiRawScans",
     "KittiTestCompletion",
     "KittiValSelection",
+    "RandomCrop",
+    "RandomThinning",
     "Sample",
     "SubsampleSparse",
     "SyntheticScene",

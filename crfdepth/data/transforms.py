@@ -142,6 +142,91 @@ class HorizontalFlip:
         return f"HorizontalFlip(p={self.p})"
 
 
+class RandomCrop:
+    """Cut a random ``height x width`` window out of the frame; ``K`` follows.
+
+    Training augmentation: a crop keeps the pixel scale (unlike a resize, so the CRF's
+    pixel-graph weights mean the same) and costs proportionally less to solve. The window's
+    top-left corner is uniform over the positions where it fits; ``cx -= left``,
+    ``cy -= top``.
+
+    Args:
+        height: crop height in pixels (> 0).
+        width: crop width in pixels (> 0).
+        generator: source of the window positions; None = torch's global RNG (reseeded per
+            ``DataLoader`` worker and epoch).
+
+    Raises (on call):
+        InputError: the sample is smaller than the crop (sizes and name given).
+    """
+
+    def __init__(self, height: int, width: int, generator: torch.Generator | None = None) -> None:
+        if not _is_positive_int(height) or not _is_positive_int(width):
+            raise InputError(f"RandomCrop: expected height and width integers > 0, got ({height!r}, {width!r})")
+        self.height, self.width = int(height), int(width)
+        self.generator = generator
+
+    def __call__(self, sample: Sample) -> Sample:
+        h, w = sample.size
+        if h < self.height or w < self.width:
+            raise InputError(
+                f"RandomCrop: sample {sample.name!r} is {h}x{w} (HxW), smaller than the crop "
+                f"{self.height}x{self.width}"
+            )
+        top = int(torch.randint(h - self.height + 1, (), generator=self.generator))
+        left = int(torch.randint(w - self.width + 1, (), generator=self.generator))
+        rows, cols = slice(top, top + self.height), slice(left, left + self.width)
+        K = sample.K.clone()
+        K[0, 2] -= left
+        K[1, 2] -= top
+        return dataclasses.replace(
+            sample,
+            image=sample.image[:, rows, cols].contiguous(),
+            sparse=sample.sparse[:, rows, cols].contiguous(),
+            target=sample.target[:, rows, cols].contiguous(),
+            K=K,
+        )
+
+    def __repr__(self) -> str:
+        return f"RandomCrop(height={self.height}, width={self.width})"
+
+
+class RandomThinning:
+    """Drop a random share of the LiDAR pixels: a fresh keep fraction every call.
+
+    Training augmentation for sparser sensors: the keep fraction is drawn uniformly from
+    ``[low, high]`` each call, then each valid ``sparse`` pixel is kept with that
+    probability. ``image``, ``target`` and ``K`` are unchanged (the dropped points are not
+    added to the target: the target stays the held-out set). For a fixed, reproducible
+    sub-sample use :class:`SubsampleSparse`.
+
+    Args:
+        low, high: range of the keep fraction, ``0 < low <= high <= 1``.
+        generator: random source; None = torch's global RNG.
+    """
+
+    def __init__(self, low: float, high: float = 1.0, generator: torch.Generator | None = None) -> None:
+        if not 0.0 < float(low) <= float(high) <= 1.0:
+            raise InputError(f"RandomThinning: expected 0 < low <= high <= 1, got low={low!r}, high={high!r}")
+        self.low, self.high = float(low), float(high)
+        self.generator = generator
+
+    def __call__(self, sample: Sample) -> Sample:
+        keep = self.low + (self.high - self.low) * float(torch.rand((), generator=self.generator))
+        if keep >= 1.0:
+            return sample
+        drawn = torch.rand(sample.sparse.shape, generator=self.generator)
+        sparse = torch.where(drawn < keep, sample.sparse, torch.zeros((), dtype=sample.sparse.dtype))
+        return dataclasses.replace(sample, sparse=sparse)
+
+    def __repr__(self) -> str:
+        return f"RandomThinning(low={self.low}, high={self.high})"
+
+
+def _is_positive_int(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and int(value) > 0
+
+
 @dataclass(frozen=True)
 class SubsampleSparse:
     """Keep a fraction of the valid (> 0) pixels of ``sparse``; the rest become 0.

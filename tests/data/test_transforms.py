@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.data.transforms import BottomCenterCrop, Compose, HorizontalFlip, SubsampleSparse, frame_seed
+from crfdepth.data.transforms import (
+    BottomCenterCrop,
+    Compose,
+    HorizontalFlip,
+    RandomCrop,
+    RandomThinning,
+    SubsampleSparse,
+    frame_seed,
+)
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import read_raw_calibration
 from crfdepth.io.kitti import read_intrinsics
@@ -145,3 +153,54 @@ def test_compose_applies_in_order(make_sample):
     assert torch.equal(out.image, expected.image) and torch.equal(out.K, expected.K)
     # crop then flip: cx' = 1215 - (cx - 13)
     assert out.K[0, 2].item() == pytest.approx(1215 - (CX - 13), abs=1e-4)
+
+
+# --------------------------------------------------------------------------- RandomCrop, RandomThinning
+
+
+def test_random_crop_moves_the_principal_point_with_the_window(make_sample):
+    s = make_sample(60, 90)
+    gen = torch.Generator().manual_seed(0)
+    corners = set()
+    for _ in range(20):
+        out = RandomCrop(40, 50, generator=gen)(s)
+        assert out.size == (40, 50)
+        left, top = round(s.K[0, 2].item() - out.K[0, 2].item()), round(s.K[1, 2].item() - out.K[1, 2].item())
+        assert 0 <= top <= 20 and 0 <= left <= 40
+        corners.add((top, left))
+        assert torch.equal(out.image, s.image[:, top:top + 40, left:left + 50])
+        assert torch.equal(out.sparse, s.sparse[:, top:top + 40, left:left + 50])
+        assert torch.equal(out.target, s.target[:, top:top + 40, left:left + 50])
+        # K follows the pixels: a point lands on the same content.
+        point = torch.tensor([0.3, 0.1, 8.0])
+        torch.testing.assert_close(project(out.K, point),
+                                   project(s.K, point) - torch.tensor([left, top], dtype=torch.float64),
+                                   atol=1e-3, rtol=0)
+    assert len(corners) > 10                              # the window moves
+    assert torch.equal(RandomCrop(60, 90)(s).image, s.image)  # a full-size crop is the frame
+
+
+def test_random_crop_bad_input(make_sample):
+    with pytest.raises(InputError, match=r"RandomCrop: expected height and width integers > 0, got \(0, 5\)"):
+        RandomCrop(0, 5)
+    with pytest.raises(InputError, match=r"RandomCrop: sample 'frame' is 30x40 \(HxW\), smaller than the crop 32x40"):
+        RandomCrop(32, 40)(make_sample(30, 40))
+
+
+def test_random_thinning_keeps_a_fraction_in_range(make_sample):
+    s = make_sample(100, 120, density=0.5)
+    n = int((s.sparse > 0).sum())
+    gen = torch.Generator().manual_seed(1)
+    shares = []
+    for _ in range(30):
+        out = RandomThinning(0.4, 0.8, generator=gen)(s)
+        kept = out.sparse > 0
+        assert not (kept & (s.sparse <= 0)).any()
+        assert torch.equal(out.sparse[kept], s.sparse[kept])
+        assert torch.equal(out.target, s.target) and torch.equal(out.image, s.image)
+        shares.append(kept.sum().item() / n)
+    assert 0.35 < min(shares) and max(shares) < 0.85      # within [low, high] up to sampling noise
+    assert max(shares) - min(shares) > 0.15               # a fresh fraction each call
+    assert RandomThinning(1.0)(s) is s
+    with pytest.raises(InputError, match=r"RandomThinning: expected 0 < low <= high <= 1, got low=0.9, high=0.5"):
+        RandomThinning(0.9, 0.5)

@@ -40,6 +40,20 @@ def test_train_frames_are_flipped_validation_frames_are_not():
     assert torch.equal(val.image, build_dataset("synthetic", count=1, seed=1000, **SMALL)[0].image)
 
 
+def test_train_frames_are_cropped_and_thinned_validation_frames_are_not():
+    dm = CRFDataModule(train_options={"count": 1, **SMALL}, val_options={"count": 1, "seed": 1000, **SMALL},
+                       flip=0.0, crop=[32, 96], thin=[0.5, 0.5])
+    dm.setup("fit")
+    out, original = dm.train_set[0], dm.train_set.dataset[0]
+    assert out.size == (32, 96) and dm.val_set[0].size == (SMALL["height"], SMALL["width"])
+    left = round(original.K[0, 2].item() - out.K[0, 2].item())
+    top = round(original.K[1, 2].item() - out.K[1, 2].item())
+    window = original.sparse[:, top:top + 32, left:left + 96]
+    assert torch.equal(out.image, original.image[:, top:top + 32, left:left + 96])
+    share = (out.sparse > 0).sum().item() / (window > 0).sum().item()
+    assert 0.35 < share < 0.65
+
+
 def test_loaders_yield_batches():
     dm = CRFDataModule(train_options={"count": 2, **SMALL}, val_options={"count": 2, "seed": 1000, **SMALL},
                        batch_size=2, val_batch_size=1)
@@ -105,6 +119,9 @@ def test_split_that_leaves_no_validation_frame(kitti_root):
     ({"val_names_contain": "a", "val_fraction": 0.5}, "at most one"),
     ({"val_fraction": 1.5}, r"val_fraction: expected a value in \(0, 1\)"),
     ({"flip": 2.0}, "flip"),
+    ({"crop": [352]}, r"crop: expected \[height, width\], two integers > 0, got \[352\]"),
+    ({"crop": [0, 10]}, "crop: expected"),
+    ({"thin": [0.0, 1.0]}, r"thin: expected \[low, high\] with 0 < low <= high <= 1, got \[0.0, 1.0\]"),
     ({"batch_size": 0}, "batch_size"),
 ])
 def test_bad_arguments(kwargs, match):
@@ -130,7 +147,7 @@ def test_kitti_weights_config_trains_on_48_frames_and_never_on_drive_0001(kitti_
     data = yaml.safe_load((configs / "kitti_weights.yaml").read_text())["data"]
     for source in [data, *data["extra_train"]]:  # config paths are relative to the repository root
         source["root"] = source["root"].replace("../shared/data/kitti", str(kitti_root))
-    dm = CRFDataModule(**{**data, "flip": 0.0})
+    dm = CRFDataModule(**{**data, "flip": 0.0, "crop": None, "thin": None})
     dm.setup("fit")
     train, val = dataset_names(dm.train_set), dataset_names(dm.val_set)
     assert val == ["2011_09_26_drive_0001_sync_0000000005_image_02"]
