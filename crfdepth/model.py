@@ -365,7 +365,7 @@ class CRFDepth(nn.Module):
                 with stage("potentials"):
                     points = unproject_points(centroid, to_depth(x, self.variable)[:, None], K_node)
                     if "normal" in self.potentials:
-                        fitted = graph_normals(points.detach(), edge_index, x.shape[0])
+                        fitted = graph_normals(points, edge_index, x.shape[0])
                         normals = torch.where(normal_ok[:, None], node_normal, fitted)
                         terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
                     if "distance" in self.potentials:

@@ -1,6 +1,7 @@
 """Every parameter's gradient on a real KITTI frame against finite differences (docs/design.md section 4).
 
-The shipped model (``CRFDepth.from_pretrained("kitti")``) in float64, on a 352x320
+The shipped model (``CRFDepth.from_pretrained("kitti")``) and the paper's superpixel
+configuration (with and without fitted normals) in float64, on a 352x320
 bottom-centre crop of the official val frame (full height, so the LiDAR-free top rows,
 where the solves are hardest, are in it). The analytic gradient is taken at the model's
 DEFAULT solver settings; the reference is central finite differences of a copy with
@@ -35,14 +36,6 @@ CROP = (352, 320)  # (height, width) in pixels
 STEP = 1e-5
 TOLERANCE = 0.01
 TIGHT = dict(rtol=1e-12, max_iter=100_000)
-
-# The superpixel path fits plane normals to the first-pass solution's 3D points after
-# ``points.detach()`` (crfdepth/model.py): the fitted normals' dependence on the
-# parameters is missing from the gradient. Measured on this crop: log_sigma_d analytic
-# +1.26e-2 against a finite difference of -2.08e-3; without the detach every parameter
-# is within 0.2%. Strict: the test turns red when that is fixed, to drop this mark.
-DETACHED_NORMALS = pytest.mark.xfail(strict=True, reason="model.py detaches the points before graph_normals")
-
 
 @pytest.fixture(scope="module")
 def frame(kitti_root):
@@ -99,13 +92,16 @@ def _central_difference(reference, frame, loss_fn, return_std, param, direction,
 
 @pytest.mark.kitti
 @pytest.mark.slow
-@pytest.mark.parametrize("overrides", [
-    pytest.param({}, id="shipped", marks=DETACHED_NORMALS),
-    pytest.param({"potentials": ("colour", "distance")}, id="without-fitted-normals"),
+@pytest.mark.parametrize("weights, overrides", [
+    pytest.param("kitti", {}, id="shipped"),
+    # The paper's superpixel graph, whose nodes without LiDAR take normals fitted to the
+    # first pass's points (graph_normals, differentiated where the plane is well defined).
+    pytest.param("paper", {}, id="paper-superpixel-fitted-normals"),
+    pytest.param("paper", {"potentials": ("colour", "distance")}, id="paper-without-normals"),
 ])
-def test_every_parameter_gradient_matches_finite_differences(frame, overrides):
-    model = CRFDepth.from_pretrained("kitti", **overrides).double()
-    reference = CRFDepth.from_pretrained("kitti", **overrides, **TIGHT).double()
+def test_every_parameter_gradient_matches_finite_differences(frame, weights, overrides):
+    model = CRFDepth.from_pretrained(weights, **overrides).double()
+    reference = CRFDepth.from_pretrained(weights, **overrides, **TIGHT).double()
     reference.load_state_dict(model.state_dict())
     ref_params = dict(reference.named_parameters())
     depth_grads, depth_loss = _analytic(model, frame, _depth_loss, return_std=False)

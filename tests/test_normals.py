@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.normals import aggregate_normals, dense_normals, lidar_normals
+from crfdepth.normals import aggregate_normals, dense_normals, graph_normals, lidar_normals
 
 H, W = 352, 1216
 # KITTI val_selection_cropped-like intrinsics (fx, fy, cx, cy in pixels).
@@ -238,3 +238,42 @@ def test_real_frame_road_normals_point_up(kitti_root):
     assert err.median().item() < 5.0  # measured 2.4 (includes the camera's pitch)
     points = back_project(sample.sparse[0].double())
     assert bool(((normals.double() * points).sum(0)[valid[0]] < 0).all())
+
+
+# --------------------------------------------------------------------------- graph_normals
+
+
+def _ring_graph(n: int) -> torch.Tensor:
+    """Each node linked to the next three (a connected graph with 3n edges)."""
+    i = torch.arange(n)
+    return torch.cat([torch.stack([i, (i + k) % n]) for k in (1, 2, 3)], 1)
+
+
+def test_graph_normals_gradient_matches_finite_differences_on_a_tilted_plane():
+    gen = torch.Generator().manual_seed(0)
+    uv = torch.rand(30, 2, generator=gen, dtype=torch.float64) * 4 - 2
+    noise = 0.05 * torch.randn(30, generator=gen, dtype=torch.float64)
+    points = torch.stack([uv[:, 0], uv[:, 1], 10 + 0.3 * uv[:, 0] - 0.2 * uv[:, 1] + noise], 1)
+    edges, weights = _ring_graph(30), torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    points.requires_grad_(True)
+    (graph_normals(points, edges, 30) * weights).sum().backward()
+    direction = torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    h = 1e-6
+    with torch.no_grad():
+        plus = (graph_normals(points + h * direction, edges, 30) * weights).sum()
+        minus = (graph_normals(points - h * direction, edges, 30) * weights).sum()
+    fd = float((plus - minus) / (2 * h))
+    assert float((points.grad * direction).sum()) == pytest.approx(fd, rel=1e-5)
+    assert fd != 0.0
+
+
+def test_graph_normals_of_collinear_points_have_a_finite_zero_gradient():
+    # A line of points has no plane: lambda_0 == lambda_1, the eigenvector derivative is
+    # unbounded. Such fits are kept out of the differentiated eigh.
+    points = torch.zeros(6, 3, dtype=torch.float64)
+    points[:, 0], points[:, 2] = torch.arange(6.0), 10.0
+    points.requires_grad_(True)
+    edges = torch.tensor([[0, 1, 2, 3, 4], [1, 2, 3, 4, 5]])
+    normals = graph_normals(points, edges, 6)
+    normals[1:5].sum().backward()
+    assert torch.isfinite(normals).all() and torch.equal(points.grad, torch.zeros_like(points))

@@ -68,7 +68,7 @@ def calibrate(model, config: Path) -> dict[str, Any]:
     if not config.is_file():
         raise InputError(f"--config: no such file: {config}")
     data = dict((yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("data") or {})
-    datamodule = CRFDataModule(**{**data, "flip": 0.0})
+    datamodule = CRFDataModule(**{**data, "flip": 0.0, "crop": None, "thin": None})  # whole frames, all points
     train, _ = datamodule.build_datasets()
     before = float(model.std_scale.detach())
     after = calibrate_std_scale(model, (train[i] for i in range(len(train))))
