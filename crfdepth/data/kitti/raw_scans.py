@@ -108,6 +108,11 @@ class KittiRawScans(Dataset):
     - ``holdout="rings"``: the points of every ``keep_every_ring``-th laser ring (rings
       recovered from the scan order) are the input, all other rings the target: 16 beams
       out of 64 for ``keep_every_ring=4``, the paper's sparse-LiDAR scenario.
+    - ``holdout="drop_rings"``: the other way round: every ``drop_every_ring``-th ring is
+      the target, all other rings the input (48 of 64 beams in for ``drop_every_ring=4``).
+      The targets then lie *between* input scan lines, as most of KITTI's annotated pixels
+      do, with an input nearly as dense as the full scan; a random point hold-out puts its
+      targets on the input's scan lines only.
 
     ``keep_fraction`` (< 1) then keeps only that random share of the *input* points (the
     sub-sampling study); the dropped points are not added to the target, and the target
@@ -136,9 +141,10 @@ class KittiRawScans(Dataset):
     Args:
         root: the raw-data root (holding ``<date>/``) or the object ``training`` folder.
         layout: "raw" or "object".
-        holdout: "fraction" or "rings".
+        holdout: "fraction", "rings" or "drop_rings".
         holdout_fraction: share of points held out as target, in (0, 1) (``"fraction"``).
         keep_every_ring: k >= 2; rings ``r % k == 0`` are the input (``"rings"``).
+        drop_every_ring: k >= 2; rings ``r % k == 0`` are the target (``"drop_rings"``).
         seed: non-negative integer seeding the per-frame random draws.
         keep_fraction: share of input points kept, in (0, 1]; 1 = all.
         camera: KITTI camera index, 2 (left colour, default) or 3.
@@ -155,9 +161,10 @@ class KittiRawScans(Dataset):
         self,
         root: PathLike,
         layout: Literal["raw", "object"] = "raw",
-        holdout: Literal["fraction", "rings"] = "fraction",
+        holdout: Literal["fraction", "rings", "drop_rings"] = "fraction",
         holdout_fraction: float = 0.2,
         keep_every_ring: int = 4,
+        drop_every_ring: int = 4,
         seed: int = 0,
         keep_fraction: float = 1.0,
         camera: int = 2,
@@ -166,12 +173,14 @@ class KittiRawScans(Dataset):
     ) -> None:
         if layout not in ("raw", "object"):
             raise InputError(f"layout: expected 'raw' or 'object', got {layout!r}")
-        if holdout not in ("fraction", "rings"):
-            raise InputError(f"holdout: expected 'fraction' or 'rings', got {holdout!r}")
+        if holdout not in ("fraction", "rings", "drop_rings"):
+            raise InputError(f"holdout: expected 'fraction', 'rings' or 'drop_rings', got {holdout!r}")
         if not 0.0 < float(holdout_fraction) < 1.0:
             raise InputError(f"holdout_fraction: expected a value in (0, 1), got {holdout_fraction}")
         if isinstance(keep_every_ring, bool) or int(keep_every_ring) != keep_every_ring or keep_every_ring < 2:
             raise InputError(f"keep_every_ring: expected an integer >= 2, got {keep_every_ring!r}")
+        if isinstance(drop_every_ring, bool) or int(drop_every_ring) != drop_every_ring or drop_every_ring < 2:
+            raise InputError(f"drop_every_ring: expected an integer >= 2, got {drop_every_ring!r}")
         if not 0.0 < float(keep_fraction) <= 1.0:
             raise InputError(f"keep_fraction: expected a value in (0, 1], got {keep_fraction}")
         if isinstance(seed, bool) or int(seed) != seed or seed < 0:
@@ -185,6 +194,7 @@ class KittiRawScans(Dataset):
         self.holdout = holdout
         self.holdout_fraction = float(holdout_fraction)
         self.keep_every_ring = int(keep_every_ring)
+        self.drop_every_ring = int(drop_every_ring)
         self.seed = int(seed)
         self.keep_fraction = float(keep_fraction)
         self.camera = int(camera)
@@ -260,6 +270,8 @@ class KittiRawScans(Dataset):
         rng = np.random.default_rng(frame_seed(self.seed, name))
         if self.holdout == "rings":
             inp = projection.ring_mask(points, self.keep_every_ring)
+        elif self.holdout == "drop_rings":
+            inp = ~projection.ring_mask(points, self.drop_every_ring)
         else:
             inp = projection.fraction_mask(points, 1.0 - self.holdout_fraction, seed=rng)
         target = ~inp

@@ -105,6 +105,21 @@ def test_raw_scans_rings_holdout_keeps_a_quarter(kitti_root, check_sample):
 
 
 @pytest.mark.kitti
+def test_raw_scans_drop_rings_holds_out_a_quarter_between_the_input_lines(kitti_root, check_sample):
+    ds = KittiRawScans(kitti_root / "raw", layout="raw", holdout="drop_rings", drop_every_ring=4)
+    s = ds[0]
+    check_sample(s)
+    n_in, n_tgt = int((s.sparse > 0).sum()), int((s.target > 0).sum())
+    assert int(((s.sparse > 0) & (s.target > 0)).sum()) == 0
+    assert 0.12 < n_tgt / (n_in + n_tgt) < 0.27                # 16 of 64 beams, less occluded pixels
+    points = read_velodyne(kitti_root / "raw" / "2011_09_26" / DRIVE / "velodyne_points" / "data" / "0000000005.bin")
+    inp, held = ds.split_points(points, ds.names[0])
+    assert not (inp & held).any() and (inp | held).all()
+    assert held.mean() == pytest.approx(0.25, abs=0.03)
+    assert (projection.recover_rings(points)[held] % 4 == 0).all()   # targets are whole rings
+
+
+@pytest.mark.kitti
 def test_raw_scans_keep_fraction_thins_the_input_only(kitti_root):
     base = KittiRawScans(kitti_root / "raw", holdout="fraction", seed=0)
     thin = KittiRawScans(kitti_root / "raw", holdout="fraction", seed=0, keep_fraction=0.5)
@@ -131,9 +146,10 @@ def test_object_layout_crop_follows_image_size(kitti_root, check_sample):
     "kwargs, message",
     [
         ({"layout": "velodyne"}, "layout: expected 'raw' or 'object', got 'velodyne'"),
-        ({"holdout": "beams"}, "holdout: expected 'fraction' or 'rings', got 'beams'"),
+        ({"holdout": "beams"}, "holdout: expected 'fraction', 'rings' or 'drop_rings', got 'beams'"),
         ({"holdout_fraction": 1.0}, r"holdout_fraction: expected a value in \(0, 1\), got 1.0"),
         ({"keep_every_ring": 1}, "keep_every_ring: expected an integer >= 2, got 1"),
+        ({"drop_every_ring": 2.5}, "drop_every_ring: expected an integer >= 2, got 2.5"),
         ({"keep_fraction": 0.0}, r"keep_fraction: expected a value in \(0, 1\], got 0.0"),
         ({"seed": -1}, "seed: expected a non-negative integer, got -1"),
         ({"camera": 0}, "camera: expected 2 or 3 \\(KITTI colour cameras\\), got 0"),
