@@ -20,6 +20,7 @@ a one-line message; unknown config keys are reported by the CLI parser (status 2
 
 from __future__ import annotations
 
+import os
 import sys
 
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -30,11 +31,30 @@ from train.data import CRFDataModule
 from train.module import CRFDepthModule
 
 
+class EpochCheckpoint(ModelCheckpoint):
+    """``ModelCheckpoint`` whose ``last.ckpt`` is always the latest epoch's.
+
+    Lightning (2.6) writes ``last.ckpt`` only when a top-k checkpoint is saved, so with a
+    monitored score it holds the best epoch, not the last: a recipe that ships "the last
+    epoch of a fixed schedule" would silently ship the best-validation one. This writes it
+    after every validation (not the sanity check) as well.
+    """
+
+    @property
+    def state_key(self) -> str:  # ModelCheckpoint's key, so checkpoints read the same as before
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        super().on_validation_end(trainer, pl_module)
+        if self.save_last and not trainer.sanity_checking and self.dirpath is not None:
+            trainer.save_checkpoint(os.path.join(self.dirpath, self.CHECKPOINT_NAME_LAST + self.FILE_EXTENSION))
+
+
 class CRFDepthCLI(LightningCLI):
     """LightningCLI with a ``checkpoint:`` section for the always-present ModelCheckpoint."""
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.add_lightning_class_args(EpochCheckpoint, "checkpoint")
         parser.set_defaults({
             "checkpoint.monitor": "val/rmse",
             "checkpoint.mode": "min",

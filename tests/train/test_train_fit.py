@@ -68,6 +68,18 @@ def test_debug_run_on_synthetic_scenes_lowers_validation_loss(tmp_path, configs,
 
 
 @pytest.mark.slow
+def test_last_checkpoint_is_the_last_epoch_not_the_best(tmp_path, configs, train_cli):
+    # mode "max" makes the first, worst epoch the "best": Lightning's own ModelCheckpoint
+    # then leaves last.ckpt at that epoch; the recipe ships last.ckpt as the last epoch.
+    run = train_cli(["fit", "--config", str(configs / "synthetic.yaml"), "--config", str(configs / "debug.yaml"),
+                     "--checkpoint.mode", "max"], tmp_path, timeout=300)
+    assert run.returncode == 0, run.output[-5000:]
+    ckpts = {p.name: torch.load(p, map_location="cpu", weights_only=False) for p in run.checkpoints()}
+    others = [c["epoch"] for name, c in ckpts.items() if name != "last.ckpt"]
+    assert ckpts["last.ckpt"]["epoch"] == 2 and min(others) < 2, (ckpts["last.ckpt"]["epoch"], others)
+
+
+@pytest.mark.slow
 def test_synthetic_config_as_shipped_fits_the_std_scale(tmp_path, configs, train_cli):
     """synthetic.yaml itself (superpixels, NLL term, loader workers) on smaller scenes."""
     size = "height: 176, width: 608"
