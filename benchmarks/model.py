@@ -8,8 +8,12 @@ note says so. float32, ``torch.set_num_threads(2)``, inference under ``torch.no_
 
 Configurations: superpixel mode with 1200, 2400 and 5500 SLIC segments
 (``scale_superpixels=False``), each with ``refine=False`` (the paper's piecewise-constant
-painting) and ``refine=True`` (crfdepth's default pixel-level refinement); and pixel mode.
-All other model arguments are the constructor defaults.
+painting) and ``refine=True`` (crfdepth's default pixel-level refinement); pixel mode;
+then the options of docs/design.md section 3b added one at a time on the pixel grid
+(``pixel+inverse``, ``+gate``, ``+head``; their std is not timed) and the shipped model
+(``CRFDepth.from_pretrained("kitti")``), each against the paper default (superpixel 5500,
+refined; target: no configuration more than 25% slower). All other model arguments are
+the constructor defaults.
 
 Each configuration gets one untimed warm-up forward (and one with the std in superpixel
 mode); then the configurations are run round-robin, ``--repeats`` rounds, so that a burst
@@ -97,8 +101,22 @@ def timed_forward(model: CRFDepth, f: dict, device: str, return_std: bool):
     return time.perf_counter() - t, out
 
 
-def make_model(mode: str, superpixels: int | None, refine: bool | None, device: str) -> CRFDepth:
-    kwargs = dict(mode=mode, refine=bool(refine))
+#: The options of docs/design.md section 3b added one at a time on the pixel grid, then the
+#: shipped model (``CRFDepth.from_pretrained("kitti")``): each part's cost.
+PARTS = {
+    "pixel+inverse": dict(variable="inverse"),
+    "pixel+inverse+gate": dict(variable="inverse", gate=True),
+    "pixel+inverse+gate+head": dict(variable="inverse", gate=True, head=True),
+    "shipped": None,
+}
+TARGET_VS_PAPER = 1.25  # no configuration slower than the paper default (superpixel 5500, refined) by > 25%
+
+
+def make_model(mode: str, superpixels: int | None, refine: bool | None, device: str, part: str | None = None
+               ) -> CRFDepth:
+    if part == "shipped":
+        return CRFDepth.from_pretrained("kitti").to(device)
+    kwargs = dict(mode=mode, refine=bool(refine), **(PARTS[part] if part else {}))
     if superpixels is not None:
         kwargs.update(superpixels=superpixels, scale_superpixels=False)
     return CRFDepth(**kwargs).to(device)
@@ -106,7 +124,7 @@ def make_model(mode: str, superpixels: int | None, refine: bool | None, device: 
 
 def measure(configs: list[tuple], f: dict, device: str, repeats: int, std_repeats: list[int]) -> list[dict]:
     """Round-robin over the configurations (a burst of outside load hits all of them alike)."""
-    models = [make_model(*c, device) for c in configs]
+    models = [make_model(*c[:3], device, *c[3:]) for c in configs]
     runs = [dict(totals=[], with_std=[], stages=[], unc=[], out=None) for _ in configs]
     for model, c, k in zip(models, configs, std_repeats):
         timed_forward(model, f, device, False)  # warm-up
@@ -125,7 +143,7 @@ def measure(configs: list[tuple], f: dict, device: str, repeats: int, std_repeat
 
 
 def summarise(config: tuple, run: dict, f: dict, device: str, repeats: int) -> dict:
-    mode, superpixels, refine = config
+    mode, superpixels, refine, *part = config
     out = run["out"]
     cpu = not device.startswith("cuda")
     stages = {s: statistics.median(r.get(s, 0.0) for r in run["stages"]) if cpu else None for s in STAGES}
@@ -135,7 +153,8 @@ def summarise(config: tuple, run: dict, f: dict, device: str, repeats: int) -> d
     solve_s = stages["solve"]
     m = depth_metrics(out.depth, f["target"])
     nodes = out.graphs[0].num_nodes if out.graphs else int(f["sparse"][0, 0].numel())
-    row = {"mode": mode, "superpixels": superpixels, "refine": refine, "nodes": nodes, "total_s": total_s}
+    row = {"mode": mode, "superpixels": superpixels, "refine": refine, "part": part[0] if part else None,
+           "nodes": nodes, "total_s": total_s}
     row.update({f"{s}_s": v for s, v in stages.items()})
     row.update({
         "uncertainty_s": statistics.median(run["unc"]) if run["unc"] and cpu else None,
@@ -152,6 +171,8 @@ def summarise(config: tuple, run: dict, f: dict, device: str, repeats: int) -> d
 
 
 def _name(r: dict) -> str:
+    if r.get("part"):
+        return r["part"]
     if r["mode"] == "pixel":
         return "pixel"
     return f"superpixel {r['superpixels']} refine={r['refine']}"
@@ -164,10 +185,10 @@ def _ms(v) -> str:
 def print_table(rows: list[dict]) -> None:
     head = ["mode", "segs", "refine", "nodes"] + [s[:7] for s in STAGES] + ["total", "std", "std/slv",
                                                                           "iters", "rmse_mm"]
-    widths = [10, 5, 6, 7] + [7] * len(STAGES) + [7, 7, 7, 10, 8]
+    widths = [23, 5, 6, 7] + [7] * len(STAGES) + [7, 7, 7, 10, 8]
     print("  ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
     for r in rows:
-        cells = [r["mode"], "-" if r["superpixels"] is None else str(r["superpixels"]),
+        cells = [r["part"] or r["mode"], "-" if r["superpixels"] is None else str(r["superpixels"]),
                  "-" if r["refine"] is None else str(r["refine"]), str(r["nodes"])]
         cells += [_ms(r[f"{s}_s"]) for s in STAGES]
         cells += [_ms(r["total_s"]), _ms(r["std_s"]),
@@ -199,6 +220,12 @@ def print_verdicts(rows: list[dict]) -> None:
         ok = r["std_over_solve"] <= TARGET_STD_OVER_SOLVE
         print(f"  {name}: std cost {r['std_s']:.3f} s = {r['std_over_solve']:.2f}x the depth solve "
               f"{r['solve_s']:.3f} s (target <= {TARGET_STD_OVER_SOLVE:g}x): {'meets' if ok else 'misses'}")
+    paper = [r for r in sp if r["refine"]]
+    for r in rows:
+        if paper and r is not paper[0]:
+            ratio = r["total_s"] / paper[0]["total_s"]
+            print(f"  {_name(r)}: {r['total_s']:.3f} s = {ratio:.2f}x the paper default (superpixel 5500, "
+                  f"refined; target <= {TARGET_VS_PAPER}x): {'meets' if ratio <= TARGET_VS_PAPER else 'misses'}")
     for r in rows:
         if r["total_max_s"] > 1.5 * r["total_min_s"]:
             print(f"  note: {_name(r)} totals spread {r['total_min_s']:.3f}..{r['total_max_s']:.3f} s "
@@ -227,7 +254,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--superpixels", type=int, nargs="+", default=[1200, 2400, 5500])
-    parser.add_argument("--skip-pixel", action="store_true", help="leave out pixel mode")
+    parser.add_argument("--skip-pixel", action="store_true", help="leave out pixel mode (and its parts)")
     parser.add_argument("--skip-pixel-std", action="store_true",
                         help="do not time the pixel-mode std (several seconds)")
     args = parser.parse_args()
@@ -238,8 +265,9 @@ def main() -> None:
     configs = [("superpixel", n, refine) for n in args.superpixels for refine in (False, True)]
     if not args.skip_pixel:
         configs.append(("pixel", None, None))
-    std_repeats = [0 if (c[0] == "pixel" and args.skip_pixel_std) else 1 if c[0] == "pixel" else args.repeats
-                   for c in configs]
+        configs += [("pixel", None, None, part) for part in PARTS]
+    std_repeats = [0 if (c[0] == "pixel" and (args.skip_pixel_std or len(c) > 3)) else 1 if c[0] == "pixel"
+                   else args.repeats for c in configs]
     load_before = os.getloadavg()
     rows = measure(configs, f, args.device, args.repeats, std_repeats)
     load_after = os.getloadavg()
