@@ -430,18 +430,13 @@ def verdicts(rows: list[dict]) -> list[str]:
             out.append(f"- protocol {key}: learned {l:.0f} mm vs nn {n:.0f} mm: {gain:+.1%} "
                        f"(target {'> 0' if need == 0 else f'>= {need:.0%}'}): "
                        f"{'meets' if ok else f'misses by {(need - gain) * 100:.1f} points'}")
-        if (key, "learned") in by and (key, "ipbasic") in by:
-            l, i = by[(key, "learned")]["rmse"], by[(key, "ipbasic")]["rmse"]
-            ok = l <= TARGET_VS_IPBASIC * i
-            out.append(f"- protocol {key}: learned {l:.0f} mm vs IP-Basic {i:.0f} mm: {l / i:.3f} x (target "
-                       f"<= {TARGET_VS_IPBASIC}, {TARGET_VS_IPBASIC * i:.0f} mm): "
-                       f"{'meets' if ok else f'misses by {l - TARGET_VS_IPBASIC * i:.0f} mm'}")
-        if (key, "learned") in by and (key, "hand-set") in by:
-            l, d = by[(key, "learned")]["rmse"], by[(key, "hand-set")]["rmse"]
-            ok = l <= TARGET_VS_HANDSET * d
-            out.append(f"- protocol {key}: learned {l:.0f} mm vs the same structure hand-set {d:.0f} mm: "
-                       f"{l / d:.3f} x (target <= {TARGET_VS_HANDSET}): "
-                       f"{'meets' if ok else f'misses by {l - TARGET_VS_HANDSET * d:.0f} mm'}")
+        for other, label, target in (("ipbasic", "IP-Basic", TARGET_VS_IPBASIC),
+                                     ("hand-set", "the same structure hand-set", TARGET_VS_HANDSET)):
+            if (key, "learned") in by and (key, other) in by:
+                l, o = by[(key, "learned")]["rmse"], by[(key, other)]["rmse"]
+                verdict = "meets" if l <= target * o else f"misses by {l - target * o:.0f} mm"
+                out.append(f"- protocol {key}: learned {l:.0f} mm vs {label} {o:.0f} mm: {l / o:.3f} x "
+                           f"(target <= {target}, {target * o:.0f} mm): {verdict}")
     chains = [("no refinement, hand-set weights", ["sp-c", "sp-cn", "sp-cnd"]),
               ("with refinement, hand-set weights", ["sp-c+r", "sp-cn+r", "paper"]),
               ("no refinement, weights learned per configuration", ["sp-c/learned", "sp-cn/learned", "sp-cnd/learned"]),

@@ -47,6 +47,22 @@ class Compose:
         return f"Compose({list(self.transforms)!r})"
 
 
+def crop_sample(sample: Sample, top: int, left: int, height: int, width: int) -> Sample:
+    """The ``height x width`` window of ``sample`` from row ``top``, column ``left``; ``K``
+    follows (``cx -= left``, ``cy -= top``). The window must lie inside the frame."""
+    rows, cols = slice(top, top + height), slice(left, left + width)
+    K = sample.K.clone()
+    K[0, 2] -= left
+    K[1, 2] -= top
+    return dataclasses.replace(
+        sample,
+        image=sample.image[:, rows, cols].contiguous(),
+        sparse=sample.sparse[:, rows, cols].contiguous(),
+        target=sample.target[:, rows, cols].contiguous(),
+        K=K,
+    )
+
+
 @dataclass(frozen=True)
 class BottomCenterCrop:
     """Crop the bottom-centre ``height x width`` window (KITTI's benchmark crop).
@@ -86,18 +102,7 @@ class BottomCenterCrop:
                 f"crop {self.height}x{self.width}"
             )
         top, left = self.offsets((h, w))
-        rows = slice(top, top + self.height)
-        cols = slice(left, left + self.width)
-        K = sample.K.clone()
-        K[0, 2] -= left
-        K[1, 2] -= top
-        return dataclasses.replace(
-            sample,
-            image=sample.image[:, rows, cols].contiguous(),
-            sparse=sample.sparse[:, rows, cols].contiguous(),
-            target=sample.target[:, rows, cols].contiguous(),
-            K=K,
-        )
+        return crop_sample(sample, top, left, self.height, self.width)
 
 
 class HorizontalFlip:
@@ -175,17 +180,7 @@ class RandomCrop:
             )
         top = int(torch.randint(h - self.height + 1, (), generator=self.generator))
         left = int(torch.randint(w - self.width + 1, (), generator=self.generator))
-        rows, cols = slice(top, top + self.height), slice(left, left + self.width)
-        K = sample.K.clone()
-        K[0, 2] -= left
-        K[1, 2] -= top
-        return dataclasses.replace(
-            sample,
-            image=sample.image[:, rows, cols].contiguous(),
-            sparse=sample.sparse[:, rows, cols].contiguous(),
-            target=sample.target[:, rows, cols].contiguous(),
-            K=K,
-        )
+        return crop_sample(sample, top, left, self.height, self.width)
 
     def __repr__(self) -> str:
         return f"RandomCrop(height={self.height}, width={self.width})"
