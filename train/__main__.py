@@ -47,7 +47,9 @@ class EpochCheckpoint(ModelCheckpoint):
     def on_validation_end(self, trainer, pl_module) -> None:
         super().on_validation_end(trainer, pl_module)
         if self.save_last and not trainer.sanity_checking and self.dirpath is not None:
-            trainer.save_checkpoint(os.path.join(self.dirpath, self.CHECKPOINT_NAME_LAST + self.FILE_EXTENSION))
+            path = os.path.join(self.dirpath, self.CHECKPOINT_NAME_LAST + self.FILE_EXTENSION)
+            trainer.save_checkpoint(path)
+            self.last_model_path = path  # a later save of "last" this epoch overwrites it, no "-v1"
 
 
 class CRFDepthCLI(LightningCLI):

@@ -52,7 +52,9 @@ class SolveInfo:
 # shipped model's gradients (L1 loss, adjoint at rtol 1e-5) against tight-tolerance ones,
 # worst parameter, float64, forward rtol 1e-5 / 1e-7 / 1e-8 / 1e-9: 18% / 0.7% / 0.03% /
 # 0.02% on the real KITTI val frame, 210% / 4.6% / 0.5% / 0.05% on the synthetic scene.
-GRAD_RTOL = 1e-8
+# The pixel-grid weights shipped later (data confidence 2802, 1/z unknown, fitted normals)
+# needed more: log_sigma_d 3.7% off at 1e-8, 0.12% at 1e-10 (tests/test_gradients_real.py).
+GRAD_RTOL = 1e-10
 
 
 @dataclass

@@ -12,6 +12,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import solve_grid_laplacian, solver_settings
+from crfdepth.linalg.autograd import GRAD_RTOL
 
 F64 = torch.float64
 
@@ -54,9 +55,9 @@ def test_differentiated_forward_runs_to_grad_rtol_and_plain_forward_to_rtol():
         _, info_nograd = solve_grid_laplacian(b.requires_grad_(), d, wh, wv, x0=x0, rtol=1e-5)
     x, info_grad = solve_grid_laplacian(b, d, wh, wv, x0=x0, rtol=1e-5)
     assert info_plain.rtol == info_nograd.rtol == 1e-5
-    assert info_grad.rtol == 1e-8 and float(info_grad.rel_residual[0]) <= 1e-8
+    assert info_grad.rtol == GRAD_RTOL and float(info_grad.rel_residual[0]) <= GRAD_RTOL
     _, info_jacobi = solve_grid_laplacian(b, d, wh, wv, x0=x0, rtol=1e-5, preconditioner="jacobi")
-    assert info_jacobi.rtol == 1e-8 and int(info_jacobi.iterations[0]) > int(info_plain.iterations[0])
+    assert info_jacobi.rtol == GRAD_RTOL and int(info_jacobi.iterations[0]) > int(info_plain.iterations[0])
     x.sum().backward()
     assert info_grad.adjoint.rtol == 1e-5  # the adjoint keeps rtol, relative to ||g||
     assert bool(info_grad.adjoint.converged.all())
@@ -77,7 +78,7 @@ def test_float32_differentiated_solve_iterates_in_float64():
     _, reference, _ = _gradients(F64, rtol=1e-13)
     x, grads, info = _gradients(torch.float32, rtol=1e-5)
     assert x.dtype == torch.float32 and all(g.dtype == torch.float32 for g in grads)
-    assert info.rtol == 1e-8 and bool(info.converged.all())
+    assert info.rtol == GRAD_RTOL and bool(info.converged.all())
     assert info.adjoint.rel_residual.dtype == F64 and bool(info.adjoint.converged.all())
     assert _relative_error(grads, reference) < 1e-3
     with torch.no_grad():  # not differentiated: float32 throughout, rtol as given
