@@ -34,6 +34,7 @@ from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
+from crfdepth.robust import DEFAULT_IRLS_SCALE, grid_degree, leave_one_out, robust_factor
 from crfdepth.potentials import (
     EnergyTerms,
     colour_affinity,
@@ -121,10 +122,15 @@ class CRFDepth(nn.Module):
         std_samples: samples of the posterior-variance estimate on large graphs
             (:mod:`crfdepth.uncertainty`); graphs up to 1,000 nodes are exact.
         rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
-        variable: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper) or
-            ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly).
+        variable: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper),
+            ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly) or
+            ``"log"`` (log z: between the two where a pixel mixes a near and a far surface).
             Data, prior and warm start are mapped to it, depth and std are mapped back
-            (``std_z = z^2 std_(1/z)``); ``CRFOutput.terms`` hold the system in it.
+            (``std_z = z^2 std_(1/z)``, ``z std_(log z)``); ``CRFOutput.terms`` hold the system in it.
+        irls: robust reweighting rounds of the pixel-grid data term after the last solve
+            (:mod:`crfdepth.robust`; 0 = none): each scales a return's data weight by a
+            Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
+        irls_scale: initial ``sigma`` of that factor, inverse depth in 1/m (learnable).
         head: add the small learned :class:`~crfdepth.head.PotentialHead` (per-pixel data
             and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
     """
@@ -160,6 +166,8 @@ class CRFDepth(nn.Module):
         gate_threshold: float = DEFAULT_THRESHOLD,
         gate_softness: float = DEFAULT_SOFTNESS,
         prior: Literal["nearest", "ip_basic"] = "nearest",
+        irls: int = 0,
+        irls_scale: float = DEFAULT_IRLS_SCALE,
     ) -> None:
         super().__init__()
         # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
@@ -180,19 +188,22 @@ class CRFDepth(nn.Module):
                              f"got {aggregate!r}")
         if isinstance(gate_window, bool) or not isinstance(gate_window, int) or gate_window < 3 or gate_window % 2 == 0:
             raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {gate_window!r}")
-        if not isinstance(rounds, int) or rounds < 1:
+        if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
             raise InputError(f"rounds: expected an int >= 1, got {rounds!r}")
+        if isinstance(irls, bool) or not isinstance(irls, int) or irls < 0:
+            raise InputError(f"irls: expected an int >= 0 (robust reweighting rounds), got {irls!r}")
         for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
             check_number(name, value, low=0.0, high=1.0)
         for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
                             ("confidence", confidence), ("eps", eps), ("refine_prior", refine_prior),
                             ("std_scale", std_scale), ("gate_threshold", gate_threshold),
-                            ("gate_softness", gate_softness)):
+                            ("gate_softness", gate_softness), ("irls_scale", irls_scale)):
             check_number(name, value, low=0.0)
         self.mode, self.superpixels, self.scale_superpixels = mode, superpixels, scale_superpixels
         self.potentials = tuple(p for p in POTENTIALS if p in potentials)
         self.aggregate, self.refine, self.rounds, self.std_samples = aggregate, refine, rounds, std_samples
         self.variable, self.gate, self.gate_window, self.prior = variable, gate, gate_window, prior
+        self.irls = irls
         self.head = PotentialHead() if head else None
         self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
         self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
@@ -209,6 +220,8 @@ class CRFDepth(nn.Module):
         if gate:  # parameters exist only where they are used (every parameter gets a gradient)
             self.log_gate_threshold = nn.Parameter(torch.tensor(math.log(gate_threshold)))
             self.log_gate_softness = nn.Parameter(torch.tensor(math.log(gate_softness)))
+        if irls:
+            self.log_irls_scale = nn.Parameter(torch.tensor(math.log(irls_scale)))
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -238,11 +251,13 @@ class CRFDepth(nn.Module):
     std_scale = _constrained("log_std_scale", torch.exp)
     gate_threshold = _constrained("log_gate_threshold", torch.exp)
     gate_softness = _constrained("log_gate_softness", torch.exp)
+    irls_scale = _constrained("log_irls_scale", torch.exp)
 
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
         names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
-                 "std_scale") + (("gate_threshold", "gate_softness") if self.gate else ())
+                 "std_scale") + (("gate_threshold", "gate_softness") if self.gate else ()) + (
+                     ("irls_scale",) if self.irls else ())
         return {n: float(getattr(self, n).detach()) for n in names}
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
@@ -420,7 +435,28 @@ class CRFDepth(nn.Module):
             x, info = grid_crf(*grid_system(t), x0=to_unknown(geometry[:, 0], v), settings=self.solver)
             infos.append(info)
             geometry = to_depth(x, v)[:, None]
+        if self.irls:
+            geometry, t = self._reweight(sparse, t, x, infos)
         return geometry, t
+
+    def _reweight(self, sparse, t, x, infos):
+        """``irls`` robust reweighting rounds of the data term after the last solve (:mod:`crfdepth.robust`).
+
+        Each round scales the data weight of every return by the Geman-McClure factor of
+        its inverse-depth lead over its leave-one-out prediction from the previous
+        solution, and solves again (warm-started); the last solve carries the gradients.
+        """
+        v, base, s = self.variable, t["w"], sparse[:, 0]
+        inv_z = torch.where(s > 0, s.reciprocal(), torch.zeros_like(s))
+        for _ in range(self.irls):
+            d, _, wh, wv = grid_system(t)
+            data = (t["alpha"] * t["w"]).detach()
+            x_hat = leave_one_out(x.detach(), t["z"], data, (d + grid_degree(wh, wv)).detach())
+            lead = torch.where(s > 0, to_depth(x_hat, v).clamp_min(1e-3).reciprocal() - inv_z, torch.zeros_like(s))
+            t = dict(t, w=base * robust_factor(lead, self.irls_scale))
+            x, info = grid_crf(*grid_system(t), x0=x, settings=self.solver)
+            infos.append(info)
+        return to_depth(x, v)[:, None], t
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape

@@ -48,6 +48,7 @@ PARAMETERS = {
     "sigma_d": "log_sigma_d", "sigma_n": "log_sigma_n", "sigma_p": "log_sigma_p",
     "confidence": "log_confidence", "refine_prior": "log_refine_prior", "std_scale": "log_std_scale",
     "gate_threshold": "log_gate_threshold", "gate_softness": "log_gate_softness",
+    "irls_scale": "log_irls_scale",
 }
 
 
@@ -113,7 +114,7 @@ class CRFDepthModule(pl.LightningModule):
             alpha..delta, logs of the sigmas, confidence and std scale.
         freeze: names of weights to keep at their initial value (any of alpha, beta,
             gamma, delta, sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale,
-            gate_threshold, gate_softness).
+            gate_threshold, gate_softness, irls_scale).
         head_lr: Adam learning rate of the small learned head (``crf: {head: true}``), whose
             weights are ordinary network weights rather than logs of scalars.
 

@@ -1,0 +1,81 @@
+"""Robust reweighting (IRLS) of the pixel-grid data term (docs/design.md section 3b).
+
+The occlusion gate judges a return only against the returns in a small window; a
+see-through return whose nearer neighbours lie further away, or a run of them along a
+ring, keeps its full weight. After a solve, the CRF itself predicts every return from its
+surroundings, and a return much *deeper* than that prediction is suspect in the same way.
+
+**Leave-one-out prediction.** Row ``k`` of ``A x = b`` on the pixel grid reads
+``D_k x_k = a_k z_k + S_k`` with ``a_k`` the data weight of the return, ``D_k`` the whole
+diagonal (data, prior and the weights of the edges at ``k``) and ``S_k`` the prior and the
+neighbours' pull. With the neighbours held at the solution, the value that ``k`` would
+take without its own datum is ``x^_k = S_k / (D_k - a_k)``, so
+
+    z_k - x^_k = (z_k - x_k) D_k / (D_k - a_k)
+
+costs one pass over the solution. (The neighbours still feel ``k``: this underestimates
+the residual of a return whose neighbours are pulled towards it, most in 1-D runs.)
+
+**Weight.** The residual is taken in inverse depth whatever the CRF's unknown, as the
+gate's lead is (parallax is a difference of inverse depths): ``r_k = 1/x^_k - 1/z_k``
+(positive: the return lies behind what its surroundings predict). The data weight is
+multiplied by the Geman-McClure factor ``rho_k = (1 + (r_k+ / sigma)^2)^-2`` of the
+positive part: only returns *behind* the prediction lose weight, since a LiDAR return in
+front of its surroundings is what a thin or small foreground object looks like, and the
+camera sees it too. ``rho`` is 1 at ``r <= 0``, 1/4 at ``r = sigma``.
+
+The weights of a round are computed from the (detached) previous solution and are
+differentiable in ``sigma``; the final solve is differentiated as usual, so gradients
+reach ``sigma`` and every weight through the last system.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["DEFAULT_IRLS_SCALE", "grid_degree", "leave_one_out", "robust_factor"]
+
+DEFAULT_IRLS_SCALE = 0.015
+"""``sigma`` of the Geman-McClure factor, 1/m: the occlusion gate's threshold, so that a
+return that far behind its prediction keeps a quarter of its weight."""
+
+
+def grid_degree(weight_h: torch.Tensor, weight_v: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) sum of the weights of the edges at each pixel of a 4-connected grid.
+
+    Args:
+        weight_h: (B, H, W-1) weights between (r, c) and (r, c+1); weight_v: (B, H-1, W).
+    """
+    return (F.pad(weight_h, (0, 1)) + F.pad(weight_h, (1, 0))
+            + F.pad(weight_v, (0, 0, 0, 1)) + F.pad(weight_v, (0, 0, 1, 0)))
+
+
+def leave_one_out(x: torch.Tensor, z: torch.Tensor, data_weight: torch.Tensor, diagonal: torch.Tensor
+                  ) -> torch.Tensor:
+    """``x^`` where ``data_weight > 0``: the solution each datum's node would take without it.
+
+    Args:
+        x: (B, H, W) the solution; z: (B, H, W) the data (any value where the weight is 0).
+        data_weight: (B, H, W) ``a`` >= 0, the data term's diagonal.
+        diagonal: (B, H, W) ``D``, the whole diagonal of ``A`` (``D - a > 0``: the prior
+            keeps it positive).
+
+    Returns:
+        (B, H, W): ``x - (z - x) a / (D - a)`` (equal to ``x`` where ``a = 0``).
+    """
+    return x - (z - x) * data_weight / (diagonal - data_weight)
+
+
+def robust_factor(inverse_lead: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Geman-McClure factor ``(1 + (r+ / scale)^2)^-2`` of the positive part of ``r``.
+
+    Args:
+        inverse_lead: ``r = 1/x^ - 1/z`` in 1/m (no gradient is taken through it).
+        scale: ``sigma`` > 0 in 1/m, a one-element tensor (gradients reach it).
+
+    Returns:
+        Factors in (0, 1], 1 where ``r <= 0``, same shape as ``inverse_lead``.
+    """
+    q = inverse_lead.detach().clamp_min(0.0) / scale
+    return (1.0 + q * q).reciprocal().square()
