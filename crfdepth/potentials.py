@@ -26,15 +26,20 @@ from crfdepth.normals import dense_normals
 
 
 #: The CRF's unknown (docs/design.md section 3b): ``"depth"`` solves for z (the paper),
-#: ``"inverse"`` for 1/z, on which a membrane prior reproduces planes exactly.
-Variable = Literal["depth", "inverse"]
-VARIABLES = ("depth", "inverse")
+#: ``"inverse"`` for 1/z, on which a membrane prior reproduces planes exactly, ``"log"`` for
+#: log z (metres), between the two: a pixel mixing a near and a far surface lands at their
+#: geometric mean rather than near the nearer one (1/z) or at the arithmetic mean (z).
+Variable = Literal["depth", "inverse", "log"]
+VARIABLES = ("depth", "inverse", "log")
 
 
 def to_unknown(depth: torch.Tensor, variable: Variable) -> torch.Tensor:
-    """The CRF's unknown for a depth map in metres: ``z`` or ``1/z`` (0 stays 0: no data there)."""
+    """The CRF's unknown for a depth map in metres: ``z``, ``1/z`` or ``log z`` (0 stays 0: no data there;
+    every use of the unknown at an empty pixel has weight 0)."""
     if variable == "depth":
         return depth
+    if variable == "log":
+        return torch.where(depth > 0, torch.log(depth.clamp_min(1e-6)), torch.zeros_like(depth))
     return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
 
 
@@ -42,16 +47,22 @@ def to_depth(x: torch.Tensor, variable: Variable) -> torch.Tensor:
     """Depth in metres from the CRF's unknown (inverse of :func:`to_unknown` where ``x > 0``).
 
     The solution of an inverse-depth system is positive (``A`` is an M-matrix and ``b > 0``
-    wherever the prior is), the clamp only guards against round-off.
+    wherever the prior is), the clamp only guards against round-off; ``exp`` of a log-depth
+    solution is positive by construction.
     """
     if variable == "depth":
         return x
+    if variable == "log":
+        return torch.exp(x)
     return 1.0 / x.clamp_min(1e-6)
 
 
 def std_in_metres(std: torch.Tensor, depth: torch.Tensor, variable: Variable) -> torch.Tensor:
-    """A std of the unknown as a std of depth (first order: ``std_z = z^2 std_(1/z)``; no gradient to ``depth``)."""
-    return std if variable == "depth" else std * depth.detach() ** 2
+    """A std of the unknown as a std of depth, to first order (``std_z = z^2 std_(1/z)``,
+    ``std_z = z std_(log z)``; no gradient to ``depth``)."""
+    if variable == "depth":
+        return std
+    return std * depth.detach() ** (1 if variable == "log" else 2)
 
 
 def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,5 @@
-"""The model's additions beyond the paper (docs/design.md section 3b): the inverse-depth
-unknown, the occlusion gate in the data term, the IP-Basic prior and the learned head."""
+"""The model's additions beyond the paper (docs/design.md section 3b): the inverse- and
+log-depth unknowns, the occlusion gate in the data term, the IP-Basic prior and the learned head."""
 
 from __future__ import annotations
 
@@ -49,12 +49,31 @@ def test_inverse_depth_reproduces_a_slanted_plane_between_scan_lines():
 def test_inverse_depth_std_is_in_metres():
     image, sparse, K, depth, between = _road(torch.float32)
     out = {v: CRFDepth(mode="pixel", variable=v, std_samples=8)(image, sparse, K, return_std=True)
-           for v in ("depth", "inverse")}
+           for v in ("depth", "inverse", "log")}
     for o in out.values():
         assert torch.isfinite(o.std).all() and (o.std > 0).all()
-    # Far rows are less certain in metres on 1/z (std_z = z^2 std_1/z), not on z.
+    # Far rows are less certain in metres on 1/z (std_z = z^2 std_1/z) and on log z
+    # (std_z = z std_log z), not on z.
     s = out["inverse"].std[0, 0, between].mean(1)
     assert float(s[0] / s[-1]) > 2.0
+    s = out["log"].std[0, 0, between].mean(1)
+    assert float(s[0] / s[-1]) > 1.5
+
+
+@pytest.mark.parametrize("variable, mean", [("depth", 25.0), ("inverse", 16.0), ("log", 20.0)])
+def test_each_unknown_averages_a_near_and_a_far_return_in_its_own_space(variable, mean):
+    # Columns of returns at 10 m and 40 m, nothing between, uniform colour: halfway, the
+    # membrane gives the arithmetic (z), harmonic (1/z) or geometric (log z) mean of the
+    # two (measured 24.99, 15.99, 19.99 m; the rest is the prior, eps 1e-4).
+    h, w = 8, 41
+    K = torch.tensor([[720.0, 0, w / 2], [0, 720.0, h / 2], [0, 0, 1]], dtype=torch.float64)
+    image = torch.full((1, 3, h, w), 0.5, dtype=torch.float64)
+    sparse = torch.zeros(1, 1, h, w, dtype=torch.float64)
+    sparse[..., 0], sparse[..., -1] = 10.0, 40.0
+    model = CRFDepth(mode="pixel", variable=variable, potentials=("colour",), eps=1e-4, rtol=1e-12).double()
+    with torch.no_grad():
+        depth = model(image, sparse, K).depth[0, 0, :, w // 2]
+    assert torch.allclose(depth, torch.full_like(depth, mean), rtol=2e-3)
 
 
 def _leaky_wall():
@@ -141,7 +160,7 @@ def test_head_factors_are_bounded_and_positive():
 
 
 @pytest.mark.parametrize("kwargs, name", [
-    ({"variable": "log"}, "variable"), ({"prior": "zero"}, "prior"), ({"gate_window": 4}, "gate_window"),
+    ({"variable": "sqrt"}, "variable"), ({"prior": "zero"}, "prior"), ({"gate_window": 4}, "gate_window"),
     ({"gate_threshold": -1.0}, "gate_threshold"), ({"gate": True, "aggregate": "median"}, "aggregate"),
 ])
 def test_bad_options_name_the_argument(kwargs, name):
