@@ -45,9 +45,10 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   ``sp-c+r``, ``sp-cn+r``: the same with the pixel refinement (``sp-cnd+r`` is ``paper``);
 - ``sp1200``, ``sp2400``: the paper's Table 2 segment counts, all potentials, no
   refinement (5500 is ``sp-cnd``);
-- ``inv``, ``inv+gate``, ``pixel+gate``, ``pixel+inv+gate``, ``pixel+inv+gate+ipb``: the
-  extensions of docs/design.md section 3b with hand-set weights (``variable="inverse"``,
-  ``gate=True``, ``mode="pixel"``, ``prior="ip_basic"``).
+- ``inv``, ``inv+gate``, ``pixel+gate``, ``pixel+inv+gate``, ``pixel+inv+gate+ipb``,
+  ``pixel+inv+gate+irls``, ``pixel+log+gate``: the extensions of docs/design.md section 3b
+  with hand-set weights (``variable="inverse"`` or ``"log"``, ``gate=True``,
+  ``mode="pixel"``, ``prior="ip_basic"``, ``irls=1``).
 
 The ablations and segment counts use the hand-set weights, as ``paper`` does. With
 ``--learn-ablations``, protocol a also gets ``sp-c/learned`` .. ``sp-cn+r/learned``: each
@@ -142,12 +143,26 @@ CRF_METHODS = {
     "pixel+gate": dict(mode="pixel", gate=True),
     "pixel+inv+gate": dict(mode="pixel", variable="inverse", gate=True),
     "pixel+inv+gate+ipb": dict(mode="pixel", variable="inverse", gate=True, prior="ip_basic"),
+    "pixel+inv+gate+irls": dict(mode="pixel", variable="inverse", gate=True, irls=1),
+    "pixel+log+gate": dict(mode="pixel", variable="log", gate=True),
 }
 METHODS = ("nn", "ipbasic", "inpaint", *CRF_METHODS)
 WITH_STD = ("paper", "hand-set", "learned")
 GROUP_FOLDERS = {"raw": "raw", "object": "object/training"}
 TARGET_VS_IPBASIC = 0.85  # issue targets: learned RMSE <= 0.85 x IP-Basic's, same run
 TARGET_VS_HANDSET = 0.97  # learned RMSE <= 0.97 x the same structure with hand-set weights
+DEPTH_BINS_M = (0.0, 10.0, 20.0, 40.0, float("inf"))  # target depth bins of the error breakdown
+
+
+def depth_bin_errors(depth: torch.Tensor, target: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(sum of squared errors in m^2, target pixels) per :data:`DEPTH_BINS_M` bin of the target depth."""
+    mask = target > 0
+    t = target[mask].double().cpu()
+    se = (depth[mask].double().cpu() - t) ** 2
+    b = torch.bucketize(t, torch.tensor(DEPTH_BINS_M[1:-1], dtype=t.dtype), right=True)
+    n_bins = len(DEPTH_BINS_M) - 1
+    return (torch.zeros(n_bins, dtype=t.dtype).index_add(0, b, se).numpy(),
+            torch.bincount(b, minlength=n_bins).numpy())
 
 
 def recipe() -> dict:
@@ -267,7 +282,7 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
     """Rows (one per method) of protocol ``key`` and its mean sparsification curves."""
     title, groups = PROTOCOLS[key]
     methods = list(args.methods) + (list(LEARNED_ABLATIONS) if args.learn_ablations and key == "a" else [])
-    per = {m: dict(metrics=[], seconds=[], unc={}) for m in methods}
+    per = {m: dict(metrics=[], seconds=[], unc={}, bins=[]) for m in methods}
     curves: dict = {}
     fit_note = {}
     for group, layout, folder, options in groups:
@@ -291,6 +306,7 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
                 depth, std, count, seconds = predict(m, models.get(m), image, sparse, K, args.device)
                 per[m]["metrics"].append(depth_metrics(depth, target))
                 per[m]["seconds"].append(seconds)
+                per[m]["bins"].append(depth_bin_errors(depth, target))
                 if std is None:
                     continue
                 err = (depth[0, 0][mask] - target[0, 0][mask]).double().cpu().numpy() * 1000.0  # mm
@@ -303,6 +319,14 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         stacked = {k: torch.cat([d[k] for d in per[m]["metrics"]]) for k in per[m]["metrics"][0]}
         row = {"protocol": key, "method": m, "frames": len(per[m]["metrics"])}
         row.update({k: v for k, v in average_metrics(stacked).items()})
+        se = np.sum([b[0] for b in per[m]["bins"]], 0)
+        count = np.sum([b[1] for b in per[m]["bins"]], 0)
+        labels = [f"{lo:g}-{hi:g} m" if np.isfinite(hi) else f">= {lo:g} m"
+                  for lo, hi in zip(DEPTH_BINS_M[:-1], DEPTH_BINS_M[1:])]
+        # pooled over the protocol's target pixels: RMSE within each bin and its share of all squared error
+        row["depth_bins"] = {lab: dict(pixels=int(n), rmse_mm=float(np.sqrt(e / max(n, 1)) * 1000.0),
+                                       share_of_squared_error=float(e / max(se.sum(), 1e-12)))
+                             for lab, e, n in zip(labels, se, count)}
         sec = statistics.median(per[m]["seconds"])
         row.update(seconds_median=sec, fps_median=1.0 / sec, device=args.device, batch_size=1,
                    threads=torch.get_num_threads(), size=f"{w}x{h}")
@@ -399,6 +423,14 @@ def markdown_tables(rows: list[dict]) -> list[str]:
         for r in rs:
             if "fit" in r:
                 lines.append(f"\n{r['method']}: {r['fit']}")
+    binned = [r for r in rows if "depth_bins" in r]
+    if binned:
+        labels = list(binned[0]["depth_bins"])
+        lines += ["", "**Where the error is: pooled RMSE mm by target depth (share of the squared error)**", "",
+                  "| protocol | method | " + " | ".join(labels) + " |", "|---|---|" + "---|" * len(labels)]
+        for r in binned:
+            cells = [f"{v['rmse_mm']:.0f} ({v['share_of_squared_error']:.0%})" for v in r["depth_bins"].values()]
+            lines.append(f"| {r['protocol']} | {r['method']} | " + " | ".join(cells) + " |")
     unc = [r for r in rows if "ause_std_mm" in r]
     if unc:
         lines += ["", "**Uncertainty: AUSE of RMSE in mm (lower is better; random order for scale)**", "",

@@ -10,7 +10,8 @@ Configurations: superpixel mode with 1200, 2400 and 5500 SLIC segments
 (``scale_superpixels=False``), each with ``refine=False`` (the paper's piecewise-constant
 painting) and ``refine=True`` (crfdepth's default pixel-level refinement); pixel mode;
 then the options of docs/design.md section 3b added one at a time on the pixel grid
-(``pixel+inverse``, ``+gate``, ``+head``; their std is not timed) and the shipped model
+(``pixel+inverse``, ``+gate``, ``+head``, ``+irls`` (one round), and ``pixel+log+gate``;
+their std is not timed) and the shipped model
 (``CRFDepth.from_pretrained("kitti")``), each against the paper default (superpixel 5500,
 refined; target: no configuration more than 25% slower). All other model arguments are
 the constructor defaults.
@@ -107,6 +108,8 @@ PARTS = {
     "pixel+inverse": dict(variable="inverse"),
     "pixel+inverse+gate": dict(variable="inverse", gate=True),
     "pixel+inverse+gate+head": dict(variable="inverse", gate=True, head=True),
+    "pixel+inverse+gate+irls": dict(variable="inverse", gate=True, irls=1),
+    "pixel+log+gate": dict(variable="log", gate=True),
     "shipped": None,
 }
 TARGET_VS_PAPER = 1.25  # no configuration slower than the paper default (superpixel 5500, refined) by > 25%

@@ -35,6 +35,13 @@ def test_quick_run_writes_parseable_json(accuracy, kitti_root, tmp_path, capsys)
     for m in ("paper", "learned"):
         assert 0 < by[m]["ause_std_mm"] < by[m]["ause_random_std_mm"]
     assert "| paper |" in (tmp_path / "results.md").read_text()
+    for r in lines:  # the error by target depth covers every target pixel once
+        bins = r["depth_bins"]
+        assert list(bins) == ["0-10 m", "10-20 m", "20-40 m", ">= 40 m"]
+        assert sum(b["pixels"] for b in bins.values()) == r["pixels"]
+        assert sum(b["share_of_squared_error"] for b in bins.values()) == pytest.approx(1.0)
+        assert all(b["rmse_mm"] >= 0 for b in bins.values())
+    assert "**Where the error is" in (tmp_path / "results.md").read_text()
     printed = capsys.readouterr().out
     assert sum(1 for x in printed.splitlines() if x.startswith("{")) == 3
 

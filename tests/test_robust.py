@@ -9,6 +9,7 @@ from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
 from crfdepth.model import CRFDepth
 from crfdepth.robust import grid_degree, leave_one_out, robust_factor
+from tests.test_model_beyond_paper import _leaky_wall
 
 
 def _dense_matrix(d, wh, wv):
@@ -69,23 +70,13 @@ def test_robust_factor_values_and_gradient():
 
 
 def _isolated_leaks():
-    """A box at 8 m before a wall at 25 m, scan lines every 4 rows; one wall return leaks into
-    two columns of the box on every scan line (isolated: no other leak beside it)."""
-    h, w = 48, 96
-    K = torch.tensor([[720.0, 0, w / 2], [0, 720.0, h / 2], [0, 0, 1]])
-    truth = torch.full((h, w), 25.0)
-    truth[12:40, 30:60] = 8.0
-    image = torch.full((1, 3, h, w), 0.8)
-    image[:, :, 12:40, 30:60] = 0.2
-    sparse = torch.zeros(h, w)
-    sparse[2::4] = truth[2::4]
-    leaked = torch.zeros(h, w, dtype=torch.bool)
-    leaked[14:38:4, 40] = True
-    leaked[14:38:4, 50] = True
-    sparse[leaked] = 25.0
-    box = torch.zeros(h, w, dtype=torch.bool)
+    """The box before the wall of the gate's tests, one wall return leaked into columns 40 and
+    50 of the box on every scan line (isolated: no other leak beside it), and the box's rows
+    between its first and last scan line."""
+    image, sparse, K, truth, leaked = _leaky_wall(leak_columns=((40, 41), (50, 51)))
+    box = torch.zeros_like(leaked)
     box[14:39, 30:60] = True
-    return image, sparse[None, None], K, truth, leaked, box
+    return image, sparse, K, truth, leaked, box
 
 
 def test_irls_discounts_isolated_returns_behind_their_surroundings():
