@@ -71,10 +71,10 @@ def test_kitti_points_equal_two_step_cli(main, kitti_root, tmp_path):
     assert np.abs(one - _quantised(api_points)).max() < 1e-3  # measured: 0 (identical PNG codes)
     assert np.abs(two - _quantised(api_sparse)).max() < 1e-3  # measured: 0
     # one step vs two steps: only the sparse quantisation differs
-    # measured: median 0, max 7.8 mm (two PNG steps, 1/256 m each). The CRF on 1/z is a
-    # weighted mean of inverse depths, so an input change dz at depth z moves a pixel at
-    # depth x by up to (x / z)^2 dz: pixels farther than the LiDAR they borrow from amplify
-    # the quantisation (at most one step with the earlier depth-unknown default).
+    # The CRF on log z is a weighted geometric mean of the returns, so an input change dz
+    # at depth z moves a pixel at depth x by up to (x / z) dz: pixels farther than the
+    # LiDAR they borrow from amplify the quantisation (on 1/z by (x / z)^2: up to two
+    # PNG steps of 1/256 m were measured with the earlier 1/z weights).
     assert np.median(np.abs(one - two)) == 0
     assert np.abs(one - two).max() <= 2 / 256 + 1e-6
     assert np.sqrt(np.mean((one - two) ** 2)) < 0.003
