@@ -10,7 +10,11 @@ repository), through :func:`crfdepth.data.factory.build_dataset`, all 1216 x 352
 - protocol **bu**: protocol b scored against the held-out points as they are
   (``clean_target=False``: see-through points kept);
 - protocol **c**: the same scans keeping every 4th laser ring (16 beams) as the input,
-  the other rings as the target (``holdout="rings", keep_every_ring=4``).
+  the other rings as the target (``holdout="rings", keep_every_ring=4``);
+- protocol **s**: 12 built-in synthetic street scenes (seeds 1000-1011, no data folder),
+  KITTI's 64-beam LiDAR mount with its see-through leaks, scored against the camera's
+  true depth (``SyntheticScene.target()``): the one protocol besides (a) whose target is
+  what the camera sees, and one the structure may be chosen on.
 
 Targets in b and c are raw LiDAR points (sparse, noisy), not KITTI's semi-dense
 annotation, cleaned of see-through points against the whole scan
@@ -34,6 +38,7 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   augmentation, hold-outs, epochs and seed), always on frames **outside** the
   evaluated set. Protocol a: the shipped weights themselves (``crfdepth/weights/kitti.json``,
   the package default; trained on drive 0060 and the object frames, never on drive 0001).
+  Protocol s: the shipped weights (never trained on synthetic scenes).
   Protocols b and c: 2-fold by source, since the shipped weights saw those frames: the
   raw-drive frames get weights fitted on the object frames, the object frames weights
   fitted on the raw drives. The NLL term is off in these fits (it moves only the std
@@ -105,7 +110,8 @@ from crfdepth.model import CRFDepth
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
 TARGET_GAIN_C = 0.20  # learned must beat NN on protocol c by >= 20% RMSE
 
-# protocol -> (title, [(group, layout, sub-folder, dataset options)])
+SYNTHETIC_SEED = 1000  # protocol s: scenes no recipe trains on (the trainer's synthetic validation seeds)
+# protocol -> (title, [(group, layout, sub-folder (None: no data folder), dataset options)])
 PROTOCOLS = {
     "a": ("(a) val_selection_cropped: official input, semi-dense ground truth",
           [("val", "val_selection", "depth_selection/val_selection_cropped", {})]),
@@ -119,11 +125,13 @@ PROTOCOLS = {
     "c": ("(c) raw scans, every 4th ring kept (16 beams), other rings as target",
           [("raw", "raw", "raw", dict(holdout="rings", keep_every_ring=4)),
            ("object", "object", "object/training", dict(holdout="rings", keep_every_ring=4))]),
+    "s": ("(s) built-in synthetic street scenes (seeds 1000-1011): the camera's true depth as target",
+          [("synthetic", "synthetic", None, dict(count=12, seed=SYNTHETIC_SEED))]),
 }
 # (protocol, evaluated group) -> training group of its learned weights ("shipped": the package's file)
 FIT_SOURCE = {("a", "val"): "shipped", ("b", "raw"): "object", ("b", "object"): "raw",
               ("bu", "raw"): "object", ("bu", "object"): "raw",
-              ("c", "raw"): "object", ("c", "object"): "raw"}
+              ("c", "raw"): "object", ("c", "object"): "raw", ("s", "synthetic"): "shipped"}
 RECIPE = Path(__file__).resolve().parent.parent / "configs" / "kitti_weights.yaml"
 CRF_METHODS = {
     "paper": dict(),
@@ -188,7 +196,7 @@ def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: 
     """Samples of one frame group, evenly spaced down to ``max_frames``."""
     if layout in ("raw", "object"):
         options = dict(options, keep_fraction=keep_fraction)
-    ds = build_dataset(layout, root / folder, **options)
+    ds = build_dataset(layout, None if folder is None else root / folder, **options)
     idx = list(range(len(ds)))
     if max_frames is not None and len(idx) > max_frames:
         idx = sorted({round(i * (len(ds) - 1) / max(max_frames - 1, 1)) for i in range(max_frames)})
@@ -560,7 +568,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         args.fit_epochs = int(yaml.safe_load(RECIPE.read_text())["trainer"]["max_epochs"])
     if args.fit_epochs < 1:
         parser.error(f"--fit-epochs: expected >= 1, got {args.fit_epochs}")
-    needed = sorted({folder for key in args.protocols for _, _, folder, _ in PROTOCOLS[key][1]}
+    needed = sorted({folder for key in args.protocols for _, _, folder, _ in PROTOCOLS[key][1] if folder}
                     | ({"raw", "object/training"} if args.learn_ablations else set())
                     | (set() if args.no_subsample else {"raw", "object/training"}))
     missing = [f for f in needed if not (args.kitti_root / f).is_dir()]
