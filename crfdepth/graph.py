@@ -250,6 +250,13 @@ class SuperpixelGraph:
         flat = self.edge_index.reshape(-1)
         return torch.bincount(flat, minlength=self.num_nodes)
 
+    def node_mean(self, values: torch.Tensor) -> torch.Tensor:
+        """(S, C) mean over each node's pixels of (C, H, W) ``values``, in their dtype and
+        differentiable in them (the graph itself is not)."""
+        sums = values.new_zeros(self.num_nodes, values.shape[0]).index_add(
+            0, self.labels.reshape(-1), values.reshape(values.shape[0], -1).T)
+        return sums / self.area.to(values.dtype)[:, None]
+
 
 def _segment_sums(values: torch.Tensor, labels_flat: torch.Tensor, num_nodes: int) -> torch.Tensor:
     """(S, C) float64 per-label sums of (N, C) values."""

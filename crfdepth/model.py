@@ -34,24 +34,10 @@ from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
-from crfdepth.robust import DEFAULT_IRLS_SCALE, grid_degree, leave_one_out, robust_factor
-from crfdepth.potentials import (
-    EnergyTerms,
-    colour_affinity,
-    data_confidence,
-    distance_affinity,
-    energy,
-    grid_energy_terms,
-    grid_potentials,
-    grid_system,
-    normal_affinity,
-    std_in_metres,
-    system_terms,
-    to_depth,
-    to_unknown,
-    VARIABLES,
-    Variable,
-)
+from crfdepth.potentials import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
+                                 distance_affinity, energy, grid_energy_terms, grid_potentials, grid_system,
+                                 normal_affinity, std_in_metres, system_terms, to_depth, to_unknown)
+from crfdepth.robust import DEFAULT_IRLS_SCALE, reweight
 from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
@@ -127,6 +113,10 @@ class CRFDepth(nn.Module):
             ``"log"`` (log z: between the two where a pixel mixes a near and a far surface).
             Data, prior and warm start are mapped to it, depth and std are mapped back
             (``std_z = z^2 std_(1/z)``, ``z std_(log z)``); ``CRFOutput.terms`` hold the system in it.
+        gate: multiply each return's data weight by the soft occlusion gate of
+            :mod:`crfdepth.occlusion` (see-through returns lose weight); ``gate_window``
+            (odd pixels), ``gate_threshold`` and ``gate_softness`` (1/m, learnable) set it.
+        prior: the fill that is ``x0`` and the warm start, "nearest" or "ip_basic".
         irls: robust reweighting rounds of the pixel-grid data term after the last solve
             (:mod:`crfdepth.robust`; 0 = none): each scales a return's data weight by a
             Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
@@ -177,8 +167,7 @@ class CRFDepth(nn.Module):
                                      ("prior", prior, PRIORS)):
             if value not in choices:
                 raise InputError(f"{name}: expected one of {choices}, got {value!r}")
-        if not isinstance(superpixels, int) or superpixels < 1:
-            raise InputError(f"superpixels: expected a positive int, got {superpixels!r}")
+        check_number("superpixels", superpixels, low=1, low_open=False, integer=True)
         unknown = set(potentials) - set(POTENTIALS)
         if unknown or "colour" not in potentials:
             raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
@@ -188,10 +177,8 @@ class CRFDepth(nn.Module):
                              f"got {aggregate!r}")
         if isinstance(gate_window, bool) or not isinstance(gate_window, int) or gate_window < 3 or gate_window % 2 == 0:
             raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {gate_window!r}")
-        if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
-            raise InputError(f"rounds: expected an int >= 1, got {rounds!r}")
-        if isinstance(irls, bool) or not isinstance(irls, int) or irls < 0:
-            raise InputError(f"irls: expected an int >= 0 (robust reweighting rounds), got {irls!r}")
+        check_number("rounds", rounds, low=1, low_open=False, integer=True)
+        check_number("irls", irls, low=0, low_open=False, integer=True)
         for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
             check_number(name, value, low=0.0, high=1.0)
         for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
@@ -206,22 +193,19 @@ class CRFDepth(nn.Module):
         self.irls = irls
         self.head = PotentialHead() if head else None
         self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
-        self.raw_alpha = nn.Parameter(torch.tensor(_logit(alpha)))
-        self.raw_beta = nn.Parameter(torch.tensor(_logit(beta)))
-        self.raw_gamma = nn.Parameter(torch.tensor(_logit(gamma)))
-        self.raw_delta = nn.Parameter(torch.tensor(_logit(delta)))
-        self.log_sigma_d = nn.Parameter(torch.tensor(math.log(sigma_d)))
-        self.log_sigma_n = nn.Parameter(torch.tensor(math.log(sigma_n)))
-        self.log_sigma_p = nn.Parameter(torch.tensor(math.log(sigma_p)))
-        self.log_confidence = nn.Parameter(torch.tensor(math.log(confidence)))
-        self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
-        self.register_buffer("eps", torch.tensor(float(eps)))
-        self.log_refine_prior = nn.Parameter(torch.tensor(math.log(refine_prior)))
-        if gate:  # parameters exist only where they are used (every parameter gets a gradient)
-            self.log_gate_threshold = nn.Parameter(torch.tensor(math.log(gate_threshold)))
-            self.log_gate_softness = nn.Parameter(torch.tensor(math.log(gate_softness)))
+        # The free parameters under the constrained weights (logits and logs); the gate's and
+        # IRLS's exist only where they are used (every parameter gets a gradient).
+        free = {"raw_alpha": _logit(alpha), "raw_beta": _logit(beta), "raw_gamma": _logit(gamma),
+                "raw_delta": _logit(delta), "log_sigma_d": math.log(sigma_d), "log_sigma_n": math.log(sigma_n),
+                "log_sigma_p": math.log(sigma_p), "log_confidence": math.log(confidence),
+                "log_std_scale": math.log(std_scale), "log_refine_prior": math.log(refine_prior)}
+        if gate:
+            free.update(log_gate_threshold=math.log(gate_threshold), log_gate_softness=math.log(gate_softness))
         if irls:
-            self.log_irls_scale = nn.Parameter(torch.tensor(math.log(irls_scale)))
+            free["log_irls_scale"] = math.log(irls_scale)
+        for name, value in free.items():
+            self.register_parameter(name, nn.Parameter(torch.tensor(value)))
+        self.register_buffer("eps", torch.tensor(float(eps)))
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -326,13 +310,8 @@ class CRFDepth(nn.Module):
                 g = build_superpixel_graph(image[b].detach(), kept[b].detach(), aggregate=self.aggregate,
                                            labels=labels)
                 graphs.append(g)
-                flat = g.labels.reshape(-1)
-                # Colour kept differentiable in the image (the graph itself is not).
-                area = g.area.to(dtype)[:, None]
-                col = torch.zeros(g.num_nodes, 3, dtype=dtype, device=device).index_add(
-                    0, flat, image[b].reshape(3, -1).T) / area
-                x0 = torch.zeros(g.num_nodes, dtype=dtype, device=device).index_add(
-                    0, flat, fill[b, 0].reshape(-1)) / area[:, 0]
+                col = g.node_mean(image[b])  # colour kept differentiable in the image
+                x0 = g.node_mean(fill[b])[:, 0]
                 if gate is None:
                     z.append(to_unknown(g.lidar_depth.to(dtype), self.variable))
                     count.append(g.lidar_count)
@@ -436,27 +415,8 @@ class CRFDepth(nn.Module):
             infos.append(info)
             geometry = to_depth(x, v)[:, None]
         if self.irls:
-            geometry, t = self._reweight(sparse, t, x, infos)
+            geometry, t = reweight(t, x, sparse, self.irls, self.irls_scale, v, self.solver, infos)
         return geometry, t
-
-    def _reweight(self, sparse, t, x, infos):
-        """``irls`` robust reweighting rounds of the data term after the last solve (:mod:`crfdepth.robust`).
-
-        Each round scales the data weight of every return by the Geman-McClure factor of
-        its inverse-depth lead over its leave-one-out prediction from the previous
-        solution, and solves again (warm-started); the last solve carries the gradients.
-        """
-        v, base, s = self.variable, t["w"], sparse[:, 0]
-        inv_z = torch.where(s > 0, s.reciprocal(), torch.zeros_like(s))
-        for _ in range(self.irls):
-            d, _, wh, wv = grid_system(t)
-            data = (t["alpha"] * t["w"]).detach()
-            x_hat = leave_one_out(x.detach(), t["z"], data, (d + grid_degree(wh, wv)).detach())
-            lead = torch.where(s > 0, to_depth(x_hat, v).clamp_min(1e-3).reciprocal() - inv_z, torch.zeros_like(s))
-            t = dict(t, w=base * robust_factor(lead, self.irls_scale))
-            x, info = grid_crf(*grid_system(t), x0=x, settings=self.solver)
-            infos.append(info)
-        return to_depth(x, v)[:, None], t
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape

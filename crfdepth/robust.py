@@ -26,29 +26,23 @@ camera sees it too. ``rho`` is 1 at ``r <= 0``, 1/4 at ``r = sigma``.
 
 The weights of a round are computed from the (detached) previous solution and are
 differentiable in ``sigma``; the final solve is differentiated as usual, so gradients
-reach ``sigma`` and every weight through the last system.
+reach ``sigma`` and every weight through the last system (:func:`reweight`).
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
-__all__ = ["DEFAULT_IRLS_SCALE", "grid_degree", "leave_one_out", "robust_factor"]
+from crfdepth.crf import grid_crf
+from crfdepth.linalg import SolveInfo
+from crfdepth.linalg.operators import PixelGrid
+from crfdepth.potentials import Variable, grid_system, to_depth
+
+__all__ = ["DEFAULT_IRLS_SCALE", "leave_one_out", "reweight", "robust_factor"]
 
 DEFAULT_IRLS_SCALE = 0.015
 """``sigma`` of the Geman-McClure factor, 1/m: the occlusion gate's threshold, so that a
 return that far behind its prediction keeps a quarter of its weight."""
-
-
-def grid_degree(weight_h: torch.Tensor, weight_v: torch.Tensor) -> torch.Tensor:
-    """(B, H, W) sum of the weights of the edges at each pixel of a 4-connected grid.
-
-    Args:
-        weight_h: (B, H, W-1) weights between (r, c) and (r, c+1); weight_v: (B, H-1, W).
-    """
-    return (F.pad(weight_h, (0, 1)) + F.pad(weight_h, (1, 0))
-            + F.pad(weight_v, (0, 0, 0, 1)) + F.pad(weight_v, (0, 0, 1, 0)))
 
 
 def leave_one_out(x: torch.Tensor, z: torch.Tensor, data_weight: torch.Tensor, diagonal: torch.Tensor
@@ -79,3 +73,34 @@ def robust_factor(inverse_lead: torch.Tensor, scale: torch.Tensor) -> torch.Tens
     """
     q = inverse_lead.detach().clamp_min(0.0) / scale
     return (1.0 + q * q).reciprocal().square()
+
+
+def reweight(t: dict, x: torch.Tensor, sparse: torch.Tensor, rounds: int, scale: torch.Tensor,
+             variable: Variable, settings, infos: list[SolveInfo]) -> tuple[torch.Tensor, dict]:
+    """``rounds`` IRLS rounds of a pixel-grid system after its solve ``x``.
+
+    Each round scales the data weight of every return by :func:`robust_factor` of its
+    inverse-depth lead over its :func:`leave_one_out` prediction from the previous
+    solution, and solves again (warm-started); the last solve carries the gradients.
+
+    Args:
+        t: the potentials of :func:`crfdepth.potentials.grid_potentials` that gave ``x``.
+        x: (B, H, W) their solution, in the unknown ``variable``.
+        sparse: (B, 1, H, W) LiDAR depth in metres, 0 = none.
+        rounds: >= 1; scale: ``sigma`` (1/m); settings: the solver settings.
+        infos: each solve's :class:`~crfdepth.linalg.SolveInfo` is appended here.
+
+    Returns:
+        ``(depth (B, 1, H, W), potentials of the last round)``.
+    """
+    base, s = t["w"], sparse[:, 0]
+    inv_z = torch.where(s > 0, s.reciprocal(), torch.zeros_like(s))
+    for _ in range(rounds):
+        d, _, wh, wv = grid_system(t)
+        x_hat = leave_one_out(x.detach(), t["z"], (t["alpha"] * t["w"]).detach(),
+                              (d + PixelGrid.degree(wh, wv)).detach())
+        lead = torch.where(s > 0, to_depth(x_hat, variable).clamp_min(1e-3).reciprocal() - inv_z, torch.zeros_like(s))
+        t = dict(t, w=base * robust_factor(lead, scale))
+        x, info = grid_crf(*grid_system(t), x0=x, settings=settings)
+        infos.append(info)
+    return to_depth(x, variable)[:, None], t

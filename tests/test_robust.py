@@ -7,8 +7,9 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
+from crfdepth.linalg.operators import PixelGrid
 from crfdepth.model import CRFDepth
-from crfdepth.robust import grid_degree, leave_one_out, robust_factor
+from crfdepth.robust import leave_one_out, robust_factor
 from tests.test_model_beyond_paper import _leaky_wall
 
 
@@ -26,10 +27,10 @@ def _dense_matrix(d, wh, wv):
     return A
 
 
-def test_grid_degree_sums_the_edges_at_each_pixel():
+def test_the_grid_degree_used_by_the_leave_one_out_sums_the_edges_at_each_pixel():
     wh = torch.arange(1.0, 7.0).reshape(1, 2, 3)   # 2 x 4 grid: 3 horizontal edges per row
     wv = torch.arange(10.0, 14.0).reshape(1, 1, 4)  # 4 vertical edges
-    deg = grid_degree(wh, wv)
+    deg = PixelGrid.degree(wh, wv)
     # pixel (0, 1): left edge 1, right edge 2, down edge 11
     assert deg.shape == (1, 2, 4)
     assert float(deg[0, 0, 1]) == 1 + 2 + 11
@@ -50,7 +51,7 @@ def test_leave_one_out_is_the_node_value_without_its_datum():
     d, b = a + eps, a * z + eps * x0
     A = _dense_matrix(d, wh, wv)
     x = torch.linalg.solve(A, b.reshape(-1)).reshape(1, h, w)
-    D = d + grid_degree(wh, wv)
+    D = d + PixelGrid.degree(wh, wv)
     x_hat = leave_one_out(x, z, a, D)
     offdiag = A - torch.diag(torch.diag(A))
     pull = -(offdiag @ x.reshape(-1)).reshape(1, h, w)  # sum_j w_kj x_j
