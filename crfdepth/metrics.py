@@ -4,14 +4,22 @@ Computed over the pixels where the ground truth is > 0, **per image**, then aver
 images (the official devkit's way). Units: RMSE and MAE in millimetres, iRMSE and iMAE in
 1/km, REL unitless, ``delta1`` the fraction of pixels with ``max(p/g, g/p) < 1.25``.
 
-Uncertainty quality (docs/design.md section 5): :func:`sparsification` curves and
-:func:`ause`, the area between an uncertainty's curve and the oracle's.
+Uncertainty quality (docs/design.md section 5), per image over the evaluated pixels:
+:func:`sparsification` curves and :func:`ause`, the area between an uncertainty's curve
+and the oracle's; :func:`uncertainty_metrics`, every number of one image (AUSE and its
+ratio to a random order, Spearman rank correlation with ``|error|``, and for a standard
+deviation the coverage within 1 and 2 std and the Gaussian and Laplace negative
+log-likelihoods); :func:`average_uncertainty`, their mean over images; and
+:func:`reliability`, the observed against the Gaussian share within ``k`` std for a
+reliability diagram.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.special import erf
+from scipy.stats import spearmanr
 
 from crfdepth.errors import InputError
 
@@ -153,6 +161,165 @@ def ause(error: np.ndarray, uncertainty: np.ndarray, steps: int = SPARSIFY_STEPS
     flat = np.full_like(oracle, oracle[0])
     return {"ause": float(np.trapezoid(curve - oracle, f)), "ause_random": float(np.trapezoid(flat - oracle, f)),
             "curve": curve, "oracle": oracle}
+
+
+UNCERTAINTY_METRICS = ("ause", "ause_random", "ause_ratio", "spearman", "coverage_1", "coverage_2", "nll",
+                       "nll_laplace")
+"""Keys of :func:`uncertainty_metrics` with ``is_std=True``, in order (the first four without)."""
+
+_RATIO_ROUNDING = 1e-9
+"""A random AUSE at most this fraction of the RMSE is 0 up to rounding (all ``|error|`` equal)."""
+
+
+def _as_values(name: str, x) -> np.ndarray:
+    """``x`` as a float64 numpy array (no copy when it already is one; never modified)."""
+    try:
+        return np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"{name}: expected an array of real numbers, got {type(x).__name__} ({exc})") from None
+
+
+def _check_error_std(error, std, is_std: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``error`` and ``std`` as (N,) float64 arrays, checked: one length N > 0, finite,
+    ``std`` > 0 when ``is_std``."""
+    e = _as_values("error", error)
+    u = _as_values("std", std)
+    if e.ndim != 1 or e.size == 0:
+        raise InputError(f"error: expected a 1-D array (N,) with N > 0, got shape {e.shape}")
+    if u.shape != e.shape:
+        raise InputError(f"std: expected the shape of error {e.shape}, got {u.shape}")
+    for name, values in (("error", e), ("std", u)):
+        bad = int(np.count_nonzero(~np.isfinite(values)))
+        if bad:
+            raise InputError(f"{name}: expected finite values, got {bad} of {values.size} that are not (nan/inf)")
+    if is_std:
+        bad = int(np.count_nonzero(u <= 0))
+        if bad:
+            raise InputError(f"std: expected a standard deviation > 0 at every pixel, got {bad} of {u.size} "
+                             f"pixel(s) <= 0")
+    return e, u
+
+
+def _spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman rank correlation (average ranks for ties); nan when either is constant."""
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
+        return float("nan")
+    return float(spearmanr(a, b).statistic)
+
+
+def uncertainty_metrics(error: np.ndarray, std: np.ndarray, *, steps: int = SPARSIFY_STEPS,
+                        is_std: bool = True) -> dict[str, float]:
+    """How well an uncertainty ranks and sizes the errors of one image (docs/design.md section 5).
+
+    Args:
+        error: (N,) prediction minus truth at the evaluated pixels (the ground-truth
+            pixels), in any unit, e.g. metres; finite.
+        std: (N,) the predicted standard deviation at the same pixels, in the unit of
+            ``error``, > 0 and finite. With ``is_std=False``, any finite uncertainty score
+            where larger means less certain and 0 is allowed (e.g. the paper's count
+            map: a few levels, so many ties).
+        steps: points of the sparsification curve (:func:`sparsification`), >= 2.
+        is_std: whether ``std`` is a standard deviation in the unit of ``error``; only
+            then are the coverage and likelihood metrics computed.
+
+    Returns:
+        Floats, in the order of :data:`UNCERTAINTY_METRICS`:
+
+        - ``ause``, ``ause_random``: :func:`ause` of ``std`` and of a random order, in
+          the unit of ``error``;
+        - ``ause_ratio``: ``ause / ause_random``, 0 for a perfect ranking, about 1 for a
+          random one; **nan** when ``ause_random`` is 0 (up to rounding: at most 1e-9 of
+          the RMSE), i.e. every ``|error|`` is equal and no order beats another;
+        - ``spearman``: Spearman rank correlation of ``std`` with ``|error|`` (ties get
+          their average rank), in [-1, 1]; **nan** when ``std`` or ``|error|`` is constant;
+
+        and with ``is_std`` only:
+
+        - ``coverage_1``, ``coverage_2``: the share of pixels with ``|error| <= std`` and
+          ``<= 2 std`` (0.683 and 0.954 for a calibrated Gaussian);
+        - ``nll``: mean Gaussian negative log-likelihood per pixel,
+          ``0.5 log(2 pi std^2) + error^2 / (2 std^2)``, in nats, for densities in the
+          unit of ``error`` (it shifts by ``log 1000`` between metres and millimetres);
+        - ``nll_laplace``: mean Laplace negative log-likelihood with the same std (scale
+          ``b = std / sqrt(2)``), ``log(2 b) + |error| / b``, in nats, same unit.
+
+    Raises:
+        InputError: ``error`` not 1-D or empty, ``std`` of another shape, non-finite
+            values, ``std`` <= 0 somewhere with ``is_std``, or ``steps`` < 2.
+    """
+    if not isinstance(is_std, bool):
+        raise InputError(f"is_std: expected True or False, got {is_std!r}")
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 2:
+        raise InputError(f"steps: expected an integer >= 2, got {steps!r}")
+    e, u = _check_error_std(error, std, is_std)
+    a = ause(e, u, int(steps))
+    rmse = float(np.sqrt(np.mean(e ** 2)))
+    ratio = a["ause"] / a["ause_random"] if a["ause_random"] > _RATIO_ROUNDING * rmse else float("nan")
+    out = {"ause": a["ause"], "ause_random": a["ause_random"], "ause_ratio": ratio,
+           "spearman": _spearman(u, np.abs(e))}
+    if is_std:
+        z = np.abs(e) / u
+        b = u / np.sqrt(2.0)
+        out.update({
+            "coverage_1": float(np.mean(np.abs(e) <= u)),
+            "coverage_2": float(np.mean(np.abs(e) <= 2.0 * u)),
+            "nll": float(np.mean(0.5 * np.log(2.0 * np.pi * u ** 2) + 0.5 * z ** 2)),
+            "nll_laplace": float(np.mean(np.log(2.0 * b) + np.abs(e) / b)),
+        })
+    return out
+
+
+def average_uncertainty(per_image: list[dict[str, float]]) -> dict[str, float]:
+    """Mean over images of :func:`uncertainty_metrics` results.
+
+    Every key is the plain mean over images (a nan of one image, e.g. the Spearman of a
+    constant std, makes the mean nan), except ``ause_ratio``: it is recomputed from the
+    averaged areas, ``mean(ause) / mean(ause_random)`` (nan when that is 0), the ratio a
+    benchmark table reports, not the mean of the per-image ratios.
+
+    Raises:
+        InputError: ``per_image`` is empty or its dicts have different keys.
+    """
+    if len(per_image) == 0:
+        raise InputError("per_image: expected at least one image's uncertainty_metrics, got an empty list")
+    keys = list(per_image[0])
+    for i, item in enumerate(per_image):
+        if set(item) != set(keys):
+            raise InputError(f"per_image: expected the keys of image 0 {sorted(keys)} in every image, "
+                             f"got {sorted(item)} for image {i}")
+    out = {k: float(np.mean([item[k] for item in per_image])) for k in keys}
+    if "ause_ratio" in out:
+        out["ause_ratio"] = out["ause"] / out["ause_random"] if out["ause_random"] > 0 else float("nan")
+    return out
+
+
+def reliability(error: np.ndarray, std: np.ndarray, ks=None) -> dict[str, np.ndarray]:
+    """Observed against Gaussian share of ``|error| <= k std``, for a reliability diagram.
+
+    Args:
+        error: (N,) prediction minus truth at the evaluated pixels, any unit; finite.
+        std: (N,) predicted standard deviation, same unit, > 0 and finite.
+        ks: (K,) multiples of the std, finite and >= 0; None = 0, 0.1, ..., 3 (31 values).
+
+    Returns:
+        ``{"k": (K,), "observed": (K,), "expected": (K,)}`` float64 arrays: the share of
+        pixels with ``|error| <= k std`` (at ``k = 1`` and 2 the ``coverage_1`` and
+        ``coverage_2`` of :func:`uncertainty_metrics`), and ``erf(k / sqrt(2))``, the share
+        for a calibrated Gaussian. A calibrated std puts ``observed`` on ``expected``;
+        above it the std is too large, below it too small.
+
+    Raises:
+        InputError: bad ``error`` / ``std`` (as :func:`uncertainty_metrics`), or ``ks``
+            not a 1-D array of finite values >= 0.
+    """
+    e, u = _check_error_std(error, std, is_std=True)
+    k = np.linspace(0.0, 3.0, 31) if ks is None else np.array(_as_values("ks", ks), copy=True)
+    if k.ndim != 1 or k.size == 0 or not np.all(np.isfinite(k)) or np.any(k < 0):
+        raise InputError(f"ks: expected a non-empty 1-D array of finite multiples >= 0, got shape {k.shape}"
+                         + (f" with values from {k.min()} to {k.max()}" if k.size else ""))
+    abs_e = np.abs(e)
+    observed = np.array([np.mean(abs_e <= kk * u) for kk in k])
+    return {"k": k, "observed": observed, "expected": erf(k / np.sqrt(2.0))}
 
 
 # -- data --------------------------------------------------------------------------------

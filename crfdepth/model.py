@@ -1,7 +1,7 @@
 """The CRF depth model of the paper as a learnable ``nn.Module`` (docs/design.md sections 2-6).
 
 :class:`CRFDepth` turns an RGB image, a sparse LiDAR depth map and the intrinsics into a
-dense depth map, the posterior standard deviation and the paper's count-based
+dense depth map, its standard deviation and the paper's count-based
 uncertainty map. Two graphs are supported:
 
 - ``mode="superpixel"`` (paper): SLIC superpixels, the paper's 4-neighbour edges,
@@ -17,8 +17,7 @@ gradients reach every parameter through all rounds.
 
 from __future__ import annotations
 
-import math
-from typing import Literal, Sequence
+from typing import Literal, Mapping, Sequence
 
 import torch
 from kornia.geometry.camera import unproject_points
@@ -32,29 +31,24 @@ from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segment
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.output import CRFOutput, Stages
+from crfdepth.parameters import ConstrainedWeights
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
+from crfdepth.predictive import PredictiveStd, check_std_terms, std_features
 from crfdepth.potentials import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
                                  distance_affinity, energy, grid_energy_terms, grid_potentials, grid_system,
                                  normal_affinity, std_in_metres, system_terms, to_depth, to_unknown)
 from crfdepth.robust import DEFAULT_IRLS_SCALE, reweight
+from crfdepth.uncertainty import conditional_variance, grid_conditional_variance
 from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
 POTENTIALS = ("colour", "normal", "distance")
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
+UNCERTAINTIES = ("predictive", "posterior")  # the std of ``return_std`` (docs/design.md section 5)
 
 
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
-def _constrained(raw: str, constraint) -> property:
-    """A read-only property: ``constraint`` of the free parameter named ``raw``."""
-    return property(lambda self: constraint(getattr(self, raw)), doc=f"``{constraint.__name__}({raw})``")
-
-
-class CRFDepth(nn.Module):
+class CRFDepth(ConstrainedWeights):
     """Gaussian CRF depth completion with learnable potential weights (paper eq. 2).
 
     ``CRFDepth()`` starts from hand-set weights (the ``"paper"`` set), the starting point
@@ -76,9 +70,9 @@ class CRFDepth(nn.Module):
 
     Learnable parameters (``nn.Parameter``, unconstrained underneath): ``alpha, beta,
     gamma, delta`` through a sigmoid; ``sigma_d, sigma_n, sigma_p``, the data confidence
-    ``c``, the refinement prior weight and the std scale ``s`` through ``exp``. The predictive standard deviation is
-    ``s * sqrt(diag(A^-1))`` (docs/design.md section 5); ``s`` is fitted with a Gaussian
-    negative log-likelihood (its gradient comes through ``std`` only).
+    ``c``, the refinement prior weight and the posterior std's scale ``s`` through ``exp``
+    (:mod:`crfdepth.parameters`); the predictive std's weights (``std_head``). The std's
+    parameters get gradients through ``std`` only.
 
     Args:
         mode: "superpixel" (paper) or "pixel".
@@ -123,6 +117,12 @@ class CRFDepth(nn.Module):
         irls_scale: initial ``sigma`` of that factor, inverse depth in 1/m (learnable).
         head: add the small learned :class:`~crfdepth.head.PotentialHead` (per-pixel data
             and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
+        uncertainty: the std of ``return_std`` (docs/design.md section 5): "predictive" (the
+            posterior's local part with depth, edge, data-distance and gate signals,
+            :mod:`crfdepth.predictive`; about 0.15 x the forward's time) or "posterior"
+            (``s sqrt(diag(A^-1))`` alone, sampled: about 40 solves).
+        std_terms: initial weights of the predictive std by name
+            (:data:`crfdepth.predictive.STD_TERMS`; None: the hand-set ones), learnable.
     """
 
     def __init__(
@@ -158,13 +158,15 @@ class CRFDepth(nn.Module):
         prior: Literal["nearest", "ip_basic"] = "nearest",
         irls: int = 0,
         irls_scale: float = DEFAULT_IRLS_SCALE,
+        uncertainty: Literal["predictive", "posterior"] = "predictive",
+        std_terms: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__()
         # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
         self.config = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         self.config["potentials"] = list(potentials)
         for name, value, choices in (("mode", mode, ("superpixel", "pixel")), ("variable", variable, VARIABLES),
-                                     ("prior", prior, PRIORS)):
+                                     ("prior", prior, PRIORS), ("uncertainty", uncertainty, UNCERTAINTIES)):
             if value not in choices:
                 raise InputError(f"{name}: expected one of {choices}, got {value!r}")
         check_number("superpixels", superpixels, low=1, low_open=False, integer=True)
@@ -190,21 +192,15 @@ class CRFDepth(nn.Module):
         self.potentials = tuple(p for p in POTENTIALS if p in potentials)
         self.aggregate, self.refine, self.rounds, self.std_samples = aggregate, refine, rounds, std_samples
         self.variable, self.gate, self.gate_window, self.prior = variable, gate, gate_window, prior
-        self.irls = irls
+        self.irls, self.uncertainty = irls, uncertainty
+        std_terms = check_std_terms(std_terms)
+        self.std_head = None if uncertainty == "posterior" else PredictiveStd(std_terms)
         self.head = PotentialHead() if head else None
         self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
-        # The free parameters under the constrained weights (logits and logs); the gate's and
-        # IRLS's exist only where they are used (every parameter gets a gradient).
-        free = {"raw_alpha": _logit(alpha), "raw_beta": _logit(beta), "raw_gamma": _logit(gamma),
-                "raw_delta": _logit(delta), "log_sigma_d": math.log(sigma_d), "log_sigma_n": math.log(sigma_n),
-                "log_sigma_p": math.log(sigma_p), "log_confidence": math.log(confidence),
-                "log_std_scale": math.log(std_scale), "log_refine_prior": math.log(refine_prior)}
-        if gate:
-            free.update(log_gate_threshold=math.log(gate_threshold), log_gate_softness=math.log(gate_softness))
-        if irls:
-            free["log_irls_scale"] = math.log(irls_scale)
-        for name, value in free.items():
-            self.register_parameter(name, nn.Parameter(torch.tensor(value)))
+        self._register_weights(dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, sigma_d=sigma_d, sigma_n=sigma_n,
+                                    sigma_p=sigma_p, confidence=confidence, std_scale=std_scale,
+                                    refine_prior=refine_prior, gate_threshold=gate_threshold,
+                                    gate_softness=gate_softness, irls_scale=irls_scale))
         self.register_buffer("eps", torch.tensor(float(eps)))
 
     @classmethod
@@ -220,29 +216,6 @@ class CRFDepth(nn.Module):
         if state:  # the learned head's tensors (the scalars are in ``config``)
             model.load_state_dict(state, strict=False)
         return model.eval()
-
-    # -- constrained parameters ----------------------------------------------------------
-    # Each weight through its constraint: logits for the (0, 1) weights, logs for the positive ones.
-    alpha = _constrained("raw_alpha", torch.sigmoid)
-    beta = _constrained("raw_beta", torch.sigmoid)
-    gamma = _constrained("raw_gamma", torch.sigmoid)
-    delta = _constrained("raw_delta", torch.sigmoid)
-    sigma_d = _constrained("log_sigma_d", torch.exp)
-    sigma_n = _constrained("log_sigma_n", torch.exp)
-    sigma_p = _constrained("log_sigma_p", torch.exp)
-    confidence = _constrained("log_confidence", torch.exp)
-    refine_prior = _constrained("log_refine_prior", torch.exp)
-    std_scale = _constrained("log_std_scale", torch.exp)
-    gate_threshold = _constrained("log_gate_threshold", torch.exp)
-    gate_softness = _constrained("log_gate_softness", torch.exp)
-    irls_scale = _constrained("log_irls_scale", torch.exp)
-
-    def weights(self) -> dict[str, float]:
-        """The constrained parameter values, for logging and reports."""
-        names = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
-                 "std_scale") + (("gate_threshold", "gate_softness") if self.gate else ()) + (
-                     ("irls_scale",) if self.irls else ())
-        return {n: float(getattr(self, n).detach()) for n in names}
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
         """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""
@@ -374,18 +347,31 @@ class CRFDepth(nn.Module):
             lidar = torch.cat([g.lidar_count for g in graphs])
             node_count = torch.where(lidar == 0, 1.0, torch.where(lidar == 1, 0.5, 0.0)).to(dtype)
             count_map = node_count[labels][:, None]
-        node_std = std = None
+        if self.refine:
+            with stage("refine"):
+                depth, t = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
+                                             geometry=depth, gate=gate, kept=kept)
+        node_std = std = features = None
         if return_std:
             with stage("uncertainty"):
                 _, d, ew = system_terms(terms)
-                node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
-                node_std = std_in_metres(node_std, x, self.variable)
-                std = node_std[labels][:, None]
-        if self.refine:
-            with stage("refine"):
-                depth, _ = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
-                                             geometry=depth, gate=gate, kept=kept)
-        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds)
+                if self.uncertainty == "posterior":
+                    node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
+                    node_std = std_in_metres(node_std, x, self.variable)
+                    std = node_std[labels][:, None]
+                else:
+                    var = (grid_conditional_variance(*_drop_rhs(grid_system(t)))[:, None] if self.refine
+                           else conditional_variance(d, edge_index, ew)[labels][:, None])
+                    std, features = self._predictive(depth, sparse, kept, gate, var)
+                    node_std = torch.cat([g.node_mean(std[b])[:, 0] for b, g in enumerate(graphs)])
+        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds, features)
+
+    def _predictive(self, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
+        """The predictive std (:mod:`crfdepth.predictive`) and its signals, from the conditional
+        variance of the last solve in the unknown's units."""
+        variance = (std_in_metres(variance.sqrt(), depth, self.variable) / depth.detach()) ** 2  # in (log z)^2
+        features = std_features(depth, sparse, kept, gate, variance)
+        return self.std_head(features), features
 
     def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
         b, d, ew = system_terms(terms)
@@ -427,18 +413,28 @@ class CRFDepth(nn.Module):
         infos: list[SolveInfo] = []
         with stage("solve"):  # potentials, normals and solves of all rounds
             depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos, gate=gate, kept=kept)
-        std = node_std = None
+        std = node_std = features = None
         if return_std:
             with stage("uncertainty"):
                 d, _, wh, wv = grid_system(t)
-                std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
-                std = std_in_metres(std, depth, self.variable)
+                if self.uncertainty == "posterior":
+                    std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
+                    std = std_in_metres(std, depth, self.variable)
+                else:
+                    std, features = self._predictive(depth, sparse, kept, gate,
+                                                     grid_conditional_variance(d, wh, wv)[:, None])
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
         terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],
                                   t["beta"], t["gamma"], t["delta"], t["eps"])
         return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
-                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds)
+                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds,
+                         features)
+
+
+def _drop_rhs(system: tuple) -> tuple:
+    """``(d, weight_h, weight_v)`` of :func:`crfdepth.potentials.grid_system`'s ``(d, b, weight_h, weight_v)``."""
+    return system[0], system[2], system[3]
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

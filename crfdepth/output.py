@@ -21,7 +21,8 @@ class CRFOutput:
 
     Attributes:
         depth: (B, 1, H, W) dense z-depth in metres, > 0.
-        std: (B, 1, H, W) posterior standard deviation in metres (None unless asked).
+        std: (B, 1, H, W) standard deviation in metres (None unless asked): the predictive
+            std of :mod:`crfdepth.predictive`, or the posterior's with ``uncertainty="posterior"``.
         count_uncertainty: (B, 1, H, W) the paper's map from LiDAR counts per node: 1 where
             the node holds no LiDAR point, 0.5 for one point, 0 for several (pixel mode: 1
             without LiDAR, 0 with).
@@ -37,6 +38,8 @@ class CRFOutput:
             ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
             ran). On CUDA, stages are timed without synchronisation (queued work may be
             counted in a later stage).
+        std_features: (B, 6, H, W) the signals of the predictive std
+            (:func:`crfdepth.predictive.std_features`; None unless it was computed).
     """
 
     depth: torch.Tensor
@@ -49,6 +52,7 @@ class CRFOutput:
     terms: EnergyTerms
     info: list[SolveInfo] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    std_features: torch.Tensor | None = None
 
 
 class Stages:

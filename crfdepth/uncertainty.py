@@ -46,6 +46,27 @@ def _check_samples(samples: int) -> None:
 
 
 @torch.no_grad()
+def conditional_variance(d: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor) -> torch.Tensor:
+    """(N,) ``1 / A_ii`` of ``A = diag(d) + L(edge_index, edge_weight)``: the variance of a
+    node given its neighbours, the exact lower bound of ``(A^-1)_ii``."""
+    src, dst = edge_index
+    n = d.shape[0]
+    deg = torch.bincount(src, weights=edge_weight, minlength=n) + torch.bincount(dst, weights=edge_weight, minlength=n)
+    return 1.0 / (d + deg.to(d.dtype))
+
+
+@torch.no_grad()
+def grid_conditional_variance(d: torch.Tensor, weight_h: torch.Tensor, weight_v: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) ``1 / A_ii`` of the 4-connected grid system of :func:`grid_posterior_variance`."""
+    diag = d.clone()
+    diag[..., :, :-1] += weight_h
+    diag[..., :, 1:] += weight_h
+    diag[..., :-1, :] += weight_v
+    diag[..., 1:, :] += weight_v
+    return 1.0 / diag
+
+
+@torch.no_grad()
 def posterior_variance(
     d: torch.Tensor,
     edge_index: torch.Tensor,
@@ -83,8 +104,7 @@ def posterior_variance(
     k = samples
     gen = _generator(seed, d.device)
     src, dst = edge_index
-    deg = torch.bincount(src, weights=edge_weight, minlength=n) + torch.bincount(dst, weights=edge_weight, minlength=n)
-    diag = d + deg.to(d.dtype)
+    diag = 1.0 / conditional_variance(d, edge_index, edge_weight)
     u = torch.randn(k, n, generator=gen, device=d.device, dtype=d.dtype)
     v = torch.randn(k, edge_index.shape[1], generator=gen, device=d.device, dtype=d.dtype)
     flow = v * edge_weight.sqrt()
@@ -136,11 +156,7 @@ def grid_posterior_variance(
     per_sample = _VECTORS_PER_SAMPLE * bsz * h * w * d.element_size()
     chunk = max(1, min(samples, max_memory_bytes // per_sample))
     gen = _generator(seed, d.device)
-    diag = d.clone()
-    diag[..., :, :-1] += weight_h
-    diag[..., :, 1:] += weight_h
-    diag[..., :-1, :] += weight_v
-    diag[..., 1:, :] += weight_v
+    diag = 1.0 / grid_conditional_variance(d, weight_h, weight_v)
     total = torch.zeros_like(d)
     for start in range(0, samples, chunk):
         k = min(chunk, samples - start)

@@ -1,8 +1,11 @@
-"""The closed-form std-scale calibration of a trained model (docs/design.md section 5).
+"""Fitting a trained model's std to real errors (docs/design.md section 5).
 
-It runs the whole model over a data set and sets one of its parameters, so it lives with
-training, not in the library's numerical code. ``python -m train.export --calibrate-std``
-uses it; it needs no Lightning.
+:func:`calibrate_std` runs the whole model over a data set and sets the weights of its std:
+for the predictive std (the default), the seven weights of :mod:`crfdepth.predictive` by
+:func:`crfdepth.predictive.fit_std_terms`; for ``uncertainty="posterior"``, the scale
+``s`` in closed form (:func:`calibrate_std_scale`). It lives with training, not in the
+library's numerical code. ``python -m train.export --calibrate-std`` uses it; it needs no
+Lightning. The depth is never changed.
 """
 
 from __future__ import annotations
@@ -13,8 +16,61 @@ from typing import Iterable
 import torch
 
 from crfdepth.errors import InputError
+from crfdepth.predictive import fit_std_terms
 
-__all__ = ["calibrate_std_scale"]
+__all__ = ["calibrate_std", "calibrate_std_scale", "fit_predictive_std"]
+
+
+def calibrate_std(model, frames: Iterable, *, apply: bool = True) -> dict:
+    """Fit the std of ``model`` (either kind) on ``frames``; returns what was set, before and after.
+
+    ``{"uncertainty", "before", "after", "frames", "method"}``: the std terms (predictive) or
+    the scale (posterior).
+    """
+    frames = list(frames)
+    if model.uncertainty == "posterior":
+        before = float(model.std_scale.detach())
+        after = calibrate_std_scale(model, frames, apply=apply)
+        method = "closed-form Gaussian NLL optimum of the posterior std's scale (train.calibrate.calibrate_std_scale)"
+    else:
+        before = model.std_head.terms()
+        after = fit_predictive_std(model, frames, apply=apply)
+        method = ("Laplace NLL of the predictive std's weights, then 68.3% coverage "
+                  "(crfdepth.predictive.fit_std_terms via train.calibrate.fit_predictive_std)")
+    used = sum(1 for s in frames if bool((s.target > 0).any()))
+    return {"uncertainty": model.uncertainty, "before": before, "after": after, "frames": used, "method": method}
+
+
+def fit_predictive_std(model, frames: Iterable, *, apply: bool = True) -> dict[str, float]:
+    """The weights of the predictive std fitted to ``frames``' errors (:func:`fit_std_terms`).
+
+    Runs ``model`` once per frame under ``no_grad``, keeps its error and std signals at the
+    target pixels, fits, and (``apply``) sets ``model.std_head``. Frames without target
+    pixels are skipped.
+
+    Raises:
+        InputError: no frame has a target pixel, or ``model`` does not compute the predictive std.
+    """
+    if getattr(model, "uncertainty", None) != "predictive":
+        raise InputError(f"model: expected uncertainty='predictive', got {getattr(model, 'uncertainty', None)!r}")
+    param = next(model.parameters())
+    features, errors = [], []
+    with torch.no_grad():
+        for s in frames:
+            target = s.target[None].to(param)
+            valid = target > 0
+            if not bool(valid.any()):
+                continue
+            out = model(s.image[None].to(param), s.sparse[None].to(param), s.K[None].to(param), return_std=True)
+            features.append(out.std_features.permute(0, 2, 3, 1)[valid[:, 0]])
+            errors.append(out.depth[valid] - target[valid])
+    if not errors:
+        raise InputError("frames: expected at least one frame with target pixels (> 0), got none")
+    terms = fit_std_terms(features, errors, start=model.std_head.terms())
+    if apply:
+        with torch.no_grad():
+            model.std_head.weights.copy_(torch.tensor([terms[k] for k in model.std_head.terms()]))
+    return terms
 
 
 def calibrate_std_scale(model, frames: Iterable, *, apply: bool = True) -> float:

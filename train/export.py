@@ -13,9 +13,10 @@ data module's arguments (``datamodule_hyper_parameters``: layout, root, split, h
 the YAML config given with ``--config`` (verbatim) and the ``--command`` text. That is
 what ``crfdepth/weights/README.md`` refers to for the shipped weights.
 
-``--calibrate-std`` (needs ``--config``) first sets the std scale to its closed-form
-NLL optimum over the config's training frames (:func:`train.calibrate.calibrate_std_scale`,
-no flip), and records the frames and the scale before / after in ``about``.
+``--calibrate-std`` (needs ``--config``) first fits the std to the config's training
+frames (:func:`train.calibrate.calibrate_std`, whole frames, no flip): the predictive std's
+weights, or the posterior std's scale; ``about`` records the frames and the values before
+and after.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.weights import load_model, save_weights
-from train.calibrate import calibrate_std_scale
+from train.calibrate import calibrate_std
 
 
 def _plain(value: Any) -> Any:
@@ -70,11 +71,10 @@ def calibrate(model, config: Path) -> dict[str, Any]:
     data = dict((yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("data") or {})
     datamodule = CRFDataModule(**{**data, "flip": 0.0, "crop": None, "thin": None})  # whole frames, all points
     train, _ = datamodule.build_datasets()
-    before = float(model.std_scale.detach())
-    after = calibrate_std_scale(model, (train[i] for i in range(len(train))))
-    print(f"std scale calibrated on {len(train)} training frames: {before:.4g} -> {after:.4g}")
-    return {"frames": len(train), "before": before, "after": after,
-            "method": "closed-form Gaussian NLL optimum (train.calibrate.calibrate_std_scale)"}
+    record = calibrate_std(model, (train[i] for i in range(len(train))))
+    print(f"{record['uncertainty']} std fitted on {record['frames']} training frames: {record['before']} -> "
+          f"{record['after']}")
+    return record
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -84,16 +84,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, default=None, help="the training YAML, stored verbatim")
     parser.add_argument("--command", default=None, help="the command that trained the checkpoint")
     parser.add_argument("--note", default=None, help="free text stored as about.note (e.g. validation numbers)")
+    parser.add_argument("--uncertainty", choices=("predictive", "posterior"), default=None,
+                        help="the std the exported model computes (default: the checkpoint's; one saved before "
+                             "the predictive std existed has the posterior)")
     parser.add_argument("--calibrate-std", action="store_true",
-                        help="set the std scale by its closed-form NLL optimum over --config's training frames")
+                        help="fit the std (predictive: its weights; posterior: its scale) to --config's training frames")
     args = parser.parse_args(argv)
     try:
         if args.calibrate_std and args.config is None:
             raise InputError("--calibrate-std: needs --config (its data section names the training frames)")
-        model = load_model(args.checkpoint)
+        model = load_model(args.checkpoint, overrides=None if args.uncertainty is None
+                           else {"uncertainty": args.uncertainty})
         about = describe_checkpoint(args.checkpoint)
         if args.calibrate_std:
-            about["std_scale_calibration"] = calibrate(model, args.config)
+            about["std_calibration"] = calibrate(model, args.config)
         if args.config is not None:
             if not args.config.is_file():
                 raise InputError(f"--config: no such file: {args.config}")

@@ -101,9 +101,11 @@ class CRFDepthModule(pl.LightningModule):
 
     ``depth_loss`` is the per-image mean over target pixels (``t > 0``) of
     ``(x - t)^2`` (``"l2"``, m^2) or ``|x - t|`` (``"l1"``, m). The NLL term sees the
-    depth detached, so it fits the std scale ``s`` only (the std's only learnable factor;
-    docs/design.md section 5) and the depth loss alone decides the potential weights. With
-    ``nll_weight = 0`` the std is not computed and ``s`` stays frozen.
+    depth detached, so it fits the std's weights only (the predictive std's ``std_head``, or
+    the posterior std's scale ``s`` with ``uncertainty="posterior"``; docs/design.md
+    section 5) and the depth loss alone decides the potential weights. With
+    ``nll_weight = 0`` the std is not computed and its weights stay frozen (the shipped
+    recipe fits them after training: ``python -m train.export --calibrate-std``).
 
     Args:
         crf: ``CRFDepth`` constructor arguments (e.g. ``{mode: pixel}``); None = all
@@ -155,8 +157,10 @@ class CRFDepthModule(pl.LightningModule):
         self.lr = float(lr)
         self.head_lr = float(head_lr)
         frozen = set(freeze or ())
-        if self.nll_weight == 0:
-            frozen.add("std_scale")
+        if self.nll_weight == 0 or self.model.uncertainty == "predictive":
+            frozen.add("std_scale")  # the posterior std's scale: trained by the NLL term of a posterior model
+        if self.model.std_head is not None and self.nll_weight == 0:
+            self.model.std_head.requires_grad_(False)  # the predictive std's weights: by the NLL term, or after
         if "normal" not in self.model.potentials:
             frozen.update(("gamma", "sigma_n"))
         if "distance" not in self.model.potentials:

@@ -3,7 +3,7 @@
 ::
 
     crfdepth evaluate --checkpoint last.ckpt --layout val_selection \\
-        --data depth_selection/val_selection_cropped [--limit N] [--save-png] [--out-dir DIR]
+        --data depth_selection/val_selection_cropped [--limit N] [--std] [--save-png] [--out-dir DIR]
 
 Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
 :func:`crfdepth.weights.load_model`; without it, the shipped ``--weights``, by default
@@ -15,15 +15,31 @@ ground truth > 0, RMSE and MAE in mm, iRMSE and iMAE in 1/km, REL and delta < 1.
 computed **per frame, then averaged over frames** (the devkit's convention). The
 prediction is evaluated before PNG quantisation (1/256 m).
 
+With ``--std`` the model also returns its predicted standard deviation (``complete_depth(...,
+return_std=True)``; slower, above all in pixel mode) and each frame gets the uncertainty
+metrics of :func:`crfdepth.metrics.uncertainty_metrics` (docs/design.md section 5) over
+the same ground-truth pixels, with ``error = depth - target`` and the std in metres:
+``ause`` and ``ause_random`` in **mm** (like RMSE), ``ause_ratio`` (their ratio, 0 =
+perfect ranking, 1 = random), ``spearman`` (rank correlation of std and ``|error|``),
+``coverage_1`` / ``coverage_2`` (share of ``|error| <= 1 / 2 std``; 0.683 / 0.954 if
+calibrated), ``nll`` and ``nll_laplace`` (mean Gaussian / Laplace negative log-likelihood
+in **nats, with errors in metres**). A metric that is undefined for a frame (the Spearman
+of a constant std, the ratio when every ``|error|`` is equal) is nan.
+
 Output: a table on stdout (the per-frame mean of each metric, the number of frames and
-of ground-truth pixels) and, in ``--out-dir`` (default ``./evaluation``, created if
-missing):
+of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and, in
+``--out-dir`` (default ``./evaluation``, created if missing):
 
 - ``per_frame.csv``: one row per frame: ``name`` and every metric (``rmse`` ... ``delta1``
-  in the units above, ``pixels`` the frame's ground-truth pixels);
+  in the units above, ``pixels`` the frame's ground-truth pixels), with ``--std`` followed
+  by ``ause`` ... ``nll_laplace`` in the units above (``nan`` where undefined);
 - ``summary.json``: the mean metrics and their units, frames, pixels, the checkpoint
   path (or the shipped weight set's name), layout, data root and dataset options, the model configuration
   (``CRFDepth.config``), the learned weights (``CRFDepth.weights()``), dtype and device;
+  with ``--std`` also an ``uncertainty`` block, the per-frame mean of each uncertainty
+  metric (:func:`crfdepth.metrics.average_uncertainty`: ``ause_ratio`` is recomputed as
+  mean ``ause`` / mean ``ause_random``, as a benchmark table reports it; ``null`` where
+  undefined), and their units in ``units``;
 - with ``--save-png``: ``depth/<frame name>.png``, the prediction as a KITTI depth PNG
   (uint16, metres * 256, clipped below at 1/256 m), named like the frames (for
   ``val_selection``, the ``velodyne_raw`` file names the benchmark devkit expects).
@@ -65,7 +81,8 @@ from crfdepth.data.sample import collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
-from crfdepth.metrics import METRICS, UNITS, depth_metrics
+from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
+                              uncertainty_metrics)
 from crfdepth.weights import DEFAULT_WEIGHTS
 
 logger = logging.getLogger(__name__)
@@ -76,6 +93,9 @@ PNG_FOLDER = "depth"
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 _LABELS = {"rmse": "RMSE", "mae": "MAE", "irmse": "iRMSE", "imae": "iMAE", "rel": "REL", "delta1": "d<1.25"}
 _DECIMALS = {"rmse": 2, "mae": 2, "irmse": 3, "imae": 3, "rel": 4, "delta1": 4}
+# Units of the --std columns: errors and std in metres, AUSE scaled to mm like RMSE.
+UNCERTAINTY_UNITS = {"ause": "mm", "ause_random": "mm", "ause_ratio": "", "spearman": "", "coverage_1": "",
+                     "coverage_2": "", "nll": "nats (errors in metres)", "nll_laplace": "nats (errors in metres)"}
 
 # Dataset options: command-line flag -> (build_dataset keyword, layouts that take it).
 _DATASET_OPTIONS = {
@@ -133,6 +153,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     out.add_argument("--out-dir", default="evaluation", metavar="DIR",
                      help=f"folder for {CSV_NAME}, {JSON_NAME} and {PNG_FOLDER}/ (created if missing; "
                           f"default ./evaluation)")
+    out.add_argument("--std", action="store_true",
+                     help="also compute the predicted standard deviation and report uncertainty metrics")
     out.add_argument("--save-png", action="store_true",
                      help=f"also write each prediction to {PNG_FOLDER}/<frame name>.png (KITTI uint16, "
                           f"metres * 256)")
@@ -215,7 +237,7 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
                     missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
                     raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
                                      f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
-                depth = _predict(model, batch, args.device, where)
+                depth, std = _predict(model, batch, args.device, where, args.std)
                 batch = batch.to(device=depth.device, dtype=depth.dtype)
                 counts = (batch.target > 0).flatten(1).sum(1)
                 keep = counts > 0
@@ -227,11 +249,14 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
                         per_frame = depth_metrics(depth[keep], batch.target[keep])
                     except InputError as exc:
                         raise InputError(f"{where}: {exc}") from None
-                    names = [n for n, k in zip(batch.names, keep.tolist()) if k]
-                    for i, name in enumerate(names):
-                        row: dict[str, Any] = {"name": name}
-                        row.update({m: float(per_frame[m][i]) for m in METRICS})
-                        row["pixels"] = int(per_frame["pixels"][i])
+                    frames = [i for i, k in enumerate(keep.tolist()) if k]
+                    for j, i in enumerate(frames):
+                        row: dict[str, Any] = {"name": batch.names[i]}
+                        row.update({m: float(per_frame[m][j]) for m in METRICS})
+                        row["pixels"] = int(per_frame["pixels"][j])
+                        if std is not None:
+                            row.update(_frame_uncertainty(depth[i, 0], std[i, 0], batch.target[i, 0],
+                                                          f"{where}, {batch.names[i]}"))
                         rows.append(row)
                 if png_dir is not None:
                     _write_pngs(depth, batch.names, png_dir, where)
@@ -242,18 +267,38 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
     return rows, skipped
 
 
-def _predict(model, batch, device: str, where: str) -> torch.Tensor:
-    """(B, 1, H, W) depth of a batch, frame by frame through :func:`crfdepth.api.complete_depth`
-    (the one inference path), in the model's dtype."""
-    depth = []
+def _predict(model, batch, device: str, where: str,
+             return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
+    (else None), frame by frame through :func:`crfdepth.api.complete_depth` (the one
+    inference path), in the model's dtype."""
+    depth, std = [], []
     for image, sparse, K in zip(batch.image, batch.sparse, batch.K):
         try:
-            d, _ = complete_depth(image, sparse=sparse, K=K, model=model, device=device, return_std=False)
+            d, s = complete_depth(image, sparse=sparse, K=K, model=model, device=device, return_std=return_std)
         except InputError as exc:
             raise InputError(f"{where}: {exc}") from None
         depth.append(d[None])
+        if return_std:
+            if s is None:
+                raise InputError(f"--std: expected the model to return a standard deviation, got none for {where}")
+            std.append(s[None])
     param = next(model.parameters())
-    return torch.stack(depth).to(param.dtype)
+    return torch.stack(depth).to(param.dtype), (torch.stack(std).to(param.dtype) if return_std else None)
+
+
+def _frame_uncertainty(depth: torch.Tensor, std: torch.Tensor, target: torch.Tensor, where: str) -> dict[str, float]:
+    """:func:`crfdepth.metrics.uncertainty_metrics` of one (H, W) frame over its ground-truth
+    pixels (target > 0), errors and std in metres; ``ause`` and ``ause_random`` in mm."""
+    valid = target > 0
+    error = (depth.double() - target.double())[valid].cpu().numpy()
+    try:
+        metrics = uncertainty_metrics(error, std.double()[valid].cpu().numpy())
+    except InputError as exc:
+        raise InputError(f"{where}: --std: {exc}") from None
+    metrics["ause"] *= 1000.0  # linear in the unit of the errors and std; the ratio is unitless
+    metrics["ause_random"] *= 1000.0
+    return metrics
 
 
 def _batches(loader: DataLoader, total: int, batch_size: int):
@@ -278,18 +323,39 @@ def _write_pngs(depth: torch.Tensor, names: list[str], png_dir: Path, where: str
 # --------------------------------------------------------------------------- output
 
 
-def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def _summary(rows: list[dict[str, Any]], with_std: bool) -> dict[str, Any]:
     means = {m: float(np.mean([r[m] for r in rows])) for m in METRICS}
-    return {"metrics": means, "frames": len(rows), "pixels": int(sum(r["pixels"] for r in rows))}
+    summary = {"metrics": means, "frames": len(rows), "pixels": int(sum(r["pixels"] for r in rows))}
+    if with_std:
+        means = average_uncertainty([{m: r[m] for m in UNCERTAINTY_METRICS} for r in rows])
+        summary["uncertainty"] = {m: _json_number(v) for m, v in means.items()}
+    return summary
+
+
+def _json_number(value: float) -> float | None:
+    """``value``, or None (JSON null) for nan: strict JSON has no NaN."""
+    return None if math.isnan(value) else value
 
 
 def format_table(summary: dict[str, Any]) -> str:
-    """The stdout table: one line per metric (per-frame mean, KITTI units), frames, pixels."""
+    """The stdout table: one line per metric (per-frame mean, KITTI units), frames, pixels;
+    then, when ``summary`` has an ``uncertainty`` block, one line per uncertainty metric."""
     lines = [f"KITTI depth-completion metrics, mean over {summary['frames']} frame(s) "
              f"(per-frame metrics over {summary['pixels']:,} ground-truth pixels):"]
     for m in METRICS:
         value = summary["metrics"][m]
         lines.append(f"  {_LABELS[m]:<7}{value:>12.{_DECIMALS[m]}f}  {UNITS[m]}".rstrip())
+    if "uncertainty" in summary:
+        u = {k: (math.nan if v is None else v) for k, v in summary["uncertainty"].items()}
+        lines += [
+            f"Uncertainty of the predicted std, mean over {summary['frames']} frame(s):",
+            f"  {'AUSE':<22}{u['ause']:>10.2f}  mm ({u['ause_ratio']:.2f} x random, {u['ause_random']:.2f} mm)",
+            f"  {'Spearman(std, |err|)':<22}{u['spearman']:>10.4f}",
+            f"  {'within 1 std':<22}{u['coverage_1']:>10.4f}  (Gaussian 0.683)",
+            f"  {'within 2 std':<22}{u['coverage_2']:>10.4f}  (Gaussian 0.954)",
+            f"  {'NLL Gaussian':<22}{u['nll']:>10.4f}  nats (errors in metres)",
+            f"  {'NLL Laplace':<22}{u['nll_laplace']:>10.4f}  nats (errors in metres)",
+        ]
     return "\n".join(lines)
 
 
@@ -297,9 +363,10 @@ def _atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def _csv_text(rows: list[dict[str, Any]]) -> str:
+def _csv_text(rows: list[dict[str, Any]], with_std: bool) -> str:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=["name", *METRICS, "pixels"], lineterminator="\n")
+    fields = ["name", *METRICS, "pixels", *(UNCERTAINTY_METRICS if with_std else ())]
+    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
     for row in rows:
         writer.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
@@ -330,12 +397,13 @@ def run(args: argparse.Namespace) -> int:
     if not rows:
         raise InputError(f"none of the {len(dataset)} frame(s) has a ground-truth pixel; nothing to evaluate")
 
-    summary = _summary(rows)
+    summary = _summary(rows, args.std)
     with torch.no_grad():  # plain numbers (no autograd warning from float() of a parameter)
         weights = model.weights()
     summary.update({
-        "units": dict(UNITS),
-        "averaging": "per-frame metrics over ground-truth pixels (> 0), then the mean over frames (KITTI)",
+        "units": {**UNITS, **(UNCERTAINTY_UNITS if args.std else {})},
+        "averaging": "per-frame metrics over ground-truth pixels (> 0), then the mean over frames (KITTI)"
+                     + ("; uncertainty likewise, except ause_ratio = mean ause / mean ause_random" if args.std else ""),
         "skipped": skipped,
         "checkpoint": str(Path(args.checkpoint).resolve()) if args.checkpoint is not None else None,
         "shipped_weights": (args.weights or DEFAULT_WEIGHTS) if args.checkpoint is None else None,
@@ -351,7 +419,7 @@ def run(args: argparse.Namespace) -> int:
         "png_dir": str(png_dir.resolve()) if png_dir is not None else None,
     })
     out_dir.mkdir(parents=True, exist_ok=True)
-    _atomic_write_text(out_dir / CSV_NAME, _csv_text(rows))
+    _atomic_write_text(out_dir / CSV_NAME, _csv_text(rows, args.std))
     _atomic_write_text(out_dir / JSON_NAME, json.dumps(summary, indent=2) + "\n")
 
     source = args.checkpoint if args.checkpoint is not None else f"{args.weights or DEFAULT_WEIGHTS} weights"

@@ -138,6 +138,8 @@ def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, A
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
     config = dict(model.config)
     config.update(model.weights())  # the current (learned) values replace the initial ones
+    if model.std_head is not None:
+        config["std_terms"] = model.std_head.terms()
     head = {k: v for k, v in model.state_dict().items() if k.startswith("head.")}
     return write_weights(path, config, about, state=head)
 
@@ -226,6 +228,11 @@ def _load_state(file: Path, model: CRFDepth, state: dict[str, torch.Tensor]) -> 
     partial = all(k.startswith("head.") for k in state)  # a weights file: the head's tensors only
     if partial:
         expected = {k: v for k, v in expected.items() if k.startswith("head.")}
+    elif "std_head.weights" not in state:  # saved before the predictive std: it keeps the configured weights
+        expected.pop("std_head.weights", None)
+        partial = True
+    if model.std_head is None:  # built with uncertainty="posterior": a stored predictive std is not used
+        state = {k: v for k, v in state.items() if not k.startswith("std_head.")}
     _check_state(file, state, expected)
     model.load_state_dict(state, strict=not partial)
     dtypes = {v.dtype for v in state.values() if v.is_floating_point()}

@@ -50,7 +50,7 @@ LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "
 
 #: What a configuration written before these options existed meant: an old checkpoint is
 #: rebuilt as it was trained (docs/design.md section 3b).
-_OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "nearest"}
+_OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "nearest", "uncertainty": "posterior"}
 
 _FOLDER = Path(__file__).resolve().parent  # the shipped files lie beside this module
 _LIGHTNING_PREFIX = "model."  # the trainer's LightningModule stores the CRF as ``self.model``
@@ -351,7 +351,8 @@ def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -
     if config:
         return {**_OLD_DEFAULTS, **config}
     if state:
-        return {"gate": "log_gate_threshold" in state, "head": any(k.startswith("head.") for k in state)}
+        return {"gate": "log_gate_threshold" in state, "head": any(k.startswith("head.") for k in state),
+                "uncertainty": "predictive" if "std_head.weights" in state else "posterior"}
     return config
 
 

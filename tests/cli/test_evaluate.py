@@ -11,6 +11,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 import os
 import re
 import shutil
@@ -24,9 +25,11 @@ import pytest
 import torch
 
 from crfdepth import cli
+from crfdepth.api import complete_depth
+from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
-from crfdepth.metrics import METRICS, average_metrics, depth_metrics
+from crfdepth.metrics import METRICS, UNCERTAINTY_METRICS, UNITS, average_metrics, depth_metrics, uncertainty_metrics
 from crfdepth.model import CRFDepth
 from crfdepth.weights import save_model
 
@@ -193,11 +196,97 @@ def test_synthetic_layout_needs_no_data_folder(tmp_path):
     assert code == 0, stderr
     rows = _read_csv(tmp_path / "out" / "per_frame.csv")
     assert [r["name"] for r in rows] == ["synthetic-seed3"]
+    assert list(rows[0]) == ["name", *METRICS, "pixels"]  # without --std: no uncertainty columns
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert "uncertainty" not in summary and summary["units"] == UNITS and "AUSE" not in stdout
     assert summary["data_root"] is None and summary["model_config"]["mode"] == "pixel"
     assert summary["dataset_options"] == {"seed": 3}
     assert 0 < summary["metrics"]["rmse"] < 3000 and summary["metrics"]["delta1"] > 0.9
     assert abs(_printed(stdout, "RMSE") - summary["metrics"]["rmse"]) < 0.01
+
+
+# A model whose std is cheap: superpixel mode without the pixel refinement has at most
+# 1,000 nodes, so the std is exact (dense Cholesky) and adds little time.
+FAST_STD_MODEL = ["--mode", "superpixel", "--superpixels", 800, "--no-refine"]
+
+
+@pytest.fixture(scope="module")
+def std_run(tmp_path_factory) -> dict:
+    """``crfdepth evaluate --std`` on two synthetic scenes in one batch of two."""
+    out_dir = tmp_path_factory.mktemp("eval-std") / "out"
+    code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 2, "--batch-size", 2, "--std",
+                                 *FAST_STD_MODEL, "--quiet", "--out-dir", out_dir])
+    assert code == 0, stderr
+    return {"out_dir": out_dir, "stdout": stdout, "rows": _read_csv(out_dir / "per_frame.csv"),
+            "summary": json.loads((out_dir / "summary.json").read_text())}
+
+
+def test_std_adds_uncertainty_columns_in_range(std_run):
+    rows = std_run["rows"]
+    assert [r["name"] for r in rows] == ["synthetic-seed0", "synthetic-seed1"]
+    assert list(rows[0]) == ["name", *METRICS, "pixels", *UNCERTAINTY_METRICS]
+    for row in rows:
+        u = {m: float(row[m]) for m in UNCERTAINTY_METRICS}
+        assert all(math.isfinite(v) for v in u.values()), row
+        assert 0 <= u["ause"] < u["ause_random"] and 0 <= u["ause_ratio"] < 1  # better than random
+        assert -1 <= u["spearman"] <= 1
+        assert 0 <= u["coverage_1"] <= u["coverage_2"] <= 1
+        # AUSE in mm: the random AUSE is below the RMSE (mm) of the frame, and of its order.
+        assert 0.1 * float(row["rmse"]) < u["ause_random"] < float(row["rmse"])
+
+
+def test_std_summary_is_the_mean_of_the_csv(std_run):
+    rows, summary = std_run["rows"], std_run["summary"]
+    block = summary["uncertainty"]
+    assert list(block) == list(UNCERTAINTY_METRICS)
+    for m in UNCERTAINTY_METRICS:
+        if m != "ause_ratio":
+            assert block[m] == pytest.approx(np.mean([float(r[m]) for r in rows]), rel=1e-12), m
+    # The ratio of the mean areas, not the mean of the ratios.
+    assert block["ause_ratio"] == pytest.approx(block["ause"] / block["ause_random"], rel=1e-12)
+    assert summary["units"]["ause"] == "mm" and summary["units"]["nll"].startswith("nats")
+    assert summary["frames"] == 2 and summary["metrics"]["rmse"] > 0
+
+
+def test_std_table_on_stdout(std_run):
+    stdout, block = std_run["stdout"], std_run["summary"]["uncertainty"]
+    assert re.search(r"^\s+AUSE\s+[0-9.]+\s+mm \([0-9.]+ x random", stdout, re.MULTILINE), stdout
+    assert abs(_printed(stdout, "AUSE") - block["ause"]) < 0.01  # mm
+    assert abs(_printed(stdout, "within 1 std") - block["coverage_1"]) < 1e-4
+    spearman = re.search(r"^\s+Spearman\(std, \|err\|\)\s+(-?[0-9.]+)", stdout, re.MULTILINE)
+    assert spearman and abs(float(spearman.group(1)) - block["spearman"]) < 1e-4
+    assert re.search(r"NLL Gaussian\s+-?[0-9.]+\s+nats", stdout)
+    # After the depth metrics.
+    assert stdout.index("d<1.25") < stdout.index("AUSE")
+
+
+def test_std_metrics_match_a_direct_computation(std_run):
+    """Frame 2 (the second of the batch) recomputed through the library: errors and std in
+    metres, AUSE in mm."""
+    sample = build_dataset("synthetic", None)[1]
+    model = CRFDepth.from_pretrained(mode="superpixel", superpixels=800, refine=False)
+    depth, std = complete_depth(sample.image, sparse=sample.sparse[0], K=sample.K, model=model, return_std=True)
+    valid = sample.target[0] > 0
+    error = (depth.double() - sample.target[0].double())[valid].numpy()
+    expected = uncertainty_metrics(error, std.double()[valid].numpy())
+    row = std_run["rows"][1]
+    assert float(row["ause"]) == pytest.approx(1000 * expected["ause"], rel=1e-4)
+    assert float(row["ause_random"]) == pytest.approx(1000 * expected["ause_random"], rel=1e-4)
+    for m in ("ause_ratio", "spearman", "coverage_1", "coverage_2", "nll", "nll_laplace"):
+        assert float(row[m]) == pytest.approx(expected[m], rel=1e-4, abs=1e-6), m
+
+
+def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, monkeypatch):
+    def no_std(*args, **kwargs):
+        depth, _ = complete_depth(*args, **{**kwargs, "return_std": False})
+        return depth, None
+
+    monkeypatch.setattr("crfdepth.cli.evaluate.complete_depth", no_std)
+    code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
+                                 "--out-dir", tmp_path / "out"])
+    assert code == 2 and stdout == ""
+    assert "--std: expected the model to return a standard deviation" in stderr and stderr.count("\n") == 1
+    assert not (tmp_path / "out").exists()
 
 
 def _lightning_ckpt(path: Path, **crf) -> CRFDepth:

@@ -66,13 +66,29 @@ def test_export_calibrates_the_std_scale_on_the_configs_training_frames(tmp_path
     config = tmp_path / "recipe.yaml"
     config.write_text("data:\n  layout: synthetic\n  train_options: {count: 2, height: 48, width: 160}\n")
     out = tmp_path / "w.json"
-    assert main([str(tmp_path / "last.ckpt"), "--out", str(out), "--config", str(config), "--calibrate-std"]) == 0
+    assert main([str(tmp_path / "last.ckpt"), "--out", str(out), "--config", str(config), "--calibrate-std",
+                 "--uncertainty", "posterior"]) == 0
     about = json.loads(out.read_text())["about"]
-    calibration = about["std_scale_calibration"]
+    calibration = about["std_calibration"]
     assert calibration["frames"] == 2 and calibration["before"] == pytest.approx(math.exp(0.4), rel=1e-6)
     assert calibration["after"] != pytest.approx(calibration["before"], rel=1e-3)
     assert load_model(out).weights()["std_scale"] == pytest.approx(calibration["after"], rel=1e-6)
-    assert "std scale calibrated on 2 training frames" in capsys.readouterr().out
+    assert "posterior std fitted on 2 training frames" in capsys.readouterr().out
+
+
+def test_export_fits_the_predictive_std_on_the_configs_training_frames(tmp_path, capsys):
+    _checkpoint(tmp_path / "last.ckpt")
+    config = tmp_path / "recipe.yaml"
+    config.write_text("data:\n  layout: synthetic\n  train_options: {count: 2, height: 48, width: 160}\n")
+    out = tmp_path / "w.json"
+    assert main([str(tmp_path / "last.ckpt"), "--out", str(out), "--config", str(config), "--calibrate-std"]) == 0
+    data = json.loads(out.read_text())
+    calibration = data["about"]["std_calibration"]
+    assert calibration["uncertainty"] == "predictive" and calibration["frames"] == 2
+    assert calibration["after"] != calibration["before"]
+    assert data["config"]["std_terms"] == pytest.approx(calibration["after"], rel=1e-6)
+    assert load_model(out).std_head.terms() == pytest.approx(calibration["after"], rel=1e-6)
+    assert "predictive std fitted on 2 training frames" in capsys.readouterr().out
 
 
 def test_export_calibrate_std_needs_a_config(tmp_path, capsys):

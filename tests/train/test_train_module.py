@@ -64,7 +64,11 @@ def test_unused_parameters_are_frozen():
     optimizer = module.configure_optimizers()
     assert sum(len(g["params"]) for g in optimizer.param_groups) == 3  # alpha, beta, confidence
     assert module.model.log_std_scale.requires_grad is False
-    assert CRFDepthModule(nll_weight=0.1).model.log_std_scale.requires_grad is True
+    assert CRFDepthModule(nll_weight=0.1, crf={"uncertainty": "posterior"}).model.log_std_scale.requires_grad is True
+    # The predictive std (the default) trains its own weights with the NLL term, never the posterior's scale.
+    assert CRFDepthModule(nll_weight=0.1).model.log_std_scale.requires_grad is False
+    assert CRFDepthModule(nll_weight=0.1).model.std_head.weights.requires_grad is True
+    assert module.model.std_head.weights.requires_grad is False
     # The refinement prior is learned only where there is a refinement.
     assert CRFDepthModule().model.log_refine_prior.requires_grad is True
     assert CRFDepthModule(crf={"refine": False}).model.log_refine_prior.requires_grad is False
@@ -82,13 +86,23 @@ def test_bad_arguments(kwargs, match):
 def test_nll_term_trains_only_the_std_scale():
     sample = build_dataset("synthetic", count=1, seed=3, height=64, width=192)[0]
     batch = collate_samples([sample])
-    module = CRFDepthModule(crf={"mode": "superpixel", "superpixels": 2000}, nll_weight=1.0)
+    module = CRFDepthModule(crf={"mode": "superpixel", "superpixels": 2000, "uncertainty": "posterior"}, nll_weight=1.0)
     _, parts, out = module._objective(batch)
     assert out.std is not None and set(parts) == {"depth_loss", "nll"}
     parts["nll"].sum().backward()
     grads = {name: getattr(module.model, raw).grad for name, raw in PARAMETERS.items() if hasattr(module.model, raw)}
     assert grads["std_scale"] is not None and grads["std_scale"].abs().item() > 0
     assert all(g is None or g.abs().item() == 0 for n, g in grads.items() if n != "std_scale")
+
+
+def test_nll_term_trains_only_the_predictive_std():
+    sample = build_dataset("synthetic", count=1, seed=3, height=64, width=192)[0]
+    module = CRFDepthModule(crf={"mode": "pixel"}, nll_weight=1.0)
+    _, parts, _ = module._objective(collate_samples([sample]))
+    parts["nll"].sum().backward()
+    assert bool((module.model.std_head.weights.grad.abs() > 0).all())
+    grads = [getattr(module.model, raw).grad for raw in PARAMETERS.values() if hasattr(module.model, raw)]
+    assert all(g is None or g.abs().item() == 0 for g in grads)
 
 
 def test_lightning_moves_batches_with_batch_to():

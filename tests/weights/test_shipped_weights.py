@@ -117,12 +117,12 @@ def _shipped_torch_file(monkeypatch, tmp_path, state: dict[str, torch.Tensor]):
 
 def test_shipped_state_dict_of_the_old_layout_is_upgraded(monkeypatch, tmp_path):
     model = CRFDepth(refine_prior=0.02)
-    state = {k: v for k, v in model.state_dict().items() if k != "log_refine_prior"}
+    state = {k: v for k, v in model.state_dict().items() if k not in ("log_refine_prior", "std_head.weights")}
     state["refine_prior"] = torch.tensor(0.02)  # the buffer before the prior became learnable
     _shipped_torch_file(monkeypatch, tmp_path, state)
     config, loaded = pretrained_state("kitti")
-    # A bare state dict says by its keys that it has neither gate nor head.
-    assert config == {"gate": False, "head": False} and "refine_prior" not in loaded
+    # A bare state dict says by its keys that it has neither gate nor head nor predictive std.
+    assert config == {"gate": False, "head": False, "uncertainty": "posterior"} and "refine_prior" not in loaded
     assert float(loaded["log_refine_prior"].exp()) == pytest.approx(0.02, rel=1e-6)
     for built in (load_pretrained("kitti"), CRFDepth.from_pretrained("kitti")):
         assert built.weights() == pytest.approx(model.weights(), rel=1e-6)
