@@ -64,10 +64,17 @@ the paper trains each row of its Table 1 (5 more fits, about 5 minutes each on 2
 Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, averaged
 over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), docs/design.md section 7.
 
-Uncertainty (docs/design.md section 5), for ``paper`` and ``learned``: sparsification curves
-of the posterior std and of the paper's count map (:func:`sparsification`; ties in the
-count map, which has 3 levels, are removed in random order in expectation), and
-:func:`ause` per image, averaged; ``ause_random`` is the AUSE of a random order, for scale.
+Uncertainty (docs/design.md section 5), for ``paper``, ``hand-set`` and ``learned``, of three
+maps: ``std``, the model's predictive std (:mod:`crfdepth.predictive`); ``posterior``, the
+posterior-only std ``s sqrt(diag(A^-1))`` (``learned`` only: ``uncertainty="posterior"``
+with ``--posterior-samples`` samples, its scale ``s`` calibrated in closed form on the fit's
+frames); ``count``, the paper's count map (a score, not a std). Per image, then averaged
+(:func:`crfdepth.metrics.uncertainty_metrics`): AUSE of RMSE in mm and the random order's
+(ties in the count map are removed in random order in expectation), their ratio from the
+averaged areas, Spearman(std, |error|), and for the stds the share of errors within 1 and 2
+std and the Gaussian NLL. The learned std is fitted like the depth weights, on frames
+outside the evaluated set: the shipped weights' std (fitted on their 48 training frames), or
+for the 2-fold fits :func:`train.calibrate.fit_predictive_std` on the fit's frames.
 
 Speed: median over frames of the wall clock of one forward (batch 1, ``no_grad``,
 ``torch.set_num_threads(--threads)``); for ``paper``/``learned`` the ``uncertainty`` stage
@@ -79,7 +86,9 @@ in ``--fractions`` (the target is the same pixels for every fraction), table and
 
 Outputs under ``--out-dir`` (default ``./accuracy_results``): ``results.md`` (the printed
 tables and verdicts), ``results.jsonl`` (one JSON line per method and protocol, one per
-sub-sampling point), ``subsampling.png``, ``sparsification.png``.
+sub-sampling point), ``subsampling.png``, ``sparsification.png`` (per protocol: the learned
+model's std, posterior std and count map against the oracle and a random order),
+``reliability.png`` (share within k std against the Gaussian's).
 
     python benchmarks/accuracy.py [--kitti-root PATH] [--protocols a b c] [--methods ...]
         [--max-frames N] [--fit-epochs E] [--fit-frames N] [--learn-ablations]
@@ -104,7 +113,7 @@ import torch
 from crfdepth.classical import ip_basic_fill
 from crfdepth.data.factory import build_dataset
 from crfdepth.fill import nearest_fill
-from crfdepth.metrics import SPARSIFY_STEPS, ause, average_metrics, depth_metrics
+from crfdepth.metrics import SPARSIFY_STEPS, ause, average_metrics, depth_metrics, reliability, uncertainty_metrics
 from crfdepth.model import CRFDepth
 
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
@@ -159,6 +168,7 @@ WITH_STD = ("paper", "hand-set", "learned")
 GROUP_FOLDERS = {"raw": "raw", "object": "object/training"}
 TARGET_VS_IPBASIC = 0.85  # issue targets: learned RMSE <= 0.85 x IP-Basic's, same run
 TARGET_VS_HANDSET = 0.97  # learned RMSE <= 0.97 x the same structure with hand-set weights
+TARGET_AUSE_RATIO, TARGET_SPEARMAN, TARGET_COVERAGE = 0.7, 0.3, (0.6, 0.8)  # issue 14, the learned std
 DEPTH_BINS_M = (0.0, 10.0, 20.0, 40.0, float("inf"))  # target depth bins of the error breakdown
 
 
@@ -264,7 +274,8 @@ def sync(device: str) -> None:
 
 
 def predict(method: str, model: CRFDepth | None, image, sparse, K, device: str):
-    """(depth (1, 1, H, W), std or None, count map or None, seconds)."""
+    """(depth (1, 1, H, W), std or None, count map or None, seconds); ``std`` is the model's own
+    (the predictive std unless it was built with ``uncertainty="posterior"``)."""
     sync(device)
     t = time.perf_counter()
     std = count = None
@@ -317,9 +328,17 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
                 per[m]["bins"].append(depth_bin_errors(depth, target))
                 if std is None:
                     continue
-                err = (depth[0, 0][mask] - target[0, 0][mask]).double().cpu().numpy() * 1000.0  # mm
-                for name, u in (("std", std), ("count", count)):
-                    a = ause(err, u[0, 0][mask].double().cpu().numpy())
+                maps = {"std": std, "count": count}
+                if m == "learned":
+                    maps["posterior"] = predict(m, posterior_view(models[m], fits, args), image, sparse, K,
+                                                args.device)[1]
+                err = (depth[0, 0][mask] - target[0, 0][mask]).double().cpu().numpy()  # metres
+                for name, u in maps.items():
+                    u = u[0, 0][mask].double().cpu().numpy()
+                    a = ause(err * 1000.0, u)  # curves in mm
+                    a.update(uncertainty_metrics(err, u, is_std=name != "count"))
+                    if name != "count":
+                        a["reliability"] = reliability(err, u)["observed"]
                     per[m]["unc"].setdefault(name, []).append(a)
     rows = []
     h, w = frames[0].size
@@ -346,10 +365,18 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         elif m in CRF_METHODS:
             row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in method_config(m).items()}
         for name, items in per[m]["unc"].items():
-            row[f"ause_{name}_mm"] = float(np.mean([a["ause"] for a in items]))
-            row[f"ause_random_{name}_mm"] = float(np.mean([a["ause_random"] for a in items]))
+            row[f"ause_{name}_mm"] = 1000.0 * float(np.mean([a["ause"] for a in items]))
+            row[f"ause_random_{name}_mm"] = 1000.0 * float(np.mean([a["ause_random"] for a in items]))
+            row[f"ause_ratio_{name}"] = row[f"ause_{name}_mm"] / row[f"ause_random_{name}_mm"]
+            row[f"spearman_{name}"] = float(np.mean([a["spearman"] for a in items]))
+            if name != "count":
+                for k in ("coverage_1", "coverage_2", "nll", "nll_laplace"):
+                    row[f"{k}_{name}"] = float(np.mean([a[k] for a in items]))
+                curves[(m, f"reliability {name}")] = np.mean([a["reliability"] for a in items], 0)
             curves[(m, name)] = np.mean([a["curve"] for a in items], 0)
             curves[(m, "oracle")] = np.mean([a["oracle"] for a in items], 0)
+        if m == "learned" and "std" in per[m]["unc"]:
+            row["std_terms"] = {g: fits[FIT_SOURCE[(key, g)]]["std_terms"] for g in fit_note}
         if m == "learned":
             row["fit"] = "; ".join(fit_note.values())
             row["weights"] = {g: fits[FIT_SOURCE[(key, g)]]["weights"] for g in fit_note}
@@ -374,15 +401,38 @@ def get_fit(source, args, fits: dict, log) -> CRFDepth:
                 f"{time.perf_counter() - t:.0f} s")
         elif source == "shipped":
             model, loss, count = CRFDepth.from_pretrained("kitti").to(args.device), float("nan"), 0
+            frames = None
         else:
+            from train.calibrate import fit_predictive_std
+
             frames = recipe_frames(source, args)
             model, loss = fit_recipe(frames, args.fit_epochs, args.device)
+            fit_predictive_std(model, frames)  # the std's weights, on the same frames, whole and unflipped
             count = len(frames) // 2
             log(f"  fit on {source} ({count} frames x 2 hold-outs): {args.fit_epochs} epochs in "
                 f"{time.perf_counter() - t:.0f} s, last-epoch loss {loss:.4f}; "
-                + ", ".join(f"{k} {v:.3g}" for k, v in model.weights().items()))
-        fits[source] = dict(model=model, weights=model.weights(), loss=loss, frames=count)
+                + ", ".join(f"{k} {v:.3g}" for k, v in model.weights().items())
+                + "; std " + ", ".join(f"{k} {v:.3g}" for k, v in model.std_head.terms().items()))
+        fits[source] = dict(model=model, weights=model.weights(), loss=loss, frames=count,
+                            std_terms=model.std_head.terms(), train_frames=frames)
     return fits[source]["model"]
+
+
+def posterior_view(model: CRFDepth, fits: dict, args) -> CRFDepth:
+    """``model`` with ``uncertainty="posterior"`` (``--posterior-samples`` samples), its scale
+    calibrated in closed form on the frames ``model`` was fitted on (the shipped weights carry
+    theirs); cached in ``fits``."""
+    from train.calibrate import calibrate_std_scale
+
+    fit = next(f for f in fits.values() if f["model"] is model)
+    if "posterior" not in fit:
+        view = CRFDepth(**{**model.config, "uncertainty": "posterior", "std_samples": args.posterior_samples})
+        view.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("std_head.")})
+        view = view.to(args.device).eval()
+        if fit["train_frames"] is not None:
+            calibrate_std_scale(view, fit["train_frames"])
+        fit["posterior"] = view
+    return fit["posterior"]
 
 
 def recipe_frames(group: str, args) -> list:
@@ -441,11 +491,19 @@ def markdown_tables(rows: list[dict]) -> list[str]:
             lines.append(f"| {r['protocol']} | {r['method']} | " + " | ".join(cells) + " |")
     unc = [r for r in rows if "ause_std_mm" in r]
     if unc:
-        lines += ["", "**Uncertainty: AUSE of RMSE in mm (lower is better; random order for scale)**", "",
-                  "| protocol | method | AUSE std | AUSE count map | AUSE random order |", "|---|---|---|---|---|"]
+        lines += ["", "**Uncertainty** (per image, averaged; AUSE of RMSE in mm, lower is better; within k std: "
+                      "a calibrated Gaussian has 0.683 / 0.954; NLL: Gaussian, nats, errors in m)", "",
+                  "| protocol | method | map | AUSE mm | random mm | AUSE / random | Spearman | within 1 std "
+                  "| within 2 std | NLL |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in unc:
-            lines.append(f"| {r['protocol']} | {r['method']} | {r['ause_std_mm']:.0f} | {r['ause_count_mm']:.0f} "
-                         f"| {r['ause_random_std_mm']:.0f} |")
+            for name in ("std", "posterior", "count"):
+                if f"ause_{name}_mm" not in r:
+                    continue
+                cal = (f"{r[f'coverage_1_{name}']:.3f} | {r[f'coverage_2_{name}']:.3f} | {r[f'nll_{name}']:.2f}"
+                       if name != "count" else "- | - | -")
+                lines.append(f"| {r['protocol']} | {r['method']} | {name} | {r[f'ause_{name}_mm']:.0f} "
+                             f"| {r[f'ause_random_{name}_mm']:.0f} | {r[f'ause_ratio_{name}']:.3f} "
+                             f"| {r[f'spearman_{name}']:.3f} | {cal} |")
     return lines
 
 
@@ -477,6 +535,18 @@ def verdicts(rows: list[dict]) -> list[str]:
                 verdict = "meets" if l <= target * o else f"misses by {l - target * o:.0f} mm"
                 out.append(f"- protocol {key}: learned {l:.0f} mm vs {label} {o:.0f} mm: {l / o:.3f} x "
                            f"(target <= {target}, {target * o:.0f} mm): {verdict}")
+    for key in dict.fromkeys(r["protocol"] for r in rows):
+        r = by.get((key, "learned"))
+        if r is None or "ause_std_mm" not in r:
+            continue
+        lo, hi = TARGET_COVERAGE
+        checks = [(f"AUSE {r['ause_ratio_std']:.3f} x random (target <= {TARGET_AUSE_RATIO})",
+                   r["ause_ratio_std"] <= TARGET_AUSE_RATIO),
+                  (f"AUSE {r['ause_std_mm']:.0f} mm vs count map {r['ause_count_mm']:.0f} mm (target below)",
+                   r["ause_std_mm"] < r["ause_count_mm"]),
+                  (f"Spearman {r['spearman_std']:.3f} (target >= {TARGET_SPEARMAN})", r["spearman_std"] >= TARGET_SPEARMAN),
+                  (f"within 1 std {r['coverage_1_std']:.3f} (target {lo}-{hi})", lo <= r["coverage_1_std"] <= hi)]
+        out += [f"- protocol {key}, learned std: {text}: {'meets' if ok else 'misses'}" for text, ok in checks]
     chains = [("no refinement, hand-set weights", ["sp-c", "sp-cn", "sp-cnd"]),
               ("with refinement, hand-set weights", ["sp-c+r", "sp-cn+r", "paper"]),
               ("no refinement, weights learned per configuration", ["sp-c/learned", "sp-cn/learned", "sp-cnd/learned"]),
@@ -519,9 +589,11 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
             f = np.arange(SPARSIFY_STEPS) / SPARSIFY_STEPS * 100
             shown = "learned" if any(m == "learned" for m, _ in curves[key]) else "paper"
             for (m, name), c in curves[key].items():
-                if m == shown:  # the oracle differs a little per method (its errors)
+                if m == shown and not name.startswith("reliability"):  # the oracle differs a little per method
                     ax.plot(f, c, "--" if name == "oracle" else "-",
                             label=f"{m} {name}" if name != "oracle" else f"oracle ({m} errors)")
+                    if name == "oracle":
+                        ax.axhline(c[0], color="grey", lw=0.8, ls=":", label="random order")
             ax.set_title(f"protocol {key}: sparsification")
             ax.set_xlabel("pixels removed (%)")
             ax.set_ylabel("RMSE (mm)")
@@ -529,6 +601,22 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
             ax.legend(fontsize=8)
         fig.tight_layout()
         paths.append(out_dir / "sparsification.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+        fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.3), squeeze=False)
+        ks = reliability(np.ones(1), np.ones(1))
+        for ax, key in zip(axes[0], keys):
+            ax.plot(ks["k"], ks["expected"], "k--", label="Gaussian")
+            for (m, name), c in curves[key].items():
+                if name.startswith("reliability") and m == "learned":
+                    ax.plot(ks["k"], c, "-", label=f"{m} {name.split()[1]}")
+            ax.set_title(f"protocol {key}: reliability")
+            ax.set_xlabel("k (std)")
+            ax.set_ylabel("share of |error| <= k std")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(out_dir / "reliability.png")
         fig.savefig(paths[-1], dpi=120)
         plt.close(fig)
     return paths
@@ -550,6 +638,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--subsample-frames", type=int, default=None, help="frames per group of the sub-sampling "
                         "study (default: --max-frames)")
     parser.add_argument("--no-subsample", action="store_true", help="skip the sub-sampling study")
+    parser.add_argument("--posterior-samples", type=int, default=8,
+                        help="samples of the posterior-only std (the model default is 32; 8 keeps the run short)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 frame per group, 1 fit epoch on "
