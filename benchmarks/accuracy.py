@@ -607,8 +607,9 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
         ks = reliability(np.ones(1), np.ones(1))
         for ax, key in zip(axes[0], keys):
             ax.plot(ks["k"], ks["expected"], "k--", label="Gaussian")
+            shown = "learned" if any(m == "learned" for m, _ in curves[key]) else "paper"
             for (m, name), c in curves[key].items():
-                if name.startswith("reliability") and m == "learned":
+                if name.startswith("reliability") and m == shown:
                     ax.plot(ks["k"], c, "-", label=f"{m} {name.split()[1]}")
             ax.set_title(f"protocol {key}: reliability")
             ax.set_xlabel("k (std)")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from crfdepth.predictive import STD_TERMS
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 
 
@@ -34,6 +36,19 @@ def test_quick_run_writes_parseable_json(accuracy, kitti_root, tmp_path, capsys)
         assert r["frames"] == 1 and r["batch_size"] == 1 and r["fps_median"] > 0
     for m in ("paper", "learned"):
         assert 0 < by[m]["ause_std_mm"] < by[m]["ause_random_std_mm"]
+        assert by[m]["ause_ratio_std"] == pytest.approx(by[m]["ause_std_mm"] / by[m]["ause_random_std_mm"])
+        assert -1 <= by[m]["spearman_std"] <= 1 and 0 <= by[m]["coverage_1_std"] <= by[m]["coverage_2_std"] <= 1
+        assert "coverage_1_count" not in by[m]  # the count map is a score, not a std
+    # The learned model also reports its posterior-only std; the shipped weights carry its scale.
+    learned = by["learned"]
+    assert 0 < learned["ause_posterior_mm"] < learned["ause_random_posterior_mm"]
+    assert set(learned["std_terms"]["val"]) == set(STD_TERMS) and "ause_posterior_mm" not in by["paper"]
+    # Measured on frame image_02: predictive std 0.22 x random, posterior 0.28 x, count map 0.88 x;
+    # within 1 std 0.66 (predictive) against 0.98 (posterior).
+    assert learned["ause_ratio_std"] < learned["ause_ratio_count"] and learned["ause_ratio_std"] < 0.5
+    assert 0.55 < learned["coverage_1_std"] < 0.8 and learned["coverage_1_posterior"] > 0.9
+    assert (tmp_path / "reliability.png").stat().st_size > 0 and (tmp_path / "sparsification.png").stat().st_size > 0
+    assert "- protocol a, learned std: Spearman" in (tmp_path / "results.md").read_text()
     assert "| paper |" in (tmp_path / "results.md").read_text()
     for r in lines:  # the error by target depth covers every target pixel once
         bins = r["depth_bins"]

