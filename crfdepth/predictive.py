@@ -24,6 +24,12 @@ posterior variance (the variance of a pixel given its neighbours) and costs noth
 sampled posterior (:mod:`crfdepth.uncertainty`) costs 40 solves and is the model's
 ``uncertainty="posterior"`` option.
 
+The model's std adds, in quadrature, the range noise of the LiDAR itself
+(:data:`RANGE_NOISE_M`, 2 cm, the 1-sigma accuracy automotive scanners state): on a return
+the CRF is pinned to the return and every signal is small, but the truth differs from the
+return by the sensor's noise. It is a constant, not fitted: the fit's targets (held-out
+returns) never sit on an input return, so they cannot show it (docs/design.md section 5).
+
 The six weights are fitted by :func:`fit_std_terms`: the Laplace negative log-likelihood
 (convex in the weights for this model), then the bias is moved so that 68.3% of the fitted
 errors lie within one std, as for a Gaussian (errors are heavier-tailed than Laplace's, so
@@ -43,7 +49,8 @@ from torch import nn
 from crfdepth.errors import InputError
 from crfdepth.windows import window_max
 
-__all__ = ["DEFAULT_STD_TERMS", "STD_TERMS", "PredictiveStd", "check_std_terms", "fit_std_terms", "predictive_std", "std_features"]
+__all__ = ["DEFAULT_STD_TERMS", "RANGE_NOISE_M", "STD_TERMS", "PredictiveStd", "check_std_terms", "fit_std_terms",
+           "predictive_std", "std_features"]
 
 STD_TERMS = ("bias", "depth", "posterior", "distance", "edge", "gate")
 """Names of the weights: ``bias`` (log metres), then one exponent per signal (module docstring)."""
@@ -52,8 +59,10 @@ OFFSETS = {"depth": 0.0, "posterior": 1e-6, "distance": 1.0, "edge": 0.01, "gate
 """Added to each signal before its log: the value below which a signal stops mattering."""
 EDGE_WINDOW, LIDAR_WINDOW = 5, 15
 COVERAGE = math.erf(1 / math.sqrt(2))  # 0.6827: a Gaussian's share within one std
-DEFAULT_STD_TERMS = {"bias": -6.4, "depth": 1.2, "posterior": 0.6, "distance": 1.1, "edge": 0.95, "gate": 0.2}
-"""Hand-set weights (rounded from a fit on the raw KITTI scans): std ~ z^1.3 (1 + d)^1.1 ..."""
+RANGE_NOISE_M = 0.02
+"""The LiDAR's own range noise, metres (1 sigma), added in quadrature by :class:`PredictiveStd`."""
+DEFAULT_STD_TERMS = {"bias": -1.35, "depth": 1.17, "posterior": 0.64, "distance": 1.09, "edge": 0.95, "gate": 0.19}
+"""Hand-set weights: the shipped weights' fit on raw KITTI scans, rounded (crfdepth/weights/README.md)."""
 
 
 def _log(x: torch.Tensor) -> torch.Tensor:
@@ -140,7 +149,8 @@ class PredictiveStd(nn.Module):
         return {k: float(v) for k, v in zip(STD_TERMS, self.weights.detach().double().tolist())}
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return predictive_std(features, self.weights)
+        """``sqrt(predictive_std^2 + RANGE_NOISE_M^2)``, metres: (B, 5, H, W) -> (B, 1, H, W)."""
+        return torch.sqrt(predictive_std(features, self.weights) ** 2 + RANGE_NOISE_M ** 2)
 
 
 def fit_std_terms(features: Sequence[torch.Tensor], errors: Sequence[torch.Tensor], *,

@@ -112,14 +112,8 @@ def test_bad_fit_input_is_refused():
         CRFDepth(uncertainty="bayes")
 
 
-@pytest.mark.parametrize("mode", [dict(mode="pixel"), dict(mode="superpixel", superpixels=600),
-                                  dict(mode="superpixel", superpixels=600, refine=False)])
-def test_model_std_on_synthetic_scenes_ranks_errors(mode):
-    """On small built-in scenes (camera truth), the hand-set predictive std ranks the errors:
-    AUSE under 0.7 x a random order's (the issue's target), positive Spearman (measured
-    0.30 / 0.22 pixel, 0.56 / 0.27 superpixel); the std is positive and finite."""
-    model = CRFDepth(**mode).eval()
-    ratios, rhos = [], []
+def _scene_scores(model):
+    ratios, rhos, covered = [], [], []
     for s in SyntheticScenes(count=3, seed=1000, height=96, width=320):
         with torch.no_grad():
             out = model(s.image[None], s.sparse[None], s.K, return_std=True)
@@ -130,7 +124,30 @@ def test_model_std_on_synthetic_scenes_ranks_errors(mode):
         u = uncertainty_metrics((out.depth[0, 0][m] - truth[m]).double().numpy(), out.std[0, 0][m].double().numpy())
         ratios.append(u["ause_ratio"])
         rhos.append(u["spearman"])
-    assert np.mean(ratios) < 0.7 and np.mean(rhos) > 0.15, (ratios, rhos)
+        covered.append(u["coverage_1"])
+    return np.mean(ratios), np.mean(rhos), np.mean(covered)
+
+
+@pytest.mark.parametrize("mode", [dict(mode="pixel"), dict(mode="superpixel", superpixels=600)])
+def test_model_std_on_synthetic_scenes_ranks_errors(mode):
+    """On small built-in scenes (camera truth), the hand-set predictive std ranks the errors:
+    AUSE under 0.7 x a random order's (the issue's target), positive Spearman; the std is
+    positive and finite."""
+    ratio, rho, _ = _scene_scores(CRFDepth(**mode).eval())
+    assert ratio < 0.7 and rho > 0.15, (ratio, rho)
+
+
+def test_fitting_the_std_adapts_it_to_another_structure():
+    """The hand-set terms are the shipped pixel model's fit; the unrefined superpixel painting
+    is another structure (measured with them: AUSE 0.98 x random, the 2 cm range noise
+    dominates). Fitted on three other scenes, its std ranks and covers the held-out scenes
+    (measured 0.20 x random, Spearman 0.62, 70% within 1 std)."""
+    from train.calibrate import fit_predictive_std
+
+    model = CRFDepth(mode="superpixel", superpixels=600, refine=False).eval()
+    fit_predictive_std(model, list(SyntheticScenes(count=3, seed=20, height=96, width=320)))
+    ratio, rho, covered = _scene_scores(model)
+    assert ratio < 0.4 and rho > 0.4 and 0.6 < covered < 0.8, (ratio, rho, covered)
 
 
 def test_posterior_option_keeps_the_sampled_std():
