@@ -594,15 +594,8 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
                             label=f"{m} {name}" if name != "oracle" else f"oracle ({m} errors)")
                     if name == "oracle":
                         ax.axhline(c[0], color="grey", lw=0.8, ls=":", label="random order")
-            ax.set_title(f"protocol {key}: sparsification")
-            ax.set_xlabel("pixels removed (%)")
-            ax.set_ylabel("RMSE (mm)")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-        fig.tight_layout()
-        paths.append(out_dir / "sparsification.png")
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+            _label(ax, f"protocol {key}: sparsification", "pixels removed (%)", "RMSE (mm)")
+        paths.append(_save(fig, out_dir / "sparsification.png"))
         fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.3), squeeze=False)
         ks = reliability(np.ones(1), np.ones(1))
         for ax, key in zip(axes[0], keys):
@@ -611,16 +604,26 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
             for (m, name), c in curves[key].items():
                 if name.startswith("reliability") and m == shown:
                     ax.plot(ks["k"], c, "-", label=f"{m} {name.split()[1]}")
-            ax.set_title(f"protocol {key}: reliability")
-            ax.set_xlabel("k (std)")
-            ax.set_ylabel("share of |error| <= k std")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-        fig.tight_layout()
-        paths.append(out_dir / "reliability.png")
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+            _label(ax, f"protocol {key}: reliability", "k (std)", "share of |error| <= k std")
+        paths.append(_save(fig, out_dir / "reliability.png"))
     return paths
+
+
+def _label(ax, title: str, xlabel: str, ylabel: str) -> None:
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:

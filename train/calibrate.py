@@ -53,17 +53,10 @@ def fit_predictive_std(model, frames: Iterable, *, apply: bool = True) -> dict[s
     """
     if getattr(model, "uncertainty", None) != "predictive":
         raise InputError(f"model: expected uncertainty='predictive', got {getattr(model, 'uncertainty', None)!r}")
-    param = next(model.parameters())
     features, errors = [], []
-    with torch.no_grad():
-        for s in frames:
-            target = s.target[None].to(param)
-            valid = target > 0
-            if not bool(valid.any()):
-                continue
-            out = model(s.image[None].to(param), s.sparse[None].to(param), s.K[None].to(param), return_std=True)
-            features.append(out.std_features.permute(0, 2, 3, 1)[valid[:, 0]])
-            errors.append(out.depth[valid] - target[valid])
+    for out, target, valid in _outputs(model, frames):
+        features.append(out.std_features.permute(0, 2, 3, 1)[valid[:, 0]])
+        errors.append(out.depth[valid] - target[valid])
     if not errors:
         raise InputError("frames: expected at least one frame with target pixels (> 0), got none")
     terms = fit_std_terms(features, errors, start=model.std_head.terms())
@@ -96,21 +89,29 @@ def calibrate_std_scale(model, frames: Iterable, *, apply: bool = True) -> float
     Raises:
         InputError: no frame has a target pixel.
     """
-    param = next(model.parameters())
     ratios = []
     with torch.no_grad():
         scale = float(model.std_scale)
-        for s in frames:
-            target = s.target[None].to(param)
-            valid = target > 0
-            if not bool(valid.any()):
-                continue
-            out = model(s.image[None].to(param), s.sparse[None].to(param), s.K[None].to(param), return_std=True)
-            sigma = (out.std / scale)[valid]
-            ratios.append(float(((out.depth[valid] - target[valid]) / sigma).square().mean()))
-        if not ratios:
-            raise InputError("frames: expected at least one frame with target pixels (> 0), got none")
-        calibrated = math.sqrt(sum(ratios) / len(ratios))
-        if apply:
+    for out, target, valid in _outputs(model, frames):
+        sigma = (out.std / scale)[valid]
+        ratios.append(float(((out.depth[valid] - target[valid]) / sigma).square().mean()))
+    if not ratios:
+        raise InputError("frames: expected at least one frame with target pixels (> 0), got none")
+    calibrated = math.sqrt(sum(ratios) / len(ratios))
+    if apply:
+        with torch.no_grad():
             model.log_std_scale.fill_(math.log(calibrated))
     return calibrated
+
+
+def _outputs(model, frames: Iterable):
+    """``(output, target, valid)`` per frame with target pixels: ``model`` under ``no_grad`` with
+    the std, on its device and dtype; target (1, 1, H, W) metres and its ``> 0`` mask."""
+    param = next(model.parameters())
+    for s in frames:
+        target = s.target[None].to(param)
+        valid = target > 0
+        if bool(valid.any()):
+            with torch.no_grad():
+                out = model(s.image[None].to(param), s.sparse[None].to(param), s.K[None].to(param), return_std=True)
+            yield out, target, valid
