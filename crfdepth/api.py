@@ -273,14 +273,15 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             learned on KITTI. Used in its current train/eval mode, under ``no_grad``; a
             model on another device is copied there (the caller's model is not moved).
         device: "cpu", "cuda" or a torch.device for the computation.
-        return_std: also return the posterior standard deviation.
+        return_std: also return the standard deviation (the model's: predictive by default,
+            docs/design.md section 5).
         trust_transform: with ``points``, use ``T_cam_lidar`` as given even when its
             inverse lands more than 1.5 times as many points in the image (which is
             otherwise refused as an inverted transform, :func:`points_to_sparse`).
 
     Returns:
         ``(depth, std)``: (H, W) float32 z-depth in metres, > 0 everywhere, and the
-        posterior std in metres (None when ``return_std`` is False). numpy arrays for a
+        std in metres (None when ``return_std`` is False). numpy arrays for a
         numpy image; tensors on the image tensor's device for a tensor image.
 
     Raises:

@@ -77,7 +77,7 @@ def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *
     are told apart (docs/design.md section 5).
 
     Args:
-        std: (H, W) posterior standard deviation in metres (also (1, H, W) or
+        std: (H, W) standard deviation in metres (also (1, H, W) or
             (1, 1, H, W); numpy or torch); negative or non-finite = no value
             (``invalid_color``); 0 = the bottom colour.
         vis_range: ``(min_m, max_m)``, min_m < max_m (> 0 for log): a fixed range for a

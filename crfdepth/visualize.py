@@ -10,7 +10,7 @@ Pictures for people, with a colour bar in metres under the map, are in :mod:`crf
 - :func:`crfdepth.pictures.depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
   depth, near = warm (red), far = cold (blue). Inverse depth spreads the near range,
   where the detail is, and compresses the sky and far background.
-- :func:`crfdepth.pictures.std_picture`: the posterior standard deviation (docs/design.md section 5),
+- :func:`crfdepth.pictures.std_picture`: the standard deviation (docs/design.md section 5),
   VIRIDIS (dark purple = certain, yellow = uncertain) on a *log* scale by default: the
   std is small near the LiDAR and one or two decades larger far from it, and a linear
   scale paints everything near the data with a single colour.
@@ -246,7 +246,7 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
 
     ``scale="linear"``: ``t = (std - vmin) / (vmax - vmin)``; ``scale="log"``:
     ``t = log(std / vmin) / log(vmax / vmin)``; clipped to [0, 1]. With VIRIDIS, ``vmin``
-    (and below) is dark purple and ``vmax`` (and above) yellow. The posterior std spans
+    (and below) is dark purple and ``vmax`` (and above) yellow. The std spans
     two or more decades (small at the LiDAR points, large far from them and in the sky,
     docs/design.md section 5); the linear scale paints everything near the data with one
     colour, the log scale shows its structure.
@@ -258,7 +258,7 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
         vmin: std at the bottom of the scale, metres; default: linear 0, log the lower
             end of :func:`std_range` (2nd percentile of the stds > 0). Must be > 0 for log.
         vmax: std at the top of the scale, metres; default: linear the ``percentile``-th
-            percentile of the valid stds (the posterior std has a long tail in the sky and
+            percentile of the valid stds (the std has a long tail in the sky and
             far background that would otherwise flatten the rest of the picture), log the
             upper end of :func:`std_range` (98th percentile).
         vis_range: ``(min_m, max_m)`` instead of ``vmin`` / ``vmax`` (then leave those

@@ -54,7 +54,8 @@ def test_log_depth_bends_a_plane_less_than_depth_and_more_than_inverse_depth():
 
 def test_inverse_depth_std_is_in_metres():
     image, sparse, K, depth, between = _road(torch.float32)
-    out = {v: CRFDepth(mode="pixel", variable=v, std_samples=8)(image, sparse, K, return_std=True)
+    out = {v: CRFDepth(mode="pixel", variable=v, std_samples=8, uncertainty="posterior")(image, sparse, K,
+                                                                                          return_std=True)
            for v in ("depth", "inverse", "log")}
     for o in out.values():
         assert torch.isfinite(o.std).all() and (o.std > 0).all()

@@ -22,7 +22,7 @@ A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous``
     crfdepth complete --input-dir val_selection_cropped --out-dir pred/ [--out-std-dir std/]
 
 Outputs (docs/design.md sections 1 and 7): the depth is a KITTI depth PNG of the input's size
-(uint16, metres * 256), > 0 at every pixel; the posterior standard deviation is written
+(uint16, metres * 256), > 0 at every pixel; the standard deviation is written
 the same way (metres * 256). Both are clipped below at 1/256 m, so that no pixel reads
 as 0 ("no value"), and the depth above at 65535/256 m by the PNG format. In folder mode
 each frame is written as ``<velodyne_raw file name>`` (the KITTI submission naming:
@@ -124,7 +124,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help="with a KITTI --calib: camera index (default: 2, left colour)")
     one.add_argument("--out", metavar="DEPTH.png", help="output depth PNG (its folder must exist)")
     one.add_argument("--out-std", metavar="STD.png",
-                     help="also write the posterior std (metres * 256) to this PNG")
+                     help="also write the std (metres * 256) to this PNG")
     folder = parser.add_argument_group("a folder")
     folder.add_argument("--input-dir", metavar="DIR",
                         help="folder with image/, velodyne_raw/, intrinsics/ (val_selection_cropped "
@@ -132,7 +132,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     folder.add_argument("--out-dir", metavar="OUT",
                         help="output folder (created if missing): one <velodyne_raw name>.png per frame")
     folder.add_argument("--out-std-dir", metavar="OUT",
-                        help="also write each frame's posterior std PNG here (created if missing)")
+                        help="also write each frame's std PNG here (created if missing)")
     parser.add_argument("--vis", nargs="?", const="", default=None, metavar="DIR",
                         help="write colour pictures <stem>_vis_depth.png and <stem>_vis_std.png into "
                              "DIR (created if missing); without DIR: next to --out, or into "

@@ -10,7 +10,7 @@ next to the nearest-neighbour baseline, and writes to ``--out-dir`` (default
   depth like the depth picture, with its colour bar in metres;
 - ``<name>_depth.png``: the dense depth (near = warm) with a colour bar in metres
   (:func:`crfdepth.pictures.depth_picture`);
-- ``<name>_std.png``: the posterior standard deviation on a log scale with a colour bar in
+- ``<name>_std.png``: the standard deviation on a log scale with a colour bar in
   metres (:func:`crfdepth.pictures.std_picture`, docs/design.md section 5);
 - ``<name>_points.png``: the completed depth as a coloured 3D point cloud seen from
   above and behind the camera;
