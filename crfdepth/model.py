@@ -360,8 +360,11 @@ class CRFDepth(ConstrainedWeights):
                     node_std = std_in_metres(node_std, x, self.variable)
                     std = node_std[labels][:, None]
                 else:
-                    var = (grid_conditional_variance(*_drop_rhs(grid_system(t)))[:, None] if self.refine
-                           else conditional_variance(d, edge_index, ew)[labels][:, None])
+                    if self.refine:  # the last solve is the refinement's pixel grid
+                        gd, _, gwh, gwv = grid_system(t)
+                        var = grid_conditional_variance(gd, gwh, gwv)[:, None]
+                    else:
+                        var = conditional_variance(d, edge_index, ew)[labels][:, None]
                     std, features = self._predictive(depth, sparse, kept, gate, var)
                     node_std = torch.cat([g.node_mean(std[b])[:, 0] for b, g in enumerate(graphs)])
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds, features)
@@ -430,11 +433,6 @@ class CRFDepth(ConstrainedWeights):
         return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
                          torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds,
                          features)
-
-
-def _drop_rhs(system: tuple) -> tuple:
-    """``(d, weight_h, weight_v)`` of :func:`crfdepth.potentials.grid_system`'s ``(d, b, weight_h, weight_v)``."""
-    return system[0], system[2], system[3]
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

@@ -38,7 +38,7 @@ class CRFOutput:
             ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
             ran). On CUDA, stages are timed without synchronisation (queued work may be
             counted in a later stage).
-        std_features: (B, 6, H, W) the signals of the predictive std
+        std_features: (B, 5, H, W) the signals of the predictive std
             (:func:`crfdepth.predictive.std_features`; None unless it was computed).
     """
 

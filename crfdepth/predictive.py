@@ -118,16 +118,17 @@ def _log_signals(features: torch.Tensor) -> torch.Tensor:
     return (features + features.new_tensor([OFFSETS[k] for k in SIGNALS]).view(shape)).clamp_min(1e-12).log()
 
 
-def check_std_terms(terms: Mapping[str, float] | None) -> dict[str, float]:
+def check_std_terms(terms: Mapping[str, float] | None, name: str = "std_terms") -> dict[str, float]:
+    """``terms`` as floats in the order of :data:`STD_TERMS` (None: the hand-set ones); errors name ``name``."""
     if terms is None:
         return dict(DEFAULT_STD_TERMS)
     if not isinstance(terms, Mapping) or set(terms) != set(STD_TERMS):
         got = sorted(terms) if isinstance(terms, Mapping) else type(terms).__name__
-        raise InputError(f"std_terms: expected a mapping with the keys {STD_TERMS}, got {got}")
+        raise InputError(f"{name}: expected a mapping with the keys {STD_TERMS}, got {got}")
     bad = {k: v for k, v in terms.items() if isinstance(v, bool) or not isinstance(v, (int, float))
            or not math.isfinite(v)}
     if bad:
-        raise InputError(f"std_terms: expected finite numbers, got {bad}")
+        raise InputError(f"{name}: expected finite numbers, got {bad}")
     return {k: float(terms[k]) for k in STD_TERMS}
 
 
@@ -189,7 +190,7 @@ def fit_std_terms(features: Sequence[torch.Tensor], errors: Sequence[torch.Tenso
     err = torch.cat([e for _, e in pairs]).abs()
     frame_weight = torch.cat([torch.full((e.numel(),), 1.0 / (e.numel() * len(pairs)), dtype=torch.float64)
                               for _, e in pairs])
-    init = check_std_terms(start)
+    init = check_std_terms(start, "start")
     w = torch.tensor([init[k] for k in STD_TERMS], dtype=torch.float64)
     design = torch.cat([torch.ones(len(x), 1, dtype=torch.float64), _log_signals(x)], 1)
     scaled = math.sqrt(2) * err

@@ -106,6 +106,8 @@ def test_bad_fit_input_is_refused():
         fit_std_terms([torch.zeros(3, 4)], [torch.zeros(3)])
     with pytest.raises(InputError, match="errors: expected at least one frame with target pixels"):
         fit_std_terms([torch.zeros(0, 5)], [torch.zeros(0)])
+    with pytest.raises(InputError, match="start: expected a mapping"):
+        fit_std_terms([torch.zeros(3, 5)], [torch.zeros(3)], start={"bias": 0.0})
     with pytest.raises(InputError, match="non-finite"):
         fit_std_terms([torch.zeros(3, 5)], [torch.tensor([0.0, float("inf"), 1.0])])
     with pytest.raises(InputError, match="uncertainty: expected one of"):

@@ -1,7 +1,7 @@
 """Fitting a trained model's std to real errors (docs/design.md section 5).
 
 :func:`calibrate_std` runs the whole model over a data set and sets the weights of its std:
-for the predictive std (the default), the seven weights of :mod:`crfdepth.predictive` by
+for the predictive std (the default), the six weights of :mod:`crfdepth.predictive` by
 :func:`crfdepth.predictive.fit_std_terms`; for ``uncertainty="posterior"``, the scale
 ``s`` in closed form (:func:`calibrate_std_scale`). It lives with training, not in the
 library's numerical code. ``python -m train.export --calibrate-std`` uses it; it needs no
