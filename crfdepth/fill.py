@@ -13,6 +13,7 @@ import torch
 from scipy.ndimage import distance_transform_edt
 
 from crfdepth.checks import check_depth_frames
+from crfdepth.nearest import nearest_valid
 
 __all__ = ["nearest_fill"]
 
@@ -26,12 +27,20 @@ def _fill_frame(depth: np.ndarray) -> np.ndarray:
     return depth[rows, cols]
 
 
+def fill_on_device(frames: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) checked depth -> nearest fill with :func:`crfdepth.nearest.nearest_valid` (any device)."""
+    index, _ = nearest_valid(frames > 0)
+    return torch.gather(frames.flatten(1), 1, index.flatten(1)).view_as(frames)
+
+
 def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
     """Dense depth from sparse LiDAR by nearest valid pixel.
 
     Uses :func:`scipy.ndimage.distance_transform_edt` with ``return_indices=True`` (exact
-    Euclidean distance; among equally near valid pixels, scipy's deterministic choice).
-    Valid pixels keep their value. About 20 ms per 1216x352 frame on one CPU core. Not
+    Euclidean distance; among equally near valid pixels, scipy's deterministic choice) on
+    the CPU, about 12 ms per 1216x352 frame; on other devices the same exact distances
+    without leaving the device (:func:`crfdepth.nearest.nearest_valid`; ties may pick
+    another of the equally near pixels). Valid pixels keep their value. Not
     differentiable (it is a fixed prior, not a learned quantity); the output is detached,
     on the input's device and dtype, and the input is not modified.
 
@@ -46,6 +55,8 @@ def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
             pixel (named by its batch index), instead of returning a silent all-zero map.
     """
     frames = check_depth_frames(sparse, what="nearest fill")[:, 0]
+    if frames.device.type != "cpu":
+        return fill_on_device(frames.detach()).reshape(sparse.shape)
     host = frames.to("cpu").numpy()
     filled = np.stack([_fill_frame(frame) for frame in host])
     return torch.from_numpy(filled).to(device=sparse.device, dtype=sparse.dtype).reshape(sparse.shape)

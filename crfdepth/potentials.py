@@ -19,10 +19,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-from kornia.geometry.depth import depth_to_3d_v2
 
 from crfdepth.linalg.operators import grid_edge_index
-from crfdepth.normals import dense_normals
+from crfdepth.normals import camera_points, dense_normals
 
 
 #: The CRF's unknown (docs/design.md section 3b): ``"depth"`` solves for z (the paper),
@@ -256,7 +255,7 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
             n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through the geometry
             t["normal"] = grid_pairs(n.permute(0, 2, 3, 1), normal_affinity, weights["sigma_n"])
         if t["delta"] is not None:
-            t["distance"] = grid_pairs(depth_to_3d_v2(geometry[:, 0], K), distance_affinity, weights["sigma_p"])
+            t["distance"] = grid_pairs(camera_points(geometry[:, 0], K), distance_affinity, weights["sigma_p"])
     return t
 
 
