@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.normals import aggregate_normals, dense_normals, graph_normals, lidar_normals
+from crfdepth.normals import aggregate_normals, dense_normals, graph_normals, lidar_normals, smallest_eigenvector
 
 H, W = 352, 1216
 # KITTI val_selection_cropped-like intrinsics (fx, fy, cx, cy in pixels).
@@ -277,3 +277,26 @@ def test_graph_normals_of_collinear_points_have_a_finite_zero_gradient():
     normals = graph_normals(points, edges, 6)
     normals[1:5].sum().backward()
     assert torch.isfinite(normals).all() and torch.equal(points.grad, torch.zeros_like(points))
+
+
+def test_closed_form_smallest_eigenvector_matches_eigh():
+    generator = torch.Generator().manual_seed(0)
+    # plane-like point sets (one thin direction) in random orientations, and generic covariances
+    points = torch.randn(500, 20, 3, dtype=torch.float64, generator=generator)
+    points = points * torch.tensor([1.0, 0.4, 0.01], dtype=torch.float64)
+    rotation, _ = torch.linalg.qr(torch.randn(500, 3, 3, dtype=torch.float64, generator=generator))
+    points = points @ rotation
+    planes = torch.einsum("nki,nkj->nij", points, points) / 20
+    a = torch.randn(500, 3, 3, dtype=torch.float64, generator=generator)
+    for cov in (planes, a @ a.transpose(1, 2)):
+        values, vectors = torch.linalg.eigh(cov)
+        got = smallest_eigenvector(cov)
+        assert torch.allclose(got.norm(dim=1), torch.ones(500, dtype=torch.float64))
+        separated = (values[:, 1] - values[:, 0]) > 1e-6 * values[:, 2]
+        cosine = (got * vectors[:, :, 0]).sum(1).abs()
+        assert float((1 - cosine[separated]).max()) < 1e-10
+    # isotropic (every vector an eigenvector) and diagonal inputs
+    assert torch.equal(smallest_eigenvector(2 * torch.eye(3, dtype=torch.float64)[None]),
+                       torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))
+    diagonal = smallest_eigenvector(torch.diag(torch.tensor([3.0, 1.0, 2.0], dtype=torch.float64))[None])
+    assert torch.allclose(diagonal.abs(), torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64))
