@@ -30,6 +30,7 @@ from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
 from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
+from crfdepth.memory import check_memory
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.parameters import ConstrainedWeights
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
@@ -123,6 +124,9 @@ class CRFDepth(ConstrainedWeights):
             (``s sqrt(diag(A^-1))`` alone, sampled: about 40 solves).
         std_terms: initial weights of the predictive std by name
             (:data:`crfdepth.predictive.STD_TERMS`; None: the hand-set ones), learnable.
+        memory_limit_gb: refuse a forward whose estimated peak memory
+            (:mod:`crfdepth.memory`) exceeds this many GB, before allocating; None: the
+            device's memory.
     """
 
     def __init__(
@@ -160,6 +164,7 @@ class CRFDepth(ConstrainedWeights):
         irls_scale: float = DEFAULT_IRLS_SCALE,
         uncertainty: Literal["predictive", "posterior"] = "predictive",
         std_terms: Mapping[str, float] | None = None,
+        memory_limit_gb: float | None = None,
     ) -> None:
         super().__init__()
         # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
@@ -180,6 +185,8 @@ class CRFDepth(ConstrainedWeights):
         if isinstance(gate_window, bool) or not isinstance(gate_window, int) or gate_window < 3 or gate_window % 2 == 0:
             raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {gate_window!r}")
         check_number("rounds", rounds, low=1, low_open=False, integer=True)
+        if memory_limit_gb is not None:
+            check_number("memory_limit_gb", memory_limit_gb, low=0.0)
         check_number("irls", irls, low=0, low_open=False, integer=True)
         for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
             check_number(name, value, low=0.0, high=1.0)
@@ -192,7 +199,7 @@ class CRFDepth(ConstrainedWeights):
         self.potentials = tuple(p for p in POTENTIALS if p in potentials)
         self.aggregate, self.refine, self.rounds, self.std_samples = aggregate, refine, rounds, std_samples
         self.variable, self.gate, self.gate_window, self.prior = variable, gate, gate_window, prior
-        self.irls, self.uncertainty = irls, uncertainty
+        self.irls, self.uncertainty, self.memory_limit_gb = irls, uncertainty, memory_limit_gb
         std_terms = check_std_terms(std_terms)
         self.std_head = None if uncertainty == "posterior" else PredictiveStd(std_terms)
         self.head = PotentialHead() if head else None
@@ -255,6 +262,8 @@ class CRFDepth(ConstrainedWeights):
             :class:`CRFOutput`; tensors in the dtype of ``sparse`` on its device.
         """
         image, sparse, K = check_frames(image, sparse, K)
+        check_memory(self.mode, *sparse.shape[:1], *sparse.shape[2:], return_std, self.uncertainty, sparse.dtype,
+                     sparse.device, self.memory_limit_gb)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         if self.mode == "pixel":
@@ -270,7 +279,7 @@ class CRFDepth(ConstrainedWeights):
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         dtype, device = sparse.dtype, sparse.device
-        stage = Stages()
+        stage = Stages(sparse.device)
         with stage("fill"):
             gate, kept, fill = self._evidence(sparse)
         n_seg = self.segments_for(h, w)
@@ -409,7 +418,7 @@ class CRFDepth(ConstrainedWeights):
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
-        stage = Stages()
+        stage = Stages(sparse.device)
         with stage("fill"):
             gate, kept, fill = self._evidence(sparse)
         eps = self._scales()[4]

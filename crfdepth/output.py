@@ -56,15 +56,24 @@ class CRFOutput:
 
 
 class Stages:
-    """Wall-clock seconds per pipeline stage (accumulated over the frames of a batch)."""
+    """Wall-clock seconds per pipeline stage (accumulated over the frames of a batch).
 
-    def __init__(self) -> None:
+    On a CUDA ``device`` each stage starts and ends with ``torch.cuda.synchronize()``, so
+    that a stage's time is its own work and not that of kernels still queued before it.
+    """
+
+    def __init__(self, device: torch.device | None = None) -> None:
         self.seconds: dict[str, float] = {}
+        self.sync = device is not None and device.type == "cuda"
 
     @contextmanager
     def __call__(self, name: str):
+        if self.sync:
+            torch.cuda.synchronize()
         start = time.perf_counter()
         try:
             yield
         finally:
+            if self.sync:
+                torch.cuda.synchronize()
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start

@@ -1,0 +1,299 @@
+"""Speed and memory of every configuration beside the classical fill, in one run (issue 15).
+
+Two frames:
+
+- ``kitti``: 1216 x 352, ``depth_selection/val_selection_cropped`` frame 0 under
+  ``--kitti-root`` (default ``../shared/data/kitti`` next to the repository), or the built-in
+  synthetic street ``make_scene(0)`` with a note when that is absent;
+- ``large``: ``--large`` (default 4000 x 3000), the synthetic street rendered at that size
+  (``make_scene(0, height, width)``: a 12-megapixel camera with the same 64-beam LiDAR).
+
+Configurations (each without and with the std, ``return_std=True``):
+
+- ``default``: the shipped model, ``CRFDepth.from_pretrained("kitti")`` (pixel grid, log depth, occlusion gate);
+- ``pixel``: ``CRFDepth(mode="pixel")``, the constructor's potentials on the pixel grid;
+- ``superpixel``: ``CRFDepth()``, 5500 SLIC segments at 1216 x 352 (scaled with the area) and the pixel refinement;
+- ``no-refine``: ``CRFDepth(refine=False)``, the paper's piecewise-constant painting;
+- ``ip-basic``: :func:`crfdepth.classical.ip_basic_fill`, the classical fill of the accuracy benchmark.
+
+Per configuration and frame: the model's per-stage times (``CRFOutput.timings``: on CUDA
+each stage is synchronised), the total (median over ``--repeats`` forwards, run
+round-robin over the configurations so that outside load spreads over all of them; the
+large frame is run once), frames per second, CG iterations of each solve, and the peak
+memory: on the CPU the growth of the resident set of a fresh process running one forward
+(after a forward on a corner of the frame, which loads libraries and kernels, its peak
+resident set ``VmHWM``, reset just before the measured forward, less the resident set
+then; Linux only; everything the forward allocates); on CUDA the allocator's peak (``torch.cuda.max_memory_allocated``). Memory is
+also given per pixel. On CUDA the default configuration is also run at ``--batch``
+frames per forward (frames per second at that batch).
+
+Verdicts (issue 15): default <= 100 ms per 1216 x 352 frame and <= 20x the classical fill;
+moonshot <= 25 ms; peak memory at the large size <= 8 GB for every configuration (or the
+model refuses it up front, which is reported as ``refused``); on CUDA >= 100 frames/s at
+the batch. Prints a table, the verdicts, then one JSON line with everything.
+
+    python benchmarks/speed.py [--device cpu|cuda] [--threads 2] [--repeats 5]
+                               [--large 4000x3000] [--skip-large] [--batch 8] [--kitti-root PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from crfdepth.classical import ip_basic_fill
+from crfdepth.data.kitti import KittiValSelection
+from crfdepth.data.synthetic import make_scene
+from crfdepth.errors import InputError
+from crfdepth.model import CRFDepth
+
+DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
+CONFIGS = ("default", "pixel", "superpixel", "no-refine", "ip-basic")
+STAGES = ("fill", "slic", "graph", "normals", "potentials", "solve", "painting", "refine", "uncertainty")
+TARGET_MS, MOONSHOT_MS, TARGET_VS_CLASSICAL = 100.0, 25.0, 20.0
+TARGET_LARGE_GB, TARGET_GPU_FPS = 8.0, 100.0
+
+
+def make_model(name: str, device: str) -> CRFDepth | None:
+    """The configuration's model in eval mode on ``device`` (None for the classical fill)."""
+    if name == "ip-basic":
+        return None
+    model = {"default": lambda: CRFDepth.from_pretrained("kitti"), "pixel": lambda: CRFDepth(mode="pixel"),
+             "superpixel": lambda: CRFDepth(), "no-refine": lambda: CRFDepth(refine=False)}[name]()
+    return model.to(device).eval()
+
+
+def load_frame(kind: str, root: Path, large: tuple[int, int]) -> dict:
+    """(1, 3, H, W) image, (1, 1, H, W) sparse, (3, 3) K on the CPU, and the frame's name."""
+    if kind == "kitti":
+        try:
+            s = KittiValSelection(root / "depth_selection" / "val_selection_cropped")[0]
+            return dict(image=s.image[None], sparse=s.sparse[None], K=s.K, name=s.name)
+        except (FileNotFoundError, InputError) as err:
+            print(f"note: no KITTI frame under {root} ({err}); using the synthetic street make_scene(0)")
+            scene = make_scene(0)
+    else:
+        scene = make_scene(0, height=large[0], width=large[1])
+    t = scene.to_tensors()
+    return dict(image=t["image"][None].float(), sparse=t["sparse"][None].float(), K=t["K"].float(), name=scene.name)
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def run_once(name: str, model: CRFDepth | None, frame: dict, std: bool, device: str) -> tuple[float, dict, list]:
+    """Seconds of one forward (or one classical fill), its stage timings and CG iterations."""
+    sync(device)
+    start = time.perf_counter()
+    with torch.no_grad():
+        if model is None:
+            ip_basic_fill(frame["sparse"])
+            out = None
+        else:
+            out = model(frame["image"], frame["sparse"], frame["K"], return_std=std)
+    sync(device)
+    seconds = time.perf_counter() - start
+    if out is None:
+        return seconds, {}, []
+    return seconds, dict(out.timings), [int(i.iterations.max()) for i in out.info]
+
+
+def on_device(frame: dict, device: str, batch: int = 1) -> dict:
+    return dict(image=frame["image"].to(device).repeat(batch, 1, 1, 1),
+                sparse=frame["sparse"].to(device).repeat(batch, 1, 1, 1), K=frame["K"].to(device), name=frame["name"])
+
+
+def _status_bytes(key: str) -> int:
+    """A size from ``/proc/self/status`` (Linux), bytes."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f"{key} not in /proc/self/status")
+
+
+def _memory_child(name: str, path: str, std: bool, threads: int, queue) -> None:
+    """In a fresh process: one forward, then the growth of the resident set over it (bytes)."""
+    torch.set_num_threads(threads)
+    frame = torch.load(path)
+    model = make_model(name, "cpu")
+    # A forward on a corner of the frame first: libraries and kernels load lazily on first use.
+    corner = dict(frame, image=frame["image"][..., :96, :320], sparse=frame["sparse"][..., :96, :320].clone())
+    corner["sparse"][..., 48, ::7] = 10.0  # returns in every corner
+    run_once(name, model, corner, std, "cpu")
+    before = _status_bytes("VmRSS")
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")  # reset the peak resident set (VmHWM) to the current one
+    try:
+        seconds, stages, iterations = run_once(name, model, frame, std, "cpu")
+    except InputError as err:  # refused up front
+        queue.put(dict(refused=str(err)))
+        return
+    peak = _status_bytes("VmHWM")
+    queue.put(dict(peak_bytes=max(0, peak - before), seconds=seconds, stages=stages, iterations=iterations))
+
+
+def cpu_memory(name: str, path: str, std: bool, threads: int) -> dict:
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_memory_child, args=(name, path, std, threads, queue))
+    child.start()
+    child.join()
+    if child.exitcode != 0:
+        return dict(failed=f"exit status {child.exitcode} (killed for memory?)")
+    return queue.get()
+
+
+def cuda_memory(name: str, model: CRFDepth | None, frame: dict, std: bool, device: str) -> dict:
+    torch.cuda.empty_cache()
+    torch.cuda.reset_peak_memory_stats(device)
+    base = torch.cuda.memory_allocated(device)
+    try:
+        seconds, stages, iterations = run_once(name, model, frame, std, device)
+    except InputError as err:
+        return dict(refused=str(err))
+    return dict(peak_bytes=torch.cuda.max_memory_allocated(device) - base, seconds=seconds, stages=stages,
+                iterations=iterations)
+
+
+def measure_small(frame: dict, device: str, repeats: int) -> list[dict]:
+    """Round-robin timing of every (configuration, std) pair on the 1216 x 352 frame."""
+    pairs = [(n, s) for n in CONFIGS for s in ((False,) if n == "ip-basic" else (False, True))]
+    models = {n: make_model(n, device) for n in CONFIGS}
+    f = on_device(frame, device)
+    for n, s in pairs:
+        run_once(n, models[n], f, s, device)  # warm-up
+    runs = {p: [] for p in pairs}
+    for _ in range(repeats):
+        for n, s in pairs:
+            runs[(n, s)].append(run_once(n, models[n], f, s, device))
+    rows = []
+    for (n, s), results in runs.items():
+        seconds = statistics.median(r[0] for r in results)
+        stages = {k: statistics.median(r[1].get(k, 0.0) for r in results) for k in STAGES}
+        rows.append(dict(config=n, std=s, size=list(frame["image"].shape[-2:]), seconds=seconds,
+                         spread=[min(r[0] for r in results), max(r[0] for r in results)], fps=1 / seconds,
+                         stages={k: v for k, v in stages.items() if v > 0}, iterations=results[-1][2],
+                         repeats=repeats))
+    return rows
+
+
+def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None:
+    """Peak memory of every row's (configuration, std) on ``frame`` (a fresh process each on the CPU)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "frame.pt")
+        torch.save(frame, path)
+        for row in rows:
+            if device == "cpu":
+                got = cpu_memory(row["config"], path, row["std"], threads)
+            else:
+                got = cuda_memory(row["config"], make_model(row["config"], device), on_device(frame, device),
+                                  row["std"], device)
+            pixels = frame["image"].shape[-1] * frame["image"].shape[-2]
+            row["peak_bytes"] = got.get("peak_bytes")
+            row["bytes_per_pixel"] = None if row["peak_bytes"] is None else row["peak_bytes"] / pixels
+            for key in ("refused", "failed"):
+                if key in got:
+                    row[key] = got[key]
+            if "seconds" not in row:  # the large frame: its one run is this one
+                row.update(seconds=got.get("seconds"), stages={k: v for k, v in got.get("stages", {}).items() if v > 0},
+                           iterations=got.get("iterations"), fps=1 / got["seconds"] if got.get("seconds") else None)
+
+
+def _cell(v, scale=1000.0, digits=0) -> str:
+    return "-" if v is None else f"{v * scale:.{digits}f}"
+
+
+def print_table(rows: list[dict]) -> None:
+    stages = [s for s in STAGES if any(s in r.get("stages", {}) for r in rows)]
+    head = ["size", "config", "std"] + [s[:8] for s in stages] + ["total ms", "fps", "peak MB", "B/px", "iterations"]
+    widths = [10, 10, 5] + [8] * len(stages) + [9, 7, 8, 6, 14]
+    print("  ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
+    for r in rows:
+        cells = [f"{r['size'][1]}x{r['size'][0]}", r["config"], "yes" if r["std"] else "no"]
+        cells += [_cell(r.get("stages", {}).get(s)) for s in stages]
+        cells += [_cell(r.get("seconds"), digits=1), _cell(r.get("fps"), 1, 1),
+                  _cell(r.get("peak_bytes"), 1e-6), _cell(r.get("bytes_per_pixel"), 1),
+                  "refused" if r.get("refused") else str(r.get("iterations") or "-")]
+        print("  ".join(f"{c:>{w}}" for c, w in zip(cells, widths)))
+
+
+def verdicts(rows: list[dict], batch_row: dict | None) -> dict:
+    small = {(r["config"], r["std"]): r for r in rows if r["size"] == [352, 1216]}
+    default, classical = small.get(("default", False)), small.get(("ip-basic", False))
+    out = {}
+    if default and classical:
+        ms, ratio = 1000 * default["seconds"], default["seconds"] / classical["seconds"]
+        out["default_ms"] = dict(value=ms, target=TARGET_MS, met=ms <= TARGET_MS)
+        out["default_vs_classical"] = dict(value=ratio, target=TARGET_VS_CLASSICAL, met=ratio <= TARGET_VS_CLASSICAL)
+        out["moonshot_ms"] = dict(value=ms, target=MOONSHOT_MS, met=ms <= MOONSHOT_MS)
+    large = [r for r in rows if r["size"] != [352, 1216]]
+    if large:
+        worst = max((r.get("peak_bytes") or 0) for r in large) / 1e9
+        bad = [f"{r['config']} std={r['std']}" for r in large
+               if not r.get("refused") and (r.get("peak_bytes") is None or r["peak_bytes"] > TARGET_LARGE_GB * 1e9)]
+        out["large_peak_gb"] = dict(value=worst, target=TARGET_LARGE_GB, met=not bad, over=bad)
+    if batch_row is not None:
+        out["gpu_fps_batch"] = dict(value=batch_row["fps"], target=TARGET_GPU_FPS, met=batch_row["fps"] >= TARGET_GPU_FPS)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:k]")
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--large", default="4000x3000", help="WIDTHxHEIGHT of the large frame")
+    parser.add_argument("--skip-large", action="store_true")
+    parser.add_argument("--batch", type=int, default=8, help="frames per forward for the CUDA throughput row")
+    parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT)
+    args = parser.parse_args(argv)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        print("error: --device cuda: no CUDA device is available here", file=sys.stderr)
+        return 2
+    try:
+        width, height = (int(v) for v in args.large.lower().split("x"))
+    except ValueError:
+        print(f"error: --large: expected WIDTHxHEIGHT such as 4000x3000, got {args.large!r}", file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    frame = load_frame("kitti", args.kitti_root, (height, width))
+    rows = measure_small(frame, args.device, args.repeats)
+    add_memory(rows, frame, args.device, args.threads)
+    batch_row = None
+    if args.device.startswith("cuda"):
+        model, f = make_model("default", args.device), on_device(frame, args.device, args.batch)
+        run_once("default", model, f, False, args.device)
+        seconds = statistics.median(run_once("default", model, f, False, args.device)[0] for _ in range(args.repeats))
+        batch_row = dict(config="default", std=False, batch=args.batch, seconds=seconds, fps=args.batch / seconds)
+    if not args.skip_large:
+        large = load_frame("large", args.kitti_root, (height, width))
+        big = [dict(config=n, std=s, size=[height, width])
+               for n in CONFIGS for s in ((False,) if n == "ip-basic" else (False, True))]
+        add_memory(big, large, args.device, args.threads)
+        rows += big
+    print(f"device {args.device}" + (f" ({torch.cuda.get_device_name(args.device)})" if batch_row else "")
+          + f", {args.threads} threads, frame {frame['name']}")
+    print_table(rows)
+    if batch_row:
+        print(f"default at batch {args.batch}: {batch_row['fps']:.1f} frames/s")
+    v = verdicts(rows, batch_row)
+    for key, item in v.items():
+        print(f"{key}: {item['value']:.3g} (target {item['target']:g}): {'met' if item['met'] else 'MISSED'}")
+    print(json.dumps(dict(device=args.device, threads=args.threads, frame=frame["name"], rows=rows, batch=batch_row,
+                          verdicts=v, torch=torch.__version__)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
