@@ -173,6 +173,8 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     if sparse.dim() != 4 or sparse.shape[1] != 1:
         raise InputError(f"sparse: expected shape (B, 1, H, W), got {tuple(sparse.shape)}")
     bsz, _, h, w = sparse.shape
+    if sparse.numel() == 0:
+        raise InputError(f"sparse: expected at least one frame of at least one pixel, got shape {tuple(sparse.shape)}")
     if image.dim() != 4 or image.shape[1] != 3:
         raise InputError(f"image: expected shape (B, 3, H, W) (RGB), got {tuple(image.shape)}")
     if tuple(image.shape[2:]) != (h, w) or image.shape[0] != bsz:
@@ -182,11 +184,13 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
         raise InputError(f"image, K: expected the device of sparse ({sparse.device}), got {image.device} and {K.device}")
     if not sparse.is_floating_point():
         raise InputError(f"sparse: expected floating-point depth in metres, got {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()) or bool((sparse < 0).any()):
+    # One pass per tensor: min and max propagate NaN, and a NaN fails every comparison.
+    low, high = (float(v) for v in torch.aminmax(sparse.detach()))
+    if not (low >= 0 and high < math.inf):
         raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
-    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
-        raise InputError(f"image: expected finite RGB values in [0, 1], got range "
-                         f"[{float(image.min()):.3g}, {float(image.max()):.3g}]")
+    low, high = (float(v) for v in torch.aminmax(image.detach()))
+    if not (low >= 0 and high <= 1):
+        raise InputError(f"image: expected finite RGB values in [0, 1], got range [{low:.3g}, {high:.3g}]")
     if tuple(K.shape) == (3, 3):
         K = K[None].expand(bsz, 3, 3)
     if tuple(K.shape) != (bsz, 3, 3):

@@ -74,7 +74,7 @@ def colour_affinity(colour_i: torch.Tensor, colour_j: torch.Tensor, sigma_d: tor
     Returns:
         (...) affinities in (0, 1].
     """
-    return torch.exp(-((colour_i - colour_j) ** 2).sum(-1) / sigma_d ** 2)
+    return gaussian_affinity(((colour_i - colour_j) ** 2).sum(-1), sigma_d)
 
 
 def normal_affinity(normal_i: torch.Tensor, normal_j: torch.Tensor, sigma_n: torch.Tensor) -> torch.Tensor:
@@ -89,13 +89,22 @@ def normal_affinity(normal_i: torch.Tensor, normal_j: torch.Tensor, sigma_n: tor
             cos = 0, i.e. the affinity of perpendicular normals.
         sigma_n: scalar tensor > 0.
     """
-    cos = (normal_i * normal_j).sum(-1).clamp(-1.0, 1.0)
-    return torch.exp((cos - 1.0) / sigma_n ** 2)
+    return cosine_affinity((normal_i * normal_j).sum(-1), sigma_n)
 
 
 def distance_affinity(point_i: torch.Tensor, point_j: torch.Tensor, sigma_p: torch.Tensor) -> torch.Tensor:
     """``dp_ij = exp(-||p_i - p_j||^2 / sigma_p^2)`` for (..., 3) camera-frame points in metres."""
-    return torch.exp(-((point_i - point_j) ** 2).sum(-1) / sigma_p ** 2)
+    return gaussian_affinity(((point_i - point_j) ** 2).sum(-1), sigma_p)
+
+
+def gaussian_affinity(squared_distance: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """``exp(-d^2 / sigma^2)`` of squared distances (the colour and 3D-distance affinities)."""
+    return torch.exp(-squared_distance / sigma ** 2)
+
+
+def cosine_affinity(cos: torch.Tensor, sigma_n: torch.Tensor) -> torch.Tensor:
+    """``exp((cos - 1) / sigma_n^2)`` of cosines, clamped to [-1, 1] (the normal affinity)."""
+    return torch.exp((cos.clamp(-1.0, 1.0) - 1.0) / sigma_n ** 2)
 
 
 def data_confidence(count: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -160,13 +169,22 @@ def system_terms(t: EnergyTerms) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return b, d, t.edge_weight()
 
 
-def grid_pairs(values: torch.Tensor, affinity, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """An affinity between 4-neighbours of a (B, H, W, C) grid: ``(horizontal (B, H, W-1), vertical (B, H-1, W))``.
+def grid_pairs(values: torch.Tensor, reduce: Literal["squared_distance", "dot"]
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Between 4-neighbours of a (B, C, H, W) grid, ``sum_c (a_c - b_c)^2`` or ``sum_c a_c b_c``:
+    ``(horizontal (B, H, W-1), vertical (B, H-1, W))``.
 
-    ``affinity(a, b, scale)`` is one of the affinities above (:func:`colour_affinity` ...).
+    Channel by channel on contiguous planes; :func:`gaussian_affinity` or
+    :func:`cosine_affinity` of the result is the grid form of the affinities above.
     """
-    return (affinity(values[:, :, :-1], values[:, :, 1:], scale),
-            affinity(values[:, :-1], values[:, 1:], scale))
+    def pair(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        total = None
+        for c in range(values.shape[1]):
+            term = (a[:, c] - b[:, c]) ** 2 if reduce == "squared_distance" else a[:, c] * b[:, c]
+            total = term if total is None else total + term
+        return total
+
+    return pair(values[..., :-1], values[..., 1:]), pair(values[..., :-1, :], values[..., 1:, :])
 
 
 def grid_energy_terms(z, w, prior, colour, normal, distance, alpha, beta, gamma, delta, eps) -> EnergyTerms:
@@ -178,7 +196,7 @@ def grid_energy_terms(z, w, prior, colour, normal, distance, alpha, beta, gamma,
     bsz, h, w_ = z.shape
     n = h * w_
     ei = grid_edge_index(h, w_, device=z.device)
-    edge_index = torch.cat([ei + k * n for k in range(bsz)], 1)
+    edge_index = ei if bsz == 1 else torch.cat([ei + k * n for k in range(bsz)], 1)
 
     def flat(pair):
         return None if pair is None else torch.cat([pair[0].reshape(bsz, -1), pair[1].reshape(bsz, -1)], 1).reshape(-1)
@@ -247,15 +265,16 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         w = w * factors[0][:, 0]
     t = dict(alpha=weights["alpha"], beta=weights["beta"], gamma=weights["gamma"], delta=weights["delta"], eps=eps,
              z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
-             colour=grid_pairs(image.permute(0, 2, 3, 1), colour_affinity, weights["sigma_d"]),
+             colour=tuple(gaussian_affinity(q, weights["sigma_d"]) for q in grid_pairs(image, "squared_distance")),
              normal=None, distance=None,
              edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
     if geometry is not None:
         if t["gamma"] is not None:
             n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through the geometry
-            t["normal"] = grid_pairs(n.permute(0, 2, 3, 1), normal_affinity, weights["sigma_n"])
+            t["normal"] = tuple(cosine_affinity(c, weights["sigma_n"]) for c in grid_pairs(n, "dot"))
         if t["delta"] is not None:
-            t["distance"] = grid_pairs(camera_points(geometry[:, 0], K), distance_affinity, weights["sigma_p"])
+            points = camera_points(geometry[:, 0], K)
+            t["distance"] = tuple(gaussian_affinity(q, weights["sigma_p"]) for q in grid_pairs(points, "squared_distance"))
     return t
 
 
