@@ -25,7 +25,10 @@ memory: on the CPU the growth of the resident set of a fresh process running one
 resident set ``VmHWM``, reset just before the measured forward, less the resident set
 then; Linux only; everything the forward allocates); on CUDA the allocator's peak (``torch.cuda.max_memory_allocated``). Memory is
 also given per pixel. On CUDA the default configuration is also run at ``--batch``
-frames per forward (frames per second at that batch).
+frames per forward (frames per second at that batch). With ``--solvers``, every pixel-grid
+solve of the default and the superpixel model (captured from a forward on each frame) is
+timed alone with the Jacobi and multigrid preconditioners and "auto" (iterations, and the
+fastest of ``--repeats`` runs; one on the large frame).
 
 Verdicts (issue 15): default <= 100 ms per 1216 x 352 frame and <= 20x the classical fill;
 moonshot <= 25 ms; peak memory at the large size <= 8 GB for every configuration (or the
@@ -34,6 +37,7 @@ the batch. Prints a table, the verdicts, then one JSON line with everything.
 
     python benchmarks/speed.py [--device cpu|cuda] [--threads 2] [--repeats 5]
                                [--large 4000x3000] [--skip-large] [--batch 8] [--kitti-root PATH]
+                               [--solvers]
 """
 
 from __future__ import annotations
@@ -210,6 +214,58 @@ def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None
                            iterations=got.get("iterations"), fps=1 / got["seconds"] if got.get("seconds") else None)
 
 
+def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
+    """Iterations and time of each pixel-grid solve of the default and the superpixel model on
+    ``frame`` (captured from a forward), with the Jacobi and multigrid preconditioners and "auto"."""
+    import dataclasses
+
+    import crfdepth.model as model_module
+    from crfdepth.linalg.autograd import solve_grid_laplacian_trusted
+
+    captured, original = [], model_module.grid_crf
+
+    def capture(d, b, weight_h, weight_v, *, x0, settings):
+        captured.append((d, b, weight_h, weight_v, x0, settings))
+        return original(d, b, weight_h, weight_v, x0=x0, settings=settings)
+
+    f = on_device(frame, device)
+    model_module.grid_crf = capture
+    try:
+        names = []
+        for config in ("default", "superpixel"):
+            before = len(captured)
+            run_once(config, make_model(config, device), f, False, device)
+            names += [f"{config} solve {k + 1}" if config == "default" else
+                      ("superpixel refinement" if k == len(captured) - before - 1 else None)
+                      for k in range(len(captured) - before)]
+    finally:
+        model_module.grid_crf = original
+    rows = []
+    for name, (d, b, weight_h, weight_v, x0, settings) in zip(names, captured):
+        if name is None:
+            continue
+        row = dict(solve=name, size=list(d.shape[-2:]))
+        for pre in ("jacobi", "multigrid", "auto"):
+            chosen = dataclasses.replace(settings, preconditioner=pre)
+            times = []
+            for _ in range(repeats):
+                sync(device)
+                start = time.perf_counter()
+                _, info = solve_grid_laplacian_trusted(b, d, weight_h, weight_v, x0, chosen)
+                sync(device)
+                times.append(time.perf_counter() - start)
+            row[pre] = dict(iterations=int(info.iterations.max()), seconds=min(times))
+        rows.append(row)
+    return rows
+
+
+def print_solvers(rows: list[dict]) -> None:
+    print(f"{'solve':>24}  {'size':>10}" + "".join(f"  {p + ' it':>12}  {p + ' ms':>12}" for p in ("jacobi", "multigrid", "auto")))
+    for r in rows:
+        cells = "".join(f"  {r[p]['iterations']:>12}  {1000 * r[p]['seconds']:>12.1f}" for p in ("jacobi", "multigrid", "auto"))
+        print(f"{r['solve']:>24}  {r['size'][1]:>5}x{r['size'][0]:<4}" + cells)
+
+
 def _cell(v, scale=1000.0, digits=0) -> str:
     return "-" if v is None else f"{v * scale:.{digits}f}"
 
@@ -257,6 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-large", action="store_true")
     parser.add_argument("--batch", type=int, default=8, help="frames per forward for the CUDA throughput row")
     parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT)
+    parser.add_argument("--solvers", action="store_true",
+                        help="also time each pixel-grid solve with the Jacobi and multigrid preconditioners and 'auto'")
     args = parser.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         print("error: --device cuda: no CUDA device is available here", file=sys.stderr)
@@ -276,21 +334,26 @@ def main(argv: list[str] | None = None) -> int:
         run_once("default", model, f, False, args.device)
         seconds = statistics.median(run_once("default", model, f, False, args.device)[0] for _ in range(args.repeats))
         batch_row = dict(config="default", std=False, batch=args.batch, seconds=seconds, fps=args.batch / seconds)
+    solvers = measure_solvers(frame, args.device, args.repeats) if args.solvers else []
     if not args.skip_large:
         large = load_frame("large", args.kitti_root, (height, width))
         big = [dict(config=n, std=s, size=[height, width])
                for n in CONFIGS for s in ((False,) if n == "ip-basic" else (False, True))]
         add_memory(big, large, args.device, args.threads)
         rows += big
+        if args.solvers:
+            solvers += measure_solvers(large, args.device, 1)
     print(f"device {args.device}" + (f" ({torch.cuda.get_device_name(args.device)})" if batch_row else "")
           + f", {args.threads} threads, frame {frame['name']}")
     print_table(rows)
+    if solvers:
+        print_solvers(solvers)
     if batch_row:
         print(f"default at batch {args.batch}: {batch_row['fps']:.1f} frames/s")
     v = verdicts(rows, batch_row)
     for key, item in v.items():
         print(f"{key}: {item['value']:.3g} (target {item['target']:g}): {'met' if item['met'] else 'MISSED'}")
-    print(json.dumps(dict(device=args.device, threads=args.threads, frame=frame["name"], rows=rows, batch=batch_row,
+    print(json.dumps(dict(device=args.device, threads=args.threads, frame=frame["name"], rows=rows, solvers=solvers, batch=batch_row,
                           verdicts=v, torch=torch.__version__)))
     return 0
 
