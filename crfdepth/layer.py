@@ -47,7 +47,7 @@ from crfdepth.errors import InputError
 from crfdepth.graph import boundary_pairs
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.potentials import unary_system
-from crfdepth.superpixels import batch_segments, slic_segments
+from crfdepth.superpixels import batch_segments, slic_batch
 
 __all__ = ["CRFRefine", "RefineOutput", "crf_refine"]
 
@@ -345,7 +345,7 @@ class CRFRefine(nn.Module):
         if not isinstance(image, torch.Tensor) or tuple(image.shape) != (b, 3, h, w):
             raise InputError(f"image: expected a ({b}, 3, {h}, {w}) RGB tensor in [0, 1] (superpixels="
                              f"{self.superpixels} needs it, or pass labels), got {describe(image)}")
-        return torch.stack([slic_segments(image[k], self.superpixels) for k in range(b)]).to(depth.device)
+        return slic_batch(image, self.superpixels).to(depth.device)
 
     def extra_repr(self) -> str:
         scale, lam = float(self.edge_scale.detach()), float(self.sparse_weight.detach())

@@ -27,7 +27,7 @@ from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
-from crfdepth.graph import SuperpixelGraph, build_superpixel_graph, slic_segments
+from crfdepth.graph import SuperpixelGraph, build_superpixel_graph
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.memory import check_memory
@@ -40,6 +40,7 @@ from crfdepth.potentials import (VARIABLES, EnergyTerms, Variable, colour_affini
                                  distance_affinity, energy, grid_energy_terms, grid_potentials, grid_system,
                                  normal_affinity, std_in_metres, system_terms, to_depth, to_unknown)
 from crfdepth.robust import DEFAULT_IRLS_SCALE, reweight
+from crfdepth.superpixels import slic_batch
 from crfdepth.uncertainty import conditional_variance, grid_conditional_variance
 from crfdepth.weights.files import pretrained_state
 
@@ -285,12 +286,12 @@ class CRFDepth(ConstrainedWeights):
         n_seg = self.segments_for(h, w)
         graphs, offsets = [], [0]
         z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
+        with stage("slic"):
+            all_labels = slic_batch(image.detach(), n_seg)  # (B, H, W), the whole batch at once
         for b in range(bsz):
-            with stage("slic"):
-                labels = slic_segments(image[b].detach(), n_seg)
             with stage("graph"):
                 g = build_superpixel_graph(image[b].detach(), kept[b].detach(), aggregate=self.aggregate,
-                                           labels=labels)
+                                           labels=all_labels[b])
                 graphs.append(g)
                 col = g.node_mean(image[b])  # colour kept differentiable in the image
                 x0 = g.node_mean(fill[b])[:, 0]

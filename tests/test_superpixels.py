@@ -44,3 +44,20 @@ def test_batch_segments_renumbers_each_frame_consecutively_after_the_previous():
     node, ptr = batch_segments(labels)
     assert ptr.tolist() == [0, 3, 5]
     assert node.tolist() == [[[0, 0, 2], [1, 2, 2]], [[3, 4, 4], [3, 3, 4]]]
+
+
+def test_slic_batch_equals_each_frame_on_both_backends():
+    from crfdepth.superpixels import slic_batch
+
+    generator = torch.Generator().manual_seed(2)
+    images = torch.rand(2, 3, 40, 64, generator=generator)
+    images[1, :, :, 32:] *= 0.3  # a second frame unlike the first
+    for backend in ("torch", "skimage"):
+        batch = slic_batch(images, 40, backend=backend)
+        assert batch.shape == (2, 40, 64) and batch.dtype == torch.int64
+        for k in range(2):
+            assert torch.equal(batch[k], slic_segments(images[k], 40, backend=backend))
+    with pytest.raises(InputError, match="backend"):
+        slic_batch(images, 40, backend="opencv")
+    with pytest.raises(InputError, match=r"image: expected a \(B, 3, H, W\)"):
+        slic_batch(images[0], 40)
