@@ -6,7 +6,7 @@ command. The library does not need Lightning; the
 trainer lives in the separate ``train`` package.
 """
 
-from crfdepth.api import complete_depth
+from crfdepth.api import complete_batch, complete_depth
 from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
 from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
@@ -23,6 +23,7 @@ __all__ = [
     "ConvergenceWarning",
     "InputError",
     "SolveInfo",
+    "complete_batch",
     "complete_depth",
     "crf_refine",
     "load_model",

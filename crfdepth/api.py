@@ -34,7 +34,7 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.projection import count_in_image, project_points
 
-__all__ = ["complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
+__all__ = ["complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
 logger = logging.getLogger(__name__)
 
@@ -334,16 +334,40 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     else:
         sparse_np = _sparse_to_numpy(sparse, size)
 
-    model = _model_on(model, device)
-    param = next(model.parameters())
-    dev, dtype = param.device, param.dtype
-    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None].to(dev, dtype)
-    sparse_t = torch.from_numpy(sparse_np)[None, None].to(dev, dtype)
-    K_t = torch.from_numpy(calibration.K)[None].to(dev, dtype)
-    with torch.no_grad():
-        out = model(image_t, sparse_t, K_t, return_std=return_std)
-    depth = out.depth[0, 0].float()
-    std = out.std[0, 0].float() if return_std else None
+    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
+    depth, std = complete_batch(image_t, torch.from_numpy(sparse_np)[None, None], torch.from_numpy(calibration.K),
+                                model=model, device=device, return_std=return_std)
+    depth, std = depth[0], (std[0] if std is not None else None)
     if is_tensor:
         return depth.to(out_device), (std.to(out_device) if std is not None else None)
     return depth.cpu().numpy(), (std.cpu().numpy() if std is not None else None)
+
+
+def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *, model=None,
+                   device: str | torch.device = "cpu", return_std: bool = True
+                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Depth (and std) of a batch of frames of one size in one model call: the model step of
+    :func:`complete_depth`, for frames already in the library's tensor layout (the
+    ``--input-dir`` and ``evaluate`` commands read them with DataLoader workers).
+
+    The model checks its inputs (:func:`crfdepth.checks.check_frames`, names ``image``,
+    ``sparse``, ``K``) and refuses a batch too large for the memory up front
+    (:mod:`crfdepth.memory`). In a batch the frames' CG solves run together, each frozen
+    once it has converged, so a frame's depth differs from its batch-of-one depth within
+    the solver tolerance; a batch of one is :func:`complete_depth` bit for bit.
+
+    Args:
+        image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) z-depth in metres, 0 = no
+            point; K: (3, 3) or (B, 3, 3) intrinsics in pixels. Any device and float dtype:
+            they are moved to the model's.
+        model, device, return_std: as for :func:`complete_depth`.
+
+    Returns:
+        ``(depth, std)``: (B, H, W) float32 metres on the model's device (std None when
+        ``return_std`` is False).
+    """
+    model = _model_on(model, device)
+    param = next(model.parameters())
+    with torch.no_grad():
+        out = model(*(t.to(param.device, param.dtype) for t in (image, sparse, K)), return_std=return_std)
+    return out.depth[:, 0].float(), (out.std[:, 0].float() if return_std else None)

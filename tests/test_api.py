@@ -379,3 +379,23 @@ def test_calibration_K_on_a_tiny_image_is_refused(kitti_root):
         complete_depth(image, points=np.ones((5, 3)), calibration=load_any_calibration(path))
     with pytest.raises(InputError, match=r"^calibration.K: expected the principal point of the 17x9"):
         points_to_sparse(np.ones((5, 3)), load_calibration(path), (9, 17))  # a KITTI Calibration is accepted
+
+
+def test_complete_batch_is_complete_depth_for_one_frame_and_batches_within_tolerance():
+    from crfdepth.api import complete_batch
+    from crfdepth.data.synthetic import make_scene
+
+    frames = [make_scene(seed, height=64, width=160).to_tensors() for seed in (0, 1)]
+    model = CRFDepth.from_pretrained()
+    one, one_std = complete_depth(frames[0]["image"], sparse=frames[0]["sparse"][0], K=frames[0]["K"], model=model)
+    depth, std = complete_batch(frames[0]["image"][None], frames[0]["sparse"][None], frames[0]["K"], model=model)
+    assert torch.equal(depth[0], one) and torch.equal(std[0], one_std)
+    images = torch.stack([f["image"] for f in frames])
+    sparse = torch.stack([f["sparse"] for f in frames])
+    both, _ = complete_batch(images, sparse, frames[0]["K"], model=model, return_std=False)
+    second, _ = complete_depth(frames[1]["image"], sparse=frames[1]["sparse"][0], K=frames[0]["K"], model=model,
+                               return_std=False)
+    assert both.shape == (2, 64, 160)
+    assert float(((both[1] - second).abs() / second).max()) < 1e-3  # the solver's tolerance, not more
+    with pytest.raises(InputError, match="sparse"):
+        complete_batch(images, torch.zeros_like(sparse), frames[0]["K"], model=model)

@@ -26,6 +26,7 @@ import torch
 
 from crfdepth import cli
 from crfdepth.api import complete_depth
+from crfdepth.cli.common import complete_batch
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
@@ -277,11 +278,11 @@ def test_std_metrics_match_a_direct_computation(std_run):
 
 
 def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, monkeypatch):
-    def no_std(*args, **kwargs):
-        depth, _ = complete_depth(*args, **{**kwargs, "return_std": False})
+    def no_std(model, batch, return_std):
+        depth, _ = complete_batch(model, batch, False)
         return depth, None
 
-    monkeypatch.setattr("crfdepth.cli.evaluate.complete_depth", no_std)
+    monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
     assert code == 2 and stdout == ""
