@@ -199,30 +199,27 @@ def _differentiable(*tensors: torch.Tensor) -> bool:
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
-MULTIGRID_MIN_PIXELS = 1_000_000
-"""Pixels per image from which an undifferentiated "auto" solve that Jacobi has not finished in
-:data:`JACOBI_FIRST` iterations goes on with multigrid (docs/design.md section 4)."""
-JACOBI_FIRST = 16
+MULTIGRID_MIN_PIXELS = 4_000_000
+"""Pixels per image from which an undifferentiated "auto" solve is preconditioned by multigrid too
+(docs/design.md section 10)."""
 
 
 def _use_multigrid(structure, settings: _Settings, differentiable: bool) -> bool:
-    """Multigrid for CG on pixel grids: when asked, or ("auto") for solves that will be differentiated."""
+    """Multigrid for CG on pixel grids: when asked, or ("auto") for solves that will be differentiated
+    and for those on images of :data:`MULTIGRID_MIN_PIXELS` or more.
+
+    Measured on 2 CPU threads (``benchmarks/speed.py --solvers``, the model's own solves):
+    a multigrid iteration costs about 4 Jacobi ones plus a setup of about 10, so at
+    1216 x 352 Jacobi is faster for every solve (the refinement: 40 iterations, 17 ms,
+    against 8 and 40 ms), at 2-3 megapixels the two are level, and at 4000 x 3000
+    multigrid is 12-23% faster (the refinement: 56 Jacobi iterations, 3.5 s, against 9,
+    2.7 s), its iteration count staying put while Jacobi's grows with the image.
+    """
     if not isinstance(structure, PixelGrid) or settings.method != "cg":
         return False
-    return settings.preconditioner == "multigrid" or (settings.preconditioner == "auto" and differentiable)
-
-
-def _escalates(structure, settings: _Settings, differentiable: bool) -> bool:
-    """An "auto" inference solve on large pixel grids: Jacobi first, multigrid if that is not enough.
-
-    Measured on 2 CPU threads (``benchmarks/speed.py --solvers``): a multigrid setup and
-    V-cycle cost about 15 and 4 Jacobi iterations, so the short solves of the pixel model
-    (3-16 Jacobi iterations) stay Jacobi at every size, and so does the superpixel
-    refinement at 1216 x 352 (48 Jacobi iterations, 21 ms, against 9 multigrid ones, 46 ms);
-    from about a megapixel on, the refinement's 48 iterations cost more than multigrid's 9.
-    """
-    return (isinstance(structure, PixelGrid) and settings.method == "cg" and settings.preconditioner == "auto"
-            and not differentiable and structure.height * structure.width >= MULTIGRID_MIN_PIXELS)
+    if settings.preconditioner != "auto":
+        return settings.preconditioner == "multigrid"
+    return differentiable or structure.height * structure.width >= MULTIGRID_MIN_PIXELS
 
 
 def _forward_solve(structure, settings, differentiable, x0, b, d, weights):
@@ -243,17 +240,7 @@ def _forward_solve(structure, settings, differentiable, x0, b, d, weights):
     diag_rows = structure.to_rows(diag, fill=1.0)
     b_rows = structure.to_rows(b)
     x0_rows = None if x0 is None else structure.to_rows(x0)
-    if precondition is None and _escalates(structure, settings, differentiable):
-        budget = settings.max_iter if settings.max_iter is not None else _default_max_iter(b_rows.shape[1])
-        first = dataclasses.replace(settings, max_iter=min(JACOBI_FIRST, budget), restarts=0)
-        x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, first)
-        if not bool(info.converged.all()) and budget > JACOBI_FIRST:
-            precondition = _scaled_multigrid(GridMultigrid(d, weight_h, weight_v), structure.to_rows(diag.sqrt()))
-            rest = dataclasses.replace(settings, max_iter=budget - JACOBI_FIRST)
-            x_rows, more = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x_rows, rest, precondition)
-            info = dataclasses.replace(more, iterations=more.iterations + info.iterations)
-    else:
-        x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, settings, precondition)
+    x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, settings, precondition)
     _report(info, settings, "solve")
     return structure.from_rows(x_rows), info, (structure, matvec, s_rows, diag_rows, precondition)
 

@@ -261,7 +261,8 @@ def solve_grid_laplacian(
             "multigrid" (a V-cycle of 2 x 2 aggregation, :mod:`crfdepth.linalg.multigrid`:
             about 10x fewer iterations, each about 4x as costly) or "auto" (default:
             multigrid for solves that will be differentiated, whose forward runs to
-            ``grad_rtol``, and their adjoints; Jacobi for the rest, such as inference).
+            ``grad_rtol``, and their adjoints, and for images of 4 megapixels or more;
+            Jacobi for the rest, such as inference at KITTI's size).
             "multigrid" needs ``method="cg"``.
 
     Returns:
