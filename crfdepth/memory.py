@@ -1,4 +1,4 @@
-"""Peak memory of a forward, estimated up front (docs/design.md section 8).
+"""Peak memory of a forward, estimated up front (docs/design.md section 10).
 
 Every configuration's peak memory grows linearly with the pixels of the batch: the
 per-pixel maps of the fills, potentials, solves and std, the SLIC and graph buffers, and

@@ -1,4 +1,4 @@
-"""The nearest valid pixel of every pixel: exact Euclidean, in torch on any device (docs/design.md section 8).
+"""The nearest valid pixel of every pixel: exact Euclidean, in torch on any device (docs/design.md section 10).
 
 The nearest-LiDAR fill (:mod:`crfdepth.fill`) and the predictive std's distance signal
 (:mod:`crfdepth.predictive`) both need, for each pixel, the nearest pixel holding a

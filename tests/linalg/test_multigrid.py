@@ -87,14 +87,19 @@ def test_multigrid_solve_matches_dense_solve(size, monkeypatch):
     assert float((x32.double() - x_ref).abs().max() / x_ref.abs().max()) < 1e-4
 
 
-def test_multigrid_needs_far_fewer_iterations_than_jacobi():
-    g = torch.Generator().manual_seed(5)
-    h, w = 96, 160
+def lidar_like_system(seed: int, h: int = 96, w: int = 160):
+    """A grid system like the model's: 4% of pixels observed with a strong data weight, a depth ramp."""
+    g = torch.Generator().manual_seed(seed)
     observed = torch.rand(1, h, w, generator=g) < 0.04
     d = torch.where(observed, 300.0, 1e-3).to(F64)
     b = d * (5.0 + 20.0 * torch.linspace(0, 1, h, dtype=F64)[None, :, None])
     wh = 0.05 + torch.rand(1, h, w - 1, generator=g, dtype=F64)
     wv = 0.05 + torch.rand(1, h - 1, w, generator=g, dtype=F64)
+    return b, d, wh, wv
+
+
+def test_multigrid_needs_far_fewer_iterations_than_jacobi():
+    b, d, wh, wv = lidar_like_system(5)
     _, jacobi = solve_grid_laplacian(b, d, wh, wv, rtol=1e-8, preconditioner="jacobi")
     x, mg = solve_grid_laplacian(b, d, wh, wv, rtol=1e-8, preconditioner="multigrid")
     assert bool(jacobi.converged.all()) and bool(mg.converged.all())
@@ -130,13 +135,8 @@ def test_auto_inference_uses_multigrid_on_large_grids_only(monkeypatch):
     """An undifferentiated "auto" solve: Jacobi below MULTIGRID_MIN_PIXELS per image, multigrid from there."""
     import crfdepth.linalg.autograd as autograd
 
-    g = torch.Generator().manual_seed(6)
     h, w = 96, 160
-    observed = torch.rand(1, h, w, generator=g) < 0.04
-    d = torch.where(observed, 300.0, 1e-3).to(F64)
-    b = d * (5.0 + 20.0 * torch.linspace(0, 1, h, dtype=F64)[None, :, None])
-    wh = 0.05 + torch.rand(1, h, w - 1, generator=g, dtype=F64)
-    wv = 0.05 + torch.rand(1, h - 1, w, generator=g, dtype=F64)
+    b, d, wh, wv = lidar_like_system(6, h, w)
     x_ref, jacobi = solve_grid_laplacian(b, d, wh, wv, rtol=1e-8, preconditioner="jacobi")
     x_small, small = solve_grid_laplacian(b, d, wh, wv, rtol=1e-8)  # below the size: Jacobi
     assert torch.equal(small.iterations, jacobi.iterations) and torch.equal(x_small, x_ref)
