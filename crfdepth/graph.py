@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.superpixels import _check_n_segments, _describe, _image_tensor, _labels_tensor, slic_segments
+from crfdepth.superpixels import _describe, _image_tensor, _labels_tensor, slic_batch
 
 __all__ = [
     "DIRECTIONS_DEG",
@@ -319,31 +319,38 @@ def build_superpixel_graph(
     """
     image = _image_tensor(image)
     size = (int(image.shape[1]), int(image.shape[2]))
-    depth = _sparse_tensor(sparse, size)
-    if aggregate not in ("mean", "median"):
-        raise InputError(f"aggregate: expected 'mean' or 'median', got {aggregate!r}")
-    if labels is None:
-        seg = slic_segments(
-            image, _check_n_segments(n_segments), compactness=compactness, sigma=sigma, max_num_iter=max_num_iter
-        )
-    else:
-        seg = _labels_tensor(labels, size)
+    depth = _sparse_tensor(sparse, size).reshape(1, 1, *size).to(image.device)
+    seg = None if labels is None else _labels_tensor(labels, size)[None]
+    return build_superpixel_graphs(image[None], depth, n_segments, aggregate, seg, compactness=compactness,
+                                   sigma=sigma, max_num_iter=max_num_iter)[0]
+
+
+def _build(image: torch.Tensor, depth: torch.Tensor, seg: torch.Tensor, aggregate: str) -> list[SuperpixelGraph]:
+    """The graphs of a checked batch: (B, 3, H, W) image, (B, H, W) depth and consecutive labels.
+
+    All frames at once: frame ``k``'s labels are offset by the nodes of the frames before
+    it, so every per-node sum, the adjacency and the neighbour picks run over the whole
+    batch as one graph without edges between frames; the result is then cut into one
+    :class:`SuperpixelGraph` per frame, equal to building each frame alone (node ``i`` of
+    a frame keeps its place, and every sum adds the same pixels in the same order).
+    """
+    b, _, h, w = image.shape
     device = image.device
-    seg = seg.to(device)
-    depth = depth.to(device)
-    num_nodes = int(seg.max()) + 1
-    flat = seg.reshape(-1)
-    h, w = size
+    sizes = seg.flatten(1).max(1).values + 1  # nodes per frame
+    ptr = torch.cat([sizes.new_zeros(1), sizes.cumsum(0)])
+    node = seg + ptr[:-1, None, None]  # (B, H, W) global node index
+    num_nodes = int(ptr[-1])
+    flat = node.reshape(-1)
 
     area = torch.bincount(flat, minlength=num_nodes)
     area_f = area.to(torch.float64)[:, None]
-    colour = _segment_sums(image.reshape(3, -1).T, flat, num_nodes) / area_f
+    colour = _segment_sums(image.permute(0, 2, 3, 1).reshape(-1, 3), flat, num_nodes) / area_f
     rows, cols = torch.meshgrid(
         torch.arange(h, device=device, dtype=torch.float64),
         torch.arange(w, device=device, dtype=torch.float64),
         indexing="ij",
     )
-    xy = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=1)
+    xy = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=1).repeat(b, 1)
     centroid = _segment_sums(xy, flat, num_nodes) / area_f
 
     depth_flat = depth.reshape(-1)
@@ -358,21 +365,30 @@ def build_superpixel_graph(
     else:
         lidar_depth = _segment_median(lidar_values, lidar_labels, lidar_count)
 
-    adjacency = region_adjacency(seg, num_nodes)
-    picks = four_neighbour_picks(adjacency, centroid, num_nodes)
+    adjacency = boundary_pairs(node, num_nodes)[0]  # no pixel edge joins two frames
+    edge_index = undirected_edges(four_neighbour_picks(adjacency, centroid, num_nodes))
     coord_dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
-    return SuperpixelGraph(
-        labels=seg,
-        num_nodes=num_nodes,
-        edge_index=undirected_edges(picks),
-        adjacency=adjacency,
-        colour=colour.to(image.dtype),
-        centroid=centroid.to(coord_dtype),
-        area=area,
-        lidar_count=lidar_count,
-        lidar_depth=lidar_depth.to(depth.dtype),
-        aggregate=aggregate,
-    )
+    colour, centroid, lidar_depth = colour.to(image.dtype), centroid.to(coord_dtype), lidar_depth.to(depth.dtype)
+    # Pairs are sorted by their first node, so each frame's edges and pairs are one run.
+    edge_cut = torch.searchsorted(edge_index[0].contiguous(), ptr).tolist()
+    pair_cut = torch.searchsorted(adjacency[0].contiguous(), ptr).tolist()
+    bounds = ptr.tolist()
+    graphs = []
+    for k in range(b):
+        lo, hi = bounds[k], bounds[k + 1]
+        graphs.append(SuperpixelGraph(
+            labels=seg[k],
+            num_nodes=hi - lo,
+            edge_index=edge_index[:, edge_cut[k]:edge_cut[k + 1]] - lo,
+            adjacency=adjacency[:, pair_cut[k]:pair_cut[k + 1]] - lo,
+            colour=colour[lo:hi],
+            centroid=centroid[lo:hi],
+            area=area[lo:hi],
+            lidar_count=lidar_count[lo:hi],
+            lidar_depth=lidar_depth[lo:hi],
+            aggregate=aggregate,
+        ))
+    return graphs
 
 
 def build_superpixel_graphs(
@@ -386,7 +402,7 @@ def build_superpixel_graphs(
     sigma: float = 1.0,
     max_num_iter: int = 5,
 ) -> list[SuperpixelGraph]:
-    """Batched :func:`build_superpixel_graph`: one graph per frame.
+    """Batched :func:`build_superpixel_graph`: one graph per frame, built for all frames at once.
 
     Args:
         image: (B, 3, H, W) float RGB in [0, 1].
@@ -405,19 +421,13 @@ def build_superpixel_graphs(
         raise InputError(f"sparse: expected a ({b}, 1, {h}, {w}) tensor (the image size), got {_describe(sparse)}")
     if labels is not None and (not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w)):
         raise InputError(f"labels: expected a ({b}, {h}, {w}) integer tensor, got {_describe(labels)}")
-    return [
-        build_superpixel_graph(
-            image[i],
-            sparse[i],
-            n_segments,
-            aggregate,
-            None if labels is None else labels[i],
-            compactness=compactness,
-            sigma=sigma,
-            max_num_iter=max_num_iter,
-        )
-        for i in range(b)
-    ]
+    if aggregate not in ("mean", "median"):
+        raise InputError(f"aggregate: expected 'mean' or 'median', got {aggregate!r}")
+    for k in range(b):  # the per-frame checks, with their messages
+        _image_tensor(image[k]), _sparse_tensor(sparse[k], (h, w))
+    seg = slic_batch(image, n_segments, compactness=compactness, sigma=sigma, max_num_iter=max_num_iter) \
+        if labels is None else torch.stack([_labels_tensor(labels[k], (h, w)) for k in range(b)])
+    return _build(image, sparse[:, 0].to(image.device), seg.to(image.device), aggregate)
 
 
 def batch_edge_index(graphs: list[SuperpixelGraph]) -> tuple[torch.Tensor, torch.Tensor]:

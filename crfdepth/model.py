@@ -27,7 +27,7 @@ from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
-from crfdepth.graph import SuperpixelGraph, build_superpixel_graph
+from crfdepth.graph import SuperpixelGraph, build_superpixel_graphs
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.memory import check_memory
@@ -284,15 +284,17 @@ class CRFDepth(ConstrainedWeights):
         with stage("fill"):
             gate, kept, fill = self._evidence(sparse)
         n_seg = self.segments_for(h, w)
-        graphs, offsets = [], [0]
+        offsets = [0]
         z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
         with stage("slic"):
             all_labels = slic_batch(image.detach(), n_seg)  # (B, H, W), the whole batch at once
-        for b in range(bsz):
+        with stage("graph"):
+            graphs = build_superpixel_graphs(image.detach(), kept.detach(), aggregate=self.aggregate, labels=all_labels)
+        if "normal" in self.potentials:
+            with stage("normals"):  # (B, 3, H, W), (B, 1, H, W): all frames' returns at once
+                lidar_n, lidar_ok = lidar_normals(kept.detach(), K.detach())
+        for b, g in enumerate(graphs):
             with stage("graph"):
-                g = build_superpixel_graph(image[b].detach(), kept[b].detach(), aggregate=self.aggregate,
-                                           labels=all_labels[b])
-                graphs.append(g)
                 col = g.node_mean(image[b])  # colour kept differentiable in the image
                 x0 = g.node_mean(fill[b])[:, 0]
                 if gate is None:
@@ -310,8 +312,7 @@ class CRFDepth(ConstrainedWeights):
                 offsets.append(offsets[-1] + g.num_nodes)
             if "normal" in self.potentials:
                 with stage("normals"):
-                    pn, pv = lidar_normals(kept[b, 0].detach(), K[b].detach())  # (3, H, W), (H, W)
-                    nn_, nv = aggregate_normals(pn, pv, g.labels, g.num_nodes)
+                    nn_, nv = aggregate_normals(lidar_n[b], lidar_ok[b, 0], g.labels, g.num_nodes)
                     nrm.append(nn_.to(dtype))
                     nrm_ok.append(nv)
         with stage("potentials"):

@@ -197,19 +197,21 @@ def slic_segments(
     return torch.from_numpy(consecutive - 1).to(device)
 
 
-def slic_batch(images: torch.Tensor, n_segments: int = 5500, *, backend: SlicBackend = "auto") -> torch.Tensor:
-    """:func:`slic_segments` of every frame of a (B, 3, H, W) batch, with its default settings:
-    (B, H, W) int64 labels ``0 .. S_k-1`` per frame. The torch backend runs the whole batch at
-    once on the images' device (:func:`crfdepth.slic.slic_torch`); scikit-image one frame after another."""
+def slic_batch(images: torch.Tensor, n_segments: int = 5500, *, compactness: float = 20.0, sigma: float = 1.0,
+               max_num_iter: int = 5, convert2lab: bool = True, backend: SlicBackend = "auto") -> torch.Tensor:
+    """:func:`slic_segments` of every frame of a (B, 3, H, W) batch (same arguments): (B, H, W) int64
+    labels ``0 .. S_k-1`` per frame. The torch backend runs the whole batch at once on the images'
+    device (:func:`crfdepth.slic.slic_torch`); scikit-image one frame after another."""
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
         raise InputError(f"image: expected a (B, 3, H, W) RGB tensor, got {_describe(images)}")
     if not isinstance(backend, str) or backend not in _BACKENDS:
         raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
     if backend == "auto":
         backend = _CPU_BACKEND if images.device.type == "cpu" else "torch"
+    settings = dict(compactness=compactness, sigma=sigma, max_num_iter=max_num_iter, convert2lab=convert2lab)
     if backend == "torch":
-        return slic_torch(images.detach(), _check_n_segments(n_segments))
-    return torch.stack([slic_segments(frame, n_segments, backend="skimage") for frame in images.detach()])
+        return slic_torch(images.detach(), _check_n_segments(n_segments), **settings)
+    return torch.stack([slic_segments(frame, n_segments, backend="skimage", **settings) for frame in images.detach()])
 
 
 def batch_segments(labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

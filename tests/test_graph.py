@@ -252,6 +252,23 @@ def test_batched_build_and_block_diagonal_layout():
     assert torch.equal(edges[:, graphs[0].num_edges:], graphs[1].edge_index + 12)
 
 
+@pytest.mark.parametrize("aggregate", ["mean", "median"])
+def test_batched_build_equals_each_frame_built_alone(aggregate):
+    """All frames at once (global node numbers, one adjacency) gives each frame's own graph, field by field."""
+    gen = torch.Generator().manual_seed(7)
+    image = torch.rand(3, 3, 40, 56, generator=gen)
+    image[1] = image[1] * 0.2 + 0.4  # frames with different segment counts
+    sparse = torch.where(torch.rand(3, 1, 40, 56, generator=gen) < 0.1, 1 + 30 * torch.rand(3, 1, 40, 56), 0.0)
+    graphs = build_superpixel_graphs(image, sparse, n_segments=30, aggregate=aggregate)
+    assert len({g.num_nodes for g in graphs}) > 1
+    for k, g in enumerate(graphs):
+        alone = build_superpixel_graph(image[k], sparse[k], n_segments=30, aggregate=aggregate)
+        for field in ("labels", "edge_index", "adjacency", "colour", "centroid", "area", "lidar_count",
+                      "lidar_depth"):
+            assert torch.equal(getattr(g, field), getattr(alone, field)), (k, field)
+        assert g.num_nodes == alone.num_nodes
+
+
 # --------------------------------------------------------------------------- bad input
 
 
