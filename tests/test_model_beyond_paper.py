@@ -163,7 +163,7 @@ def test_head_factors_are_bounded_and_positive():
     image, sparse, K, truth, _ = _leaky_wall()
     data, edge = head(image, sparse, truth[None, None])
     assert data.shape == (1, 1, 48, 96) and edge.shape == (1, 2, 48, 96)
-    for f in (data, edge):
+    for f in (data.detach(), edge.detach()):
         assert float(f.min()) >= torch.exp(torch.tensor(-2.0)) * (1 - 1e-6)
         assert float(f.max()) <= torch.exp(torch.tensor(2.0)) * (1 + 1e-6)
 
