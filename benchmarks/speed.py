@@ -49,6 +49,7 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -217,8 +218,6 @@ def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None
 def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
     """Iterations and time of each pixel-grid solve of the default and the superpixel model on
     ``frame`` (captured from a forward), with the Jacobi and multigrid preconditioners and "auto"."""
-    import dataclasses
-
     import crfdepth.model as model_module
     from crfdepth.linalg.autograd import solve_grid_laplacian_trusted
 
@@ -230,23 +229,18 @@ def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
 
     f = on_device(frame, device)
     model_module.grid_crf = capture
-    try:
-        names = []
-        for config in ("default", "superpixel"):
-            before = len(captured)
-            run_once(config, make_model(config, device), f, False, device)
-            names += [f"{config} solve {k + 1}" if config == "default" else
-                      ("superpixel refinement" if k == len(captured) - before - 1 else None)
-                      for k in range(len(captured) - before)]
+    try:  # the default model's grid solves: the first pass and the round with geometry
+        run_once("default", make_model("default", device), f, False, device)
+        names = [f"default solve {k + 1}" for k in range(len(captured))]
+        run_once("superpixel", make_model("superpixel", device), f, False, device)  # one grid solve: the refinement
+        names.append("superpixel refinement")
     finally:
         model_module.grid_crf = original
     rows = []
     for name, (d, b, weight_h, weight_v, x0, settings) in zip(names, captured):
-        if name is None:
-            continue
         row = dict(solve=name, size=list(d.shape[-2:]))
         for pre in ("jacobi", "multigrid", "auto"):
-            chosen = dataclasses.replace(settings, preconditioner=pre)
+            chosen = replace(settings, preconditioner=pre)
             times = []
             for _ in range(repeats):
                 sync(device)

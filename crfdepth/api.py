@@ -34,7 +34,7 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.projection import count_in_image, project_points
 
-__all__ = ["complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
+__all__ = ["check_frame", "complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +94,15 @@ def _sparse_to_numpy(sparse, size: tuple[int, int]) -> np.ndarray:
     if not np.any(array > 0):
         raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
     return array
+
+
+def check_frame(image, sparse, K) -> None:
+    """Refuse a frame that :func:`complete_depth` would refuse for ``image``, ``sparse`` and ``K``,
+    with its checks, messages and order: RGB not (3, H, W) / (H, W, 3) in [0, 1]; K not the
+    intrinsics of an image of this size; sparse depth not finite, >= 0, in metres, with a return."""
+    rgb, _, _ = _image_to_numpy(image)
+    check_intrinsics(K, "K", rgb.shape[:2])
+    _sparse_to_numpy(sparse, rgb.shape[:2])
 
 
 def prepare_points(points) -> np.ndarray:

@@ -424,7 +424,8 @@ def build_superpixel_graphs(
     if aggregate not in ("mean", "median"):
         raise InputError(f"aggregate: expected 'mean' or 'median', got {aggregate!r}")
     for k in range(b):  # the per-frame checks, with their messages
-        _image_tensor(image[k]), _sparse_tensor(sparse[k], (h, w))
+        _image_tensor(image[k])
+        _sparse_tensor(sparse[k], (h, w))
     seg = slic_batch(image, n_segments, compactness=compactness, sigma=sigma, max_num_iter=max_num_iter) \
         if labels is None else torch.stack([_labels_tensor(labels[k], (h, w)) for k in range(b)])
     return _build(image, sparse[:, 0].to(image.device), seg.to(image.device), aggregate)

@@ -18,6 +18,7 @@ import os
 import torch
 
 from crfdepth.errors import InputError
+from crfdepth.uncertainty import MEMORY_BUDGET_BYTES
 
 __all__ = ["BYTES_PER_PIXEL", "OVERHEAD_BYTES", "check_memory", "device_memory", "estimate_bytes"]
 
@@ -36,11 +37,7 @@ OVERHEAD_BYTES = 256 * 2**20
 def estimate_bytes(mode: str, pixels: int, return_std: bool, uncertainty: str, element_size: int = 4) -> int:
     """Estimated peak bytes of a forward over ``pixels`` pixels in all (batch x height x width)."""
     per_pixel = BYTES_PER_PIXEL[(mode, bool(return_std))] * element_size / 4
-    extra = 0
-    if return_std and uncertainty == "posterior":
-        from crfdepth.uncertainty import MEMORY_BUDGET_BYTES
-
-        extra = MEMORY_BUDGET_BYTES
+    extra = MEMORY_BUDGET_BYTES if return_std and uncertainty == "posterior" else 0
     return int(OVERHEAD_BYTES + per_pixel * pixels + extra)
 
 

@@ -95,6 +95,15 @@ def _labels_tensor(
     return new_index[labels]
 
 
+def _resolve_backend(backend: object, device: torch.device) -> str:
+    """``"torch"`` or ``"skimage"`` for ``backend`` on ``device`` (``"auto"``: see :func:`slic_segments`)."""
+    if not isinstance(backend, str) or backend not in _BACKENDS:
+        raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
+    if backend != "auto":
+        return backend
+    return _CPU_BACKEND if device.type == "cpu" else "torch"
+
+
 def slic_segments(
     image: torch.Tensor | np.ndarray,
     n_segments: int = 5500,
@@ -164,14 +173,11 @@ def slic_segments(
             ``backend`` (and, for the torch backend, ``compactness <= 0``, ``sigma < 0``
             or ``max_num_iter < 1``).
     """
-    if not isinstance(backend, str) or backend not in _BACKENDS:
-        raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
+    _resolve_backend(backend, torch.device("cpu"))  # a bad name is refused before the image is looked at
     tensor = _image_tensor(image)
     n_segments = _check_n_segments(n_segments)
     device = tensor.device if isinstance(image, torch.Tensor) else torch.device("cpu")
-    if backend == "auto":
-        backend = _CPU_BACKEND if device.type == "cpu" else "torch"
-    if backend == "torch":
+    if _resolve_backend(backend, device) == "torch":
         return slic_torch(
             tensor,
             n_segments,
@@ -204,12 +210,8 @@ def slic_batch(images: torch.Tensor, n_segments: int = 5500, *, compactness: flo
     device (:func:`crfdepth.slic.slic_torch`); scikit-image one frame after another."""
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
         raise InputError(f"image: expected a (B, 3, H, W) RGB tensor, got {_describe(images)}")
-    if not isinstance(backend, str) or backend not in _BACKENDS:
-        raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
-    if backend == "auto":
-        backend = _CPU_BACKEND if images.device.type == "cpu" else "torch"
     settings = dict(compactness=compactness, sigma=sigma, max_num_iter=max_num_iter, convert2lab=convert2lab)
-    if backend == "torch":
+    if _resolve_backend(backend, images.device) == "torch":
         return slic_torch(images.detach(), _check_n_segments(n_segments), **settings)
     return torch.stack([slic_segments(frame, n_segments, backend="skimage", **settings) for frame in images.detach()])
 

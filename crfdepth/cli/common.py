@@ -25,7 +25,6 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from crfdepth import api
-from crfdepth.checks import check_intrinsics, check_sparse_units
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -237,26 +236,9 @@ def add_batch_arguments(group: argparse._ActionsContainer) -> None:
 
 
 def check_sample(sample: Sample) -> None:
-    """Refuse a frame that :func:`crfdepth.api.complete_depth` would refuse, with its messages.
-
-    Named ``image``, ``sparse`` and ``K`` like complete_depth's arguments: RGB not finite
-    in [0, 1]; sparse depth (metres, 0 = no LiDAR point) not finite and >= 0, not in metres
-    (:func:`crfdepth.checks.check_sparse_units`) or without any LiDAR pixel; K not the
-    intrinsics of an image of this size (:func:`crfdepth.checks.check_intrinsics`).
-    """
-    image, sparse = sample.image.numpy(), sample.sparse[0].numpy()  # in complete_depth's order of checks
-    finite = bool(np.all(np.isfinite(image)))
-    if not finite or image.min() < 0 or image.max() > 1:
-        raise InputError(f"image: expected float RGB in [0, 1], got values in [{np.nanmin(image):.4g}, "
-                         f"{np.nanmax(image):.4g}]{'' if finite else ' with NaN/inf'} (divide a 0-255 float image "
-                         f"by 255)")
-    check_intrinsics(sample.K, "K", sample.size)
-    if not np.all(np.isfinite(sparse)) or sparse.min() < 0:
-        raise InputError("sparse: expected finite depth >= 0 metres (0 = no LiDAR point), got NaN, inf or "
-                         "negative values")
-    check_sparse_units("sparse", sparse)
-    if not np.any(sparse > 0):
-        raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
+    """Refuse a frame that :func:`crfdepth.api.complete_depth` would refuse, with its checks and
+    messages (:func:`crfdepth.api.check_frame`; names ``image``, ``sparse``, ``K``)."""
+    api.check_frame(sample.image, sample.sparse, sample.K)
 
 
 def complete_batch(model: CRFDepth, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
