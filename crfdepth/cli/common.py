@@ -7,6 +7,9 @@
   read by DataLoader workers, batched by size, completed by one model call per batch;
 - :func:`check_output_file` / :func:`make_output_dir` / :func:`same_file`: output paths
   checked before any computation, named by their flag;
+- :func:`complete_frame` / :func:`write_frame` / :func:`flag_names`: one frame through
+  :func:`crfdepth.api.complete_depth`, its PNGs written, errors under the user's flags
+  (``complete``'s one-frame, point-cloud and bag modes);
 - :func:`write_rgb_png`: a picture, written atomically.
 """
 
@@ -28,6 +31,7 @@ from crfdepth import api
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
+from crfdepth.io.kitti import write_depth_png
 from crfdepth.model import POTENTIALS, CRFDepth
 from crfdepth.pictures import depth_picture, std_picture
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_model, load_pretrained
@@ -35,9 +39,10 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_model, load_pretrain
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "MAX_WORKERS", "add_batch_arguments", "add_model_arguments", "build_model", "check_output_file",
-           "check_sample", "complete_batch", "frame_batches", "int_at_least", "make_output_dir", "same_file",
-           "vis_range_type", "write_pictures", "write_rgb_png"]
+           "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least", "make_output_dir", "same_file",
+           "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
+_MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
 BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
 # More reading processes than this cannot keep up better with a solve that takes seconds per
@@ -213,6 +218,51 @@ def write_pictures(folder: Path, stem: str, depth: np.ndarray, std: np.ndarray |
     if std is not None:
         written.append(folder / f"{stem}_vis_std.png")
         write_rgb_png(written[1], std_picture(std))
+    return written
+
+
+# --------------------------------------------------------------------------- one frame
+
+
+def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
+    """The API's message with its argument name (``K``, ``sparse`` ...) replaced by the user's flag."""
+    text = str(exc)
+    head, sep, rest = text.partition(":")
+    if sep and head.strip() in flags:
+        return InputError(f"{flags[head.strip()]}:{rest}")
+    if "*" in flags:  # a message about the inputs together (e.g. no point lands in the image)
+        return InputError(f"{flags['*']}: {text}")
+    return exc
+
+
+def complete_frame(args: argparse.Namespace, model, image, where: dict[str, str], with_std: bool, **inputs):
+    """One frame through :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
+    calls its batched form, :func:`complete_batch`); errors name ``where``'s flags. Returns float64 numpy
+    (H, W) depth and std (None without ``with_std``), metres."""
+    try:
+        depth, std = api.complete_depth(image, model=model, device=args.device, return_std=with_std,
+                                        trust_transform=args.trust_transform, **inputs)
+    except InputError as exc:
+        raise flag_names(exc, where) from None
+    as_numpy = (lambda a: a.double().cpu().numpy()) if isinstance(depth, torch.Tensor) else \
+        (lambda a: a.astype(np.float64))
+    return as_numpy(depth), (None if std is None else as_numpy(std))
+
+
+def write_frame(depth: np.ndarray, std: np.ndarray | None, out: Path, out_std: Path | None,
+                vis_dir: Path | None, stem: str, vis_range) -> list[Path]:
+    """A frame's depth PNG (and std PNG, and pictures into ``vis_dir``), each written atomically; returns the paths.
+    PNG values are clipped below at 1/256 m so that no pixel reads as "no value"."""
+    if not np.all(np.isfinite(depth)):
+        raise InputError(f"{stem}: the model returned {int(np.sum(~np.isfinite(depth)))} non-finite "
+                         f"depth value(s); nothing written")
+    write_depth_png(out, np.maximum(depth, _MIN_DEPTH))
+    written = [out]
+    if out_std is not None:
+        write_depth_png(out_std, np.maximum(np.nan_to_num(std, nan=_MIN_DEPTH), _MIN_DEPTH))
+        written.append(out_std)
+    if vis_dir is not None:
+        written += write_pictures(vis_dir, stem, depth, std, vis_range)
     return written
 
 

@@ -73,6 +73,11 @@ checks above, naming the frame; in the worker that reads it); it stops at the fi
 frame with exit status 2 and the same one-line message for any ``--workers`` and
 ``--batch-size``. The frames before it are completed and written and stay (the message
 says how many), so a run can be resumed after fixing the frame.
+
+A ROS 1 / ROS 2 recording (:mod:`crfdepth.cli.bag`)::
+
+    crfdepth complete --bag RUN.bag --image-topic /cam/image_raw --points-topic /lidar/points \\
+        --out-dir depth/ [--out-std-dir std/] [--out-bag RUN_depth.bag]
 """
 
 from __future__ import annotations
@@ -86,13 +91,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from crfdepth.api import complete_depth
+from crfdepth.cli.bag import BAG_ONLY, run_bag
+from crfdepth.cli.bag import add_arguments as add_bag_arguments
 from crfdepth.cli.common import (
     BAD_INPUT,
     add_batch_arguments,
+    complete_frame,
+    flag_names,
+    write_frame,
     add_model_arguments,
     build_model,
     check_output_file,
@@ -102,18 +110,14 @@ from crfdepth.cli.common import (
     make_output_dir,
     same_file,
     vis_range_type,
-    write_pictures,
 )
 from crfdepth.data.kitti import open_completion_folder
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
-from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, write_depth_png
+from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
 from crfdepth.io.pointcloud import read_points
 
 logger = logging.getLogger(__name__)
-
-_MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
-
 
 # --------------------------------------------------------------------------- arguments
 
@@ -122,12 +126,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     """Register the ``complete`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
         "complete",
-        help="complete sparse LiDAR into dense depth (one frame or a KITTI folder)",
+        help="complete sparse LiDAR into dense depth (one frame, a KITTI folder or a ROS bag)",
         description="Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
                     "metres * 256) with the CRF model, for one frame (--image, --sparse, "
                     "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
                     "cloud) or every frame of a val_selection_cropped / "
-                    "test_depth_completion_anonymous folder (--input-dir, --out-dir).",
+                    "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera image of a ROS 1 / "
+                    "ROS 2 recording with the LiDAR cloud nearest in time (--bag, --image-topic, --points-topic, "
+                    "--out-dir).",
     )
     one = parser.add_argument_group("one frame")
     one.add_argument("--image", metavar="RGB.png", help="8-bit RGB camera image")
@@ -165,23 +171,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help="with --points: use T_cam_lidar even when its inverse lands more points in the image "
                           "(by default that is refused as a probably inverted transform)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    add_bag_arguments(parser)
     add_model_arguments(parser)
     parser.set_defaults(func=run)
     return parser
 
 
 # --------------------------------------------------------------------------- frames
-
-
-def _flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
-    """The API's message with its argument name (``K``, ``sparse`` ...) replaced by the user's flag."""
-    text = str(exc)
-    head, sep, rest = text.partition(":")
-    if sep and head.strip() in flags:
-        return InputError(f"{flags[head.strip()]}:{rest}")
-    if "*" in flags:  # a message about the inputs together (e.g. no point lands in the image)
-        return InputError(f"{flags['*']}: {text}")
-    return exc
 
 
 def _where(index: int, total: int, name: str) -> str:
@@ -196,36 +192,8 @@ def _check_frame(sample, index: int, *, total: int) -> None:
         check_sample(sample)
     except InputError as exc:
         where = _where(index, total, sample.name)
-        raise _flag_names(exc, {"K": f"{where} (intrinsics/)", "sparse": f"{where} (velodyne_raw/{sample.name}.png)",
+        raise flag_names(exc, {"K": f"{where} (intrinsics/)", "sparse": f"{where} (velodyne_raw/{sample.name}.png)",
                                 "image": f"{where} (image/)"}) from None
-
-
-def _complete(args, model, image, where: dict[str, str], with_std: bool, **inputs):
-    """One frame through :func:`crfdepth.api.complete_depth` (one-frame and point-cloud modes; folder mode calls its
-    batched form, :func:`~crfdepth.cli.common.complete_batch`); errors name ``where``'s flags."""
-    try:
-        depth, std = complete_depth(image, model=model, device=args.device, return_std=with_std,
-                                    trust_transform=args.trust_transform, **inputs)
-    except InputError as exc:
-        raise _flag_names(exc, where) from None
-    as_numpy = (lambda a: a.double().cpu().numpy()) if isinstance(depth, torch.Tensor) else \
-        (lambda a: a.astype(np.float64))
-    return as_numpy(depth), (None if std is None else as_numpy(std))
-
-
-def _write_outputs(depth: np.ndarray, std: np.ndarray | None, out: Path, out_std: Path | None,
-                   vis_dir: Path | None, stem: str, vis_range) -> list[Path]:
-    if not np.all(np.isfinite(depth)):
-        raise InputError(f"{stem}: the model returned {int(np.sum(~np.isfinite(depth)))} non-finite "
-                         f"depth value(s); nothing written")
-    write_depth_png(out, np.maximum(depth, _MIN_DEPTH))
-    written = [out]
-    if out_std is not None:
-        write_depth_png(out_std, np.maximum(np.nan_to_num(std, nan=_MIN_DEPTH), _MIN_DEPTH))
-        written.append(out_std)
-    if vis_dir is not None:
-        written += write_pictures(vis_dir, stem, depth, std, vis_range)
-    return written
 
 
 def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
@@ -290,11 +258,11 @@ def _run_one(args: argparse.Namespace) -> int:
         logger.warning("--image %s is greyscale; the colour potential sees intensity only", args.image)
     model = build_model(args)
     start = time.perf_counter()
-    depth, std = _complete(args, model, rgb, where, out_std is not None or args.vis is not None, **inputs)
+    depth, std = complete_frame(args, model, rgb, where, out_std is not None or args.vis is not None, **inputs)
     vis_dir = None
     if args.vis is not None:  # created only once the frame is completed
         vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
-    written = _write_outputs(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)
+    written = write_frame(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)
     if not args.quiet:
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
               f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - start:.1f} s")
@@ -342,7 +310,7 @@ def _run_folder(args: argparse.Namespace) -> int:
             std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
             for name, frame_depth, frame_std in zip(batch.names, depth, std):
                 where = _where(written, total, name)
-                _write_outputs(frame_depth, frame_std, out_dir / f"{name}.png",
+                write_frame(frame_depth, frame_std, out_dir / f"{name}.png",
                                std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name,
                                args.vis_range)
                 written += 1
@@ -367,6 +335,11 @@ def run(args: argparse.Namespace) -> int:
     Bad input raises InputError / FileNotFoundError / PermissionError naming the file or
     option, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
     """
+    if args.bag is not None:
+        return run_bag(args)
+    stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]
+    if stray:
+        raise InputError(f"{', '.join(stray)}: bag options need --bag")
     if args.input_dir is not None:
         return _run_folder(args)
     return _run_one(args)

@@ -1,0 +1,406 @@
+"""``crfdepth complete --bag``: a ROS 1 / ROS 2 recording in, one depth PNG per camera image out.
+
+::
+
+    crfdepth complete --bag RUN.bag --image-topic /cam/image_raw --points-topic /lidar/points \\
+        --out-dir depth/ [--out-std-dir std/] [--out-bag RUN_depth.bag] [--max-dt 0.05] \\
+        [--camera-info-topic /cam/camera_info] [--calib rig.yaml] [--rectified] [--vis [DIR]]
+
+What is read (docs/design.md section 11; :mod:`crfdepth.io.ros`):
+
+- images: ``sensor_msgs/Image`` (rgb8, bgr8, mono8, rgba8, bgra8) or
+  ``sensor_msgs/CompressedImage`` (JPEG, PNG);
+- the camera: ``sensor_msgs/CameraInfo`` from ``--camera-info-topic`` (default: the
+  ``camera_info`` topic beside the image topic), the message nearest in record time to
+  each image; an image topic whose last name contains ``rect`` (or ``--rectified``) is
+  taken as rectified: ``P``'s intrinsics, no distortion;
+- clouds: ``sensor_msgs/PointCloud2`` with float32 (or float64) x, y, z; NaN points are
+  dropped and counted;
+- the LiDAR -> camera transform: ``/tf_static`` and ``/tf`` from the cloud's
+  ``frame_id`` to the image's, composed along the tree, at the image's time; ``--calib
+  FILE`` (rig YAML/JSON or KITTI) replaces both the transform and the CameraInfo.
+
+Each image is paired with the cloud nearest in ``header.stamp`` time when at most
+``--max-dt`` seconds away (default 0.05 s: half a sweep of a 10 Hz LiDAR); others are
+counted as unpaired. A paired frame goes through :func:`crfdepth.api.complete_depth`
+with the image, the finite points and the calibration: the same call as ``complete
+--points``. Written per frame: ``<out-dir>/<image stamp ns>.png`` (KITTI depth PNG), the
+std PNG into ``--out-std-dir``, pictures with ``--vis``; at the end ``<out-dir>/index.csv``
+(one row per frame: stamps, topics, time gap, points, points in view, files) and, with
+``--out-bag``, a bag with the depth (and std) as ``32FC1`` images and their CameraInfo on
+``<image namespace>/crfdepth/{depth,std,camera_info}``, with the images' headers.
+
+Everything the run needs is checked before anything is written: topics and their types,
+every image encoding and cloud layout, the CameraInfo, the transform of every frame
+pair, and that some image pairs with a cloud. Bad input is one line and exit status 2. A
+frame that fails later stops the run: the frames before it stay (each file is written
+atomically; the index lists them) and no ``--out-bag`` is left.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from crfdepth.cli.common import (
+    BAD_INPUT,
+    build_model,
+    check_output_file,
+    complete_frame,
+    flag_names,
+    make_output_dir,
+    same_file,
+    write_frame,
+)
+from crfdepth.errors import InputError
+from crfdepth.io.calibration import RigCalibration, load_any_calibration
+from crfdepth.io.files import atomic_write_bytes
+from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, Pairing, Recording, camera_info_topic, pair_nearest
+from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
+from crfdepth.projection import count_in_image
+
+__all__ = ["DEFAULT_MAX_DT_S", "add_arguments", "run_bag"]
+
+# A 10 Hz LiDAR (the common rate) sweeps in 0.1 s: within half a sweep, every image of a
+# continuous recording has a cloud, and a cloud is never paired across a whole sweep.
+DEFAULT_MAX_DT_S = 0.05
+BAG_ONLY = ("--image-topic", "--points-topic", "--camera-info-topic", "--max-dt", "--out-bag", "--rectified")
+INDEX_COLUMNS = ("timestamp_ns", "image_topic", "points_topic", "cloud_timestamp_ns", "dt_ms", "points",
+                 "points_in_view", "depth_png", "std_png")
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds > 0, got {text!r}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The "a ROS bag" option group of ``complete``."""
+    bag = parser.add_argument_group("a ROS bag", "ROS 1 .bag or ROS 2 (sqlite3, mcap) recordings; needs the "
+                                                 "optional extra: pip install 'crfdepth[ros]'")
+    bag.add_argument("--bag", metavar="PATH", help="ROS 1 .bag file, ROS 2 bag folder, or its .db3 / .mcap file")
+    bag.add_argument("--image-topic", metavar="TOPIC", help="sensor_msgs/Image or CompressedImage topic")
+    bag.add_argument("--points-topic", metavar="TOPIC", help="sensor_msgs/PointCloud2 topic")
+    bag.add_argument("--camera-info-topic", metavar="TOPIC",
+                     help="sensor_msgs/CameraInfo topic (default: camera_info beside --image-topic)")
+    bag.add_argument("--rectified", action="store_true",
+                     help="the images are already rectified: use CameraInfo's P, no distortion (default for "
+                          "topics named *rect*)")
+    bag.add_argument("--max-dt", type=_seconds, default=None, metavar="SECONDS",
+                     help=f"largest time between an image and its cloud (default {DEFAULT_MAX_DT_S}: half a "
+                          f"10 Hz LiDAR sweep)")
+    bag.add_argument("--out-bag", metavar="OUT",
+                     help="also write the depth (and std) as 32FC1 images with the images' headers: OUT.bag "
+                          "(ROS 1) or a ROS 2 bag folder (the input's storage; mcap for a ROS 1 input)")
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _check_flags(args: argparse.Namespace) -> None:
+    needed = {"--image-topic": args.image_topic, "--points-topic": args.points_topic, "--out-dir": args.out_dir}
+    missing = [flag for flag, value in needed.items() if value is None]
+    if missing:
+        raise InputError(f"bag mode needs --bag, --image-topic, --points-topic and --out-dir; missing "
+                         f"{', '.join(missing)}")
+    stray = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse),
+                                      ("--intrinsics", args.intrinsics), ("--points", args.points),
+                                      ("--out", args.out), ("--out-std", args.out_std),
+                                      ("--input-dir", args.input_dir)) if value is not None]
+    stray += [flag for flag, value, default in (("--batch-size", args.batch_size, 1), ("--workers", args.workers, 0))
+              if value != default]
+    if stray:
+        raise InputError(f"{', '.join(stray)}: cannot be combined with --bag (the frames come from the bag; outputs "
+                         f"go to --out-dir / --out-std-dir / --out-bag)")
+    if args.calib is not None and args.camera_info_topic is not None:
+        raise InputError("--camera-info-topic / --calib: give one of them (--calib replaces the CameraInfo and "
+                         "the transform)")
+
+
+def _check_out_bag(args: argparse.Namespace) -> Path | None:
+    if args.out_bag is None:
+        return None
+    out = Path(args.out_bag)
+    if out.suffix in (".mcap", ".db3"):
+        raise InputError(f"--out-bag: expected OUT.bag (ROS 1) or a folder name (ROS 2 bags are folders), got {out}")
+    if out.exists() or out.is_symlink():
+        raise InputError(f"--out-bag: expected a new bag, got {out}, which exists; remove it or choose another name")
+    check_output_file(out.parent / "probe.png", "--out-bag")  # its folder exists and is writable
+    return out
+
+
+def _check_out_dirs(args: argparse.Namespace, bag: Path) -> None:
+    folders = [("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir)]
+    if args.vis:
+        folders.append(("--vis", args.vis))
+    for flag, value in folders:
+        if value is not None and same_file(value, bag):
+            raise InputError(f"{flag}: {value} is the --bag input; refusing to write there")
+    named = [str(Path(v).resolve()) for _, v in folders if v is not None]
+    if len(set(named)) != len(named):
+        raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
+
+
+# --------------------------------------------------------------------------- the plan (pass 1)
+
+
+@dataclass
+class _Plan:
+    """What pass 1 found: streams, pairing and each paired frame's calibration."""
+
+    images: object
+    clouds: object
+    pairing: Pairing
+    calibrations: dict[int, RigCalibration] = field(default_factory=dict)  # image index -> calibration
+    duplicates: int = 0
+
+
+def _check_each_layout(decode, key):
+    """A ``scan`` check decoding the first message of each distinct layout ``key(msg)`` (encoding, size ...)."""
+    seen = set()
+
+    def check(msg, where):
+        if key(msg) not in seen:
+            decode(msg, where)
+            seen.add(key(msg))
+    return check
+
+
+def _image_key(msg):
+    return getattr(msg, "encoding", None), getattr(msg, "format", None), getattr(msg, "height", 0), \
+        getattr(msg, "width", 0), getattr(msg, "step", 0)
+
+
+def _cloud_key(msg):
+    return tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields), msg.point_step, msg.is_bigendian
+
+
+def _camera_infos(bag: Recording, args: argparse.Namespace) -> tuple[str, np.ndarray, list]:
+    """Record times and :class:`~crfdepth.io.ros.messages.CameraModel` s of the CameraInfo topic."""
+    default = args.camera_info_topic is None
+    topic = camera_info_topic(args.image_topic) if default else args.camera_info_topic
+    flag = "--camera-info-topic" + (f" (default: {topic}, beside --image-topic)" if default else "")
+    if topic not in bag.topics and default:
+        raise InputError(f"{flag}: no CameraInfo for the images: {bag.name} has no topic {topic}; "
+                         f"{bag.listing(INFO_TYPE)}; name one with --camera-info-topic, or give the camera and "
+                         f"the transform with --calib FILE")
+    bag.check_topic(topic, flag, (INFO_TYPE,), "CameraInfo")
+    rectified = args.rectified or "rect" in args.image_topic.rstrip("/").split("/")[-1]
+    times, cameras = [], []
+    for _, log_ns, msg in bag.messages([topic]):
+        times.append(log_ns)
+        cameras.append(camera_from_info(msg, f"{topic} (CameraInfo at {log_ns} ns)", rectified=rectified))
+    if not cameras:
+        raise InputError(f"{flag}: no CameraInfo message on {topic} in {bag.name}; give the camera with --calib FILE")
+    return topic, np.asarray(times, dtype=np.int64), cameras
+
+
+def _drop_duplicates(images, pairing: Pairing) -> int:
+    """Unpair later images whose stamp repeats an earlier paired one (their PNG names would collide)."""
+    seen, dropped = set(), 0
+    for i in np.flatnonzero(pairing.cloud >= 0):
+        if int(images.stamps_ns[i]) in seen:
+            pairing.cloud[i] = -1
+            dropped += 1
+        seen.add(int(images.stamps_ns[i]))
+    return dropped
+
+
+def _no_pairs(args, images, clouds, pairing: Pairing, max_dt: float) -> InputError:
+    closest = pairing.gap_ns.min() / 1e9
+    return InputError(
+        f"--max-dt {max_dt:g}: no image of {args.image_topic} has a cloud of {args.points_topic} within {max_dt:g} s; "
+        f"the closest gap is {closest:.6g} s (image stamps {images.stamps_ns.min() / 1e9:.3f}-"
+        f"{images.stamps_ns.max() / 1e9:.3f} s, cloud stamps {clouds.stamps_ns.min() / 1e9:.3f}-"
+        f"{clouds.stamps_ns.max() / 1e9:.3f} s): do the two sensors stamp with different clocks?")
+
+
+def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
+    bag.check_topic(args.image_topic, "--image-topic", IMAGE_TYPES, "camera image")
+    bag.check_topic(args.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
+    calibration = None
+    if args.calib is not None:
+        try:
+            calibration = load_any_calibration(args.calib, camera=args.camera)
+        except InputError as exc:
+            raise InputError(f"--calib: {exc}") from None
+    else:
+        info_topic, info_times, cameras = _camera_infos(bag, args)
+    images = bag.scan(args.image_topic, _check_each_layout(decode_image, _image_key), "--image-topic")
+    clouds = bag.scan(args.points_topic, _check_each_layout(points_from_cloud, _cloud_key), "--points-topic")
+    for flag, stream in (("--image-topic", images), ("--points-topic", clouds)):
+        if len(stream) == 0:
+            raise InputError(f"{flag} {stream.topic}: no message in {bag.name}")
+    pairing = pair_nearest(images.stamps_ns, clouds.stamps_ns, round(max_dt * 1e9))
+    if pairing.paired == 0:
+        raise _no_pairs(args, images, clouds, pairing, max_dt)
+    plan = _Plan(images, clouds, pairing, duplicates=_drop_duplicates(images, pairing))
+    tree = bag.transforms() if calibration is None else None
+    for i in np.flatnonzero(pairing.cloud >= 0):
+        if calibration is not None:
+            plan.calibrations[int(i)] = calibration
+            continue
+        camera_frame, lidar_frame = images.frame_ids[i], clouds.frame_ids[pairing.cloud[i]]
+        for flag, frame in (("--image-topic", camera_frame), ("--points-topic", lidar_frame)):
+            if not frame:
+                raise InputError(f"{flag}: header.frame_id is empty, so the LiDAR -> camera transform cannot be "
+                                 f"looked up in /tf_static or /tf; give it with --calib FILE")
+        try:
+            T = tree.lookup(camera_frame, lidar_frame, int(images.stamps_ns[i]))
+        except InputError as exc:
+            raise InputError(f"--points-topic / --image-topic: {exc}; or give the transform with --calib FILE") \
+                from None
+        camera = cameras[int(np.argmin(np.abs(info_times - images.log_ns[i])))]
+        plan.calibrations[int(i)] = RigCalibration(
+            K=camera.K, T_cam_lidar=T, distortion=camera.distortion, image_size=camera.image_size,
+            source=f"CameraInfo {info_topic}, tf {lidar_frame} -> {camera_frame}")
+    return plan
+
+
+# --------------------------------------------------------------------------- pass 2
+
+
+def _frames(bag: Recording, args, plan: _Plan):
+    """``(image index, image message, cloud message, cloud index)`` of every paired frame, in image order,
+    holding only the clouds that a waiting image still needs."""
+    cloud_of = plan.pairing.cloud
+    users = np.bincount(cloud_of[cloud_of >= 0], minlength=len(plan.clouds))
+    clouds, waiting = {}, deque()
+    counters = {args.image_topic: 0, args.points_topic: 0}
+    for topic, _, msg in bag.messages([args.image_topic, args.points_topic]):
+        index = counters[topic]
+        counters[topic] += 1
+        if topic == args.image_topic and cloud_of[index] >= 0:
+            waiting.append((index, msg))
+        elif topic == args.points_topic and users[index]:
+            clouds[index] = msg
+        while waiting and cloud_of[waiting[0][0]] in clouds:
+            image_index, image = waiting.popleft()
+            c = int(cloud_of[image_index])
+            yield image_index, image, clouds[c], c
+            users[c] -= 1
+            if not users[c]:
+                del clouds[c]
+
+
+def _output_topics(args, with_std: bool) -> dict[str, str]:
+    namespace = camera_info_topic(args.image_topic).rsplit("/", 1)[0]
+    topics = {f"{namespace}/crfdepth/depth": "sensor_msgs/msg/Image"}
+    if with_std:
+        topics[f"{namespace}/crfdepth/std"] = "sensor_msgs/msg/Image"
+    topics[f"{namespace}/crfdepth/camera_info"] = INFO_TYPE
+    return topics
+
+
+def _index_bytes(rows: list[dict]) -> bytes:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=INDEX_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(sorted(rows, key=lambda r: r["timestamp_ns"]))
+    return text.getvalue().encode()
+
+
+def run_bag(args: argparse.Namespace) -> int:
+    """``complete --bag``: see the module docstring. Bad input raises ``BAD_INPUT`` naming the flag."""
+    from crfdepth.io.ros.writer import DepthBagWriter
+
+    _check_flags(args)
+    max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
+    out_bag = _check_out_bag(args)
+    _check_out_dirs(args, Path(args.bag))
+    start = time.perf_counter()
+    with Recording(args.bag, f"--bag {args.bag}") as bag:
+        plan = _plan(bag, args, max_dt)
+        model = build_model(args)
+        out_dir = make_output_dir(args.out_dir, "--out-dir")
+        std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
+        vis_dir = None
+        if args.vis is not None:
+            vis_dir = make_output_dir(args.vis or f"{out_dir.resolve()}_vis", "--vis")
+        with_std = std_dir is not None or vis_dir is not None
+        topics = _output_topics(args, with_std)
+        writer = None if out_bag is None else DepthBagWriter(out_bag, storage=bag.storage, topics=topics)
+        rows = []
+        progress = tqdm(total=plan.pairing.paired, unit="frame", desc="complete",
+                        disable=args.quiet or not sys.stderr.isatty())
+        try:
+            for i, image_msg, cloud_msg, c in _frames(bag, args, plan):
+                rows.append(_one(args, model, plan, i, image_msg, cloud_msg, c, out_dir, std_dir, vis_dir, writer,
+                                 topics, with_std))
+                progress.update(1)
+        except BaseException as exc:
+            if writer is not None:
+                writer.abort()
+            if rows:
+                atomic_write_bytes(out_dir / "index.csv", _index_bytes(rows))
+            if isinstance(exc, BAD_INPUT):
+                raise type(exc)(f"{exc} [stopped after {len(rows)} of {plan.pairing.paired} frame(s), written to "
+                                f"{out_dir} and listed in its index.csv; no --out-bag written]") from None
+            raise
+        finally:
+            progress.close()
+        atomic_write_bytes(out_dir / "index.csv", _index_bytes(rows))
+        if writer is not None:
+            writer.commit()
+    if not args.quiet:
+        _summary(args, plan, len(rows), out_dir, std_dir, out_bag, max_dt, time.perf_counter() - start)
+    return 0
+
+
+def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir: Path, std_dir, vis_dir, writer,
+         topics, with_std: bool) -> dict:
+    """Complete, write and index one paired frame."""
+    stamp = int(plan.images.stamps_ns[i])
+    where_image = f"--image-topic {args.image_topic} (image at {stamp} ns)"
+    where_cloud = f"--points-topic {args.points_topic} (cloud at {int(plan.clouds.stamps_ns[c])} ns)"
+    rgb = decode_image(image_msg, where_image)
+    xyz = points_from_cloud(cloud_msg, where_cloud)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    calibration = plan.calibrations[i]
+    flags = {"image": where_image, "points": where_cloud, "*": f"{where_cloud} with {where_image}",
+             "K": f"camera of {where_image}", "T_cam_lidar": f"transform of {where_cloud}"}
+    if xyz.shape[0] == 0:
+        raise InputError(f"{where_cloud}: no point with finite coordinates")
+    depth, std = complete_frame(args, model, rgb, flags, with_std, points=xyz, calibration=calibration)
+    name = f"{stamp}.png"
+    write_frame(depth, std, out_dir / name, std_dir / name if std_dir is not None else None, vis_dir, str(stamp),
+                args.vis_range)
+    if writer is not None:
+        log_ns, frame_id = int(plan.images.log_ns[i]), plan.images.frame_ids[i]
+        names = list(topics)
+        writer.write_image(names[0], log_ns, stamp, frame_id, depth.astype(np.float32))
+        if with_std:
+            writer.write_image(names[1], log_ns, stamp, frame_id, std.astype(np.float32))
+        writer.write_camera_info(names[-1], log_ns, stamp, frame_id, calibration.K, depth.shape)
+    in_view = count_in_image(xyz.astype(np.float64), calibration.T_cam_lidar, calibration.K, depth.shape)
+    return {"timestamp_ns": stamp, "image_topic": args.image_topic, "points_topic": args.points_topic,
+            "cloud_timestamp_ns": int(plan.clouds.stamps_ns[c]),
+            "dt_ms": f"{(int(plan.clouds.stamps_ns[c]) - stamp) / 1e6:.3f}", "points": xyz.shape[0],
+            "points_in_view": int(in_view), "depth_png": name, "std_png": name if std_dir is not None else ""}
+
+
+def _summary(args, plan: _Plan, written: int, out_dir: Path, std_dir, out_bag, max_dt: float, seconds: float) -> None:
+    unpaired = int(np.sum(plan.pairing.cloud < 0)) - plan.duplicates
+    lines = [f"wrote {written} depth PNG(s) and index.csv to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
+             + (f", bag {out_bag}" if out_bag else "") + f" in {seconds:.1f} s"]
+    if unpaired:
+        gaps = plan.pairing.gap_ns[plan.pairing.cloud < 0]
+        lines.append(f"{unpaired} of {len(plan.images)} image(s) unpaired: no cloud within --max-dt {max_dt:g} s "
+                     f"(their gaps {gaps.min() / 1e9:.3g}-{gaps.max() / 1e9:.3g} s)")
+    if plan.duplicates:
+        lines.append(f"{plan.duplicates} image(s) skipped: header.stamp repeats an earlier image's")
+    print("\n".join(lines))
