@@ -56,7 +56,6 @@ from crfdepth.cli.common import (
     build_model,
     check_output_file,
     complete_frame,
-    flag_names,
     make_output_dir,
     same_file,
     write_frame,
@@ -169,18 +168,21 @@ class _Plan:
     duplicates: int = 0
 
 
-def _check_each_layout(decode, key):
-    """A ``scan`` check decoding the first message of each distinct layout ``key(msg)`` (encoding, size ...)."""
-    seen = set()
+def _check_each_layout(decode, key, sizes: list | None = None):
+    """A ``scan`` check decoding the first message of each distinct layout ``key(msg)`` (encoding, size ...);
+    appends each message's (height, width) to ``sizes`` when given (that of its layout's first message)."""
+    seen = {}
 
     def check(msg, where):
         if key(msg) not in seen:
-            decode(msg, where)
-            seen.add(key(msg))
+            seen[key(msg)] = decode(msg, where).shape[:2]
+        if sizes is not None:
+            sizes.append(seen[key(msg)])
     return check
 
 
 def _image_key(msg):
+    """Raw images: encoding and size; compressed ones: the format (their size is known only by decoding)."""
     return getattr(msg, "encoding", None), getattr(msg, "format", None), getattr(msg, "height", 0), \
         getattr(msg, "width", 0), getattr(msg, "step", 0)
 
@@ -240,7 +242,8 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
             raise InputError(f"--calib: {exc}") from None
     else:
         info_topic, info_times, cameras = _camera_infos(bag, args)
-    images = bag.scan(args.image_topic, _check_each_layout(decode_image, _image_key), "--image-topic")
+    sizes = []
+    images = bag.scan(args.image_topic, _check_each_layout(decode_image, _image_key, sizes), "--image-topic")
     clouds = bag.scan(args.points_topic, _check_each_layout(points_from_cloud, _cloud_key), "--points-topic")
     for flag, stream in (("--image-topic", images), ("--points-topic", clouds)):
         if len(stream) == 0:
@@ -252,6 +255,10 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
     tree = bag.transforms() if calibration is None else None
     for i in np.flatnonzero(pairing.cloud >= 0):
         if calibration is not None:
+            if calibration.image_size not in (None, sizes[i]):
+                (h, w), (hc, wc) = sizes[i], calibration.image_size
+                raise InputError(f"--calib {args.calib}: expected the calibration of the {w}x{h} (WxH) images of "
+                                 f"--image-topic, got one of {wc}x{hc}")
             plan.calibrations[int(i)] = calibration
             continue
         camera_frame, lidar_frame = images.frame_ids[i], clouds.frame_ids[pairing.cloud[i]]
@@ -265,6 +272,10 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
             raise InputError(f"--points-topic / --image-topic: {exc}; or give the transform with --calib FILE") \
                 from None
         camera = cameras[int(np.argmin(np.abs(info_times - images.log_ns[i])))]
+        if camera.image_size != sizes[i]:
+            (h, w), (hc, wc) = sizes[i], camera.image_size
+            raise InputError(f"--camera-info-topic {info_topic}: expected the camera of the {w}x{h} (WxH) images of "
+                             f"--image-topic, got a CameraInfo of {wc}x{hc}")
         plan.calibrations[int(i)] = RigCalibration(
             K=camera.K, T_cam_lidar=T, distortion=camera.distortion, image_size=camera.image_size,
             source=f"CameraInfo {info_topic}, tf {lidar_frame} -> {camera_frame}")
@@ -297,13 +308,10 @@ def _frames(bag: Recording, args, plan: _Plan):
                 del clouds[c]
 
 
-def _output_topics(args, with_std: bool) -> dict[str, str]:
-    namespace = camera_info_topic(args.image_topic).rsplit("/", 1)[0]
-    topics = {f"{namespace}/crfdepth/depth": "sensor_msgs/msg/Image"}
-    if with_std:
-        topics[f"{namespace}/crfdepth/std"] = "sensor_msgs/msg/Image"
-    topics[f"{namespace}/crfdepth/camera_info"] = INFO_TYPE
-    return topics
+def _output_topics(image_topic: str) -> dict[str, str]:
+    """The ``--out-bag`` topics beside the image topic: ``/cam/image_raw`` -> ``/cam/crfdepth/depth`` ..."""
+    namespace = camera_info_topic(image_topic).rsplit("/", 1)[0]
+    return {role: f"{namespace}/crfdepth/{role}" for role in ("depth", "std", "camera_info")}
 
 
 def _index_bytes(rows: list[dict]) -> bytes:
@@ -316,7 +324,7 @@ def _index_bytes(rows: list[dict]) -> bytes:
 
 def run_bag(args: argparse.Namespace) -> int:
     """``complete --bag``: see the module docstring. Bad input raises ``BAD_INPUT`` naming the flag."""
-    from crfdepth.io.ros.writer import DepthBagWriter
+    from crfdepth.io.ros.writer import BagWriter
 
     _check_flags(args)
     max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
@@ -332,8 +340,9 @@ def run_bag(args: argparse.Namespace) -> int:
         if args.vis is not None:
             vis_dir = make_output_dir(args.vis or f"{out_dir.resolve()}_vis", "--vis")
         with_std = std_dir is not None or vis_dir is not None
-        topics = _output_topics(args, with_std)
-        writer = None if out_bag is None else DepthBagWriter(out_bag, storage=bag.storage, topics=topics)
+        topics = _output_topics(args.image_topic)
+        storage = "sqlite3" if bag.storage == "sqlite3" else "mcap"  # of a ROS 2 output
+        writer = None if out_bag is None else BagWriter(out_bag, storage=storage)
         rows = []
         progress = tqdm(total=plan.pairing.paired, unit="frame", desc="complete",
                         disable=args.quiet or not sys.stderr.isatty())
@@ -381,11 +390,10 @@ def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir
                 args.vis_range)
     if writer is not None:
         log_ns, frame_id = int(plan.images.log_ns[i]), plan.images.frame_ids[i]
-        names = list(topics)
-        writer.write_image(names[0], log_ns, stamp, frame_id, depth.astype(np.float32))
+        writer.write(topics["depth"], log_ns, writer.image(depth.astype(np.float32), stamp, frame_id, "32FC1"))
         if with_std:
-            writer.write_image(names[1], log_ns, stamp, frame_id, std.astype(np.float32))
-        writer.write_camera_info(names[-1], log_ns, stamp, frame_id, calibration.K, depth.shape)
+            writer.write(topics["std"], log_ns, writer.image(std.astype(np.float32), stamp, frame_id, "32FC1"))
+        writer.write(topics["camera_info"], log_ns, writer.camera_info(calibration.K, depth.shape, stamp, frame_id))
     in_view = count_in_image(xyz.astype(np.float64), calibration.T_cam_lidar, calibration.K, depth.shape)
     return {"timestamp_ns": stamp, "image_topic": args.image_topic, "points_topic": args.points_topic,
             "cloud_timestamp_ns": int(plan.clouds.stamps_ns[c]),

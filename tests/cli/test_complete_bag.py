@@ -135,6 +135,29 @@ def test_compressed_images_and_pairing_with_jitter(main, model, tmp_path, capsys
         assert np.abs(png - _quantised(depth)).max() <= 1 / 256 + 1e-6
 
 
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3"])
+def test_dynamic_tf_distortion_and_calib_override(main, model, tmp_path, kind):
+    """The rig's transform on /tf (one message per frame, looked up at each image's time), a CameraInfo with
+    lens distortion (the image is undistorted by complete_depth), and --calib replacing both."""
+    distortion = np.array([-0.05, 0.01, 0.001, -0.001, 0.0])
+    recorded = write_bag(_bag_path(tmp_path, kind), kind, count=2, tf="/tf", distortion=distortion)
+    assert main(["complete", "--bag", str(recorded.path), *TOPICS, "--out-dir", str(tmp_path / "d"), *FAST]) == 0
+    for k in range(2):
+        depth, _ = complete_depth(recorded.images[k], points=recorded.clouds[k], K=recorded.K,
+                                  T_cam_lidar=recorded.T_cam_lidar, distortion=distortion, model=model,
+                                  return_std=False)
+        png = read_depth_png(tmp_path / "d" / f"{recorded.image_ns[k]}.png")
+        assert np.abs(png - _quantised(depth)).max() <= 1 / 256 + 1e-6
+    bare = write_bag(_bag_path(tmp_path, kind, "bare"), kind, count=2, tf=None, camera_info=False)
+    (tmp_path / "rig.yaml").write_text(f"K: {recorded.K.tolist()}\nT_cam_lidar: {recorded.T_cam_lidar.tolist()}\n")
+    assert main(["complete", "--bag", str(bare.path), *TOPICS, "--calib", str(tmp_path / "rig.yaml"), "--out-dir",
+                 str(tmp_path / "c"), *FAST]) == 0
+    for k in range(2):
+        depth, _ = _expected(bare, k, model)
+        png = read_depth_png(tmp_path / "c" / f"{bare.image_ns[k]}.png")
+        assert np.abs(png - _quantised(depth)).max() <= 1 / 256 + 1e-6
+
+
 def test_pair_nearest_against_brute_force():
     from crfdepth.io.ros.bag import pair_nearest
 
@@ -181,12 +204,19 @@ def _disconnected(tmp_path: Path) -> Path:
     """The camera's half of the tree only: velodyne is in no /tf_static edge."""
     images, clouds, K, T = synthetic_frames(1)
     builder = BagBuilder(tmp_path / "in", "mcap")
-    builder.write("/tf_static", START_NS, builder.tf(rig_edges(T)[1:], START_NS))
+    builder.write("/tf_static", START_NS, builder.transforms(rig_edges(T)[1:], START_NS))
     builder.write(POINTS_TOPIC, START_NS, builder.cloud(clouds[0], START_NS))
     builder.write(IMAGE_TOPIC, START_NS, builder.image(images[0], START_NS))
-    builder.write(INFO_TOPIC, START_NS, builder.camera_info(K, images[0].shape[:2], START_NS))
+    builder.write(INFO_TOPIC, START_NS, builder.camera_info(K, images[0].shape[:2], START_NS, "camera_optical"))
     builder.close()
     return tmp_path / "in"
+
+
+def _small_rig(tmp_path: Path) -> Path:
+    """A rig calibration for 96x48 images."""
+    _, _, K, T = synthetic_frames(1)
+    (tmp_path / "rig.yaml").write_text(f"K: {K.tolist()}\nT_cam_lidar: {T.tolist()}\nimage_size: [48, 96]\n")
+    return tmp_path / "rig.yaml"
 
 
 def _truncated(tmp_path: Path, kind: str) -> Path:
@@ -204,12 +234,16 @@ BAD = {
                              ["--points-topic", "'/points', which is not in it", f"point-cloud topics: {POINTS_TOPIC}"]),
     "points topic of images": (lambda t: _bag_with(t), ["--points-topic", IMAGE_TOPIC],
                                ["--points-topic", "sensor_msgs/PointCloud2", "sensor_msgs/Image"]),
-    "no transform": (lambda t: _bag_with(t, tf=False), [],
+    "no transform": (lambda t: _bag_with(t, tf=None), [],
                      ["no transform from frame 'velodyne' to frame 'camera_optical'", "--calib FILE"]),
     "disconnected frames": (_disconnected, [],
                             ["'velodyne'", "'camera_optical'", "base_link", "camera_link"]),
     "no CameraInfo": (lambda t: _bag_with(t, camera_info=False), [],
                       ["--camera-info-topic", f"no topic {INFO_TOPIC}", "--calib FILE"]),
+    "CameraInfo topic of images": (lambda t: _bag_with(t), ["--camera-info-topic", IMAGE_TOPIC],
+                                   ["--camera-info-topic", "sensor_msgs/CameraInfo", "got '/camera/image_raw' of"]),
+    "CameraInfo of another size": (lambda t: _bag_with(t, info_size=(48, 96)), [],
+                                   ["--camera-info-topic", "96x48", "96x64"]),
     "clocks never pair": (lambda t: _bag_with(t, cloud_offsets_ns=[1000 * 10**9] * 2), [],
                           ["--max-dt 0.05", "the closest gap is 999.9 s", "different clocks"]),
     "unsupported encoding": (lambda t: _bag_with(t, encoding="bayer_rggb8"), [],
@@ -220,7 +254,10 @@ BAD = {
     "truncated mcap bag": (lambda t: _truncated(t, "mcap"), [], ["--bag", "cannot be read", "truncated"]),
     "not a bag": (lambda t: (t / "notes.bag").write_text("not a bag") and t / "notes.bag", [],
                   ["--bag", "cannot be read"]),
-    "out-bag exists": (lambda t: _bag_with(t), ["--out-bag", "EXISTING"], ["--out-bag", "exists"]),
+    "out-bag exists": (lambda t: (t / "existing").mkdir() or _bag_with(t), ["--out-bag", "{t}/existing"],
+                       ["--out-bag", "exists"]),
+    "calib of another size": (lambda t: _small_rig(t) and _bag_with(t), ["--calib", "{t}/rig.yaml"],
+                              ["--calib", "rig.yaml", "96x64", "96x48"]),
     "with --image": (lambda t: _bag_with(t), ["--image", "x.png"], ["--image", "cannot be combined with --bag"]),
 }
 
@@ -230,9 +267,7 @@ def test_bad_input(main, tmp_path, capsys, case):
     """Exit status 2, one line naming the flag, and nothing written: no --out-dir, no --out-bag."""
     make, extra, expected = BAD[case]
     bag = make(tmp_path)
-    if "EXISTING" in extra:
-        (tmp_path / "existing").mkdir()
-        extra = ["--out-bag", str(tmp_path / "existing")]
+    extra = [a.format(t=tmp_path) for a in extra]
     args = dict(zip(TOPICS[::2], TOPICS[1::2]))
     args.update(dict(zip(extra[::2], extra[1::2])))
     argv = ["complete", "--bag", str(bag), *[a for kv in args.items() for a in kv], "--out-dir", str(tmp_path / "d")]
@@ -265,7 +300,7 @@ def test_bad_frame_midway_keeps_earlier_frames_and_no_bag(main, tmp_path, capsys
     """A JPEG that does not decode in frame 2 of 3: frames 1 is written and indexed, no output bag is left."""
     images, clouds, K, T = synthetic_frames(3)
     builder = BagBuilder(tmp_path / "in", "mcap")
-    builder.write("/tf_static", START_NS, builder.tf(rig_edges(T), START_NS))
+    builder.write("/tf_static", START_NS, builder.transforms(rig_edges(T), START_NS))
     for k in range(3):
         stamp = START_NS + k * PERIOD_NS
         image = builder.image(images[k], stamp, "jpeg")
@@ -274,7 +309,7 @@ def test_bad_frame_midway_keeps_earlier_frames_and_no_bag(main, tmp_path, capsys
             image.data[:4] = 0  # not a JPEG any more
         builder.write(POINTS_TOPIC, stamp, builder.cloud(clouds[k], stamp))
         builder.write(IMAGE_TOPIC + "/compressed", stamp + 1, image)
-        builder.write(INFO_TOPIC, stamp + 1, builder.camera_info(K, images[k].shape[:2], stamp))
+        builder.write(INFO_TOPIC, stamp + 1, builder.camera_info(K, images[k].shape[:2], stamp, "camera_optical"))
     builder.close()
     assert main(["complete", "--bag", str(tmp_path / "in"), "--image-topic", IMAGE_TOPIC + "/compressed",
                  "--points-topic", POINTS_TOPIC, "--out-dir", str(tmp_path / "d"), "--out-bag", str(tmp_path / "out"),

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from crfdepth.data.example_bag import rig_edges
 from crfdepth.data.synthetic import make_scene
+from crfdepth.io.ros.writer import BagWriter
 
 IMAGE_TOPIC = "/camera/image_raw"
 INFO_TOPIC = "/camera/camera_info"
@@ -24,20 +25,7 @@ POINTS_TOPIC = "/velodyne_points"
 KINDS = ("ros1", "sqlite3", "mcap")
 START_NS = 1_700_000_000_000_000_000  # a 2023 wall-clock time, as real recordings carry
 PERIOD_NS = 100_000_000  # 10 Hz camera and LiDAR
-_TF_MSG = "geometry_msgs/TransformStamped[] transforms"
-
-
-def _rigid(rotvec, translation) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
-
-
-# The rig: T_base_lidar and T_base_camlink are arbitrary mounts; camera_link -> camera_optical is
-# whatever makes the chain equal the scene's T_cam_lidar.
-T_BASE_LIDAR = _rigid([0.0, 0.02, 0.05], [1.1, 0.0, 1.7])
-T_BASE_CAMLINK = _rigid([0.01, -0.03, 0.0], [1.5, 0.1, 1.4])
+__all__ = ["BagBuilder", "rig_edges", "synthetic_frames", "write_bag"]
 
 
 @dataclass
@@ -60,74 +48,30 @@ def synthetic_frames(count: int, height: int = 64, width: int = 96, seed: int = 
     return images, [s.points for s in scenes], scenes[0].K, scenes[0].T_cam_lidar
 
 
-def typestore(kind: str):
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
-    if "tf2_msgs/msg/TFMessage" not in store.types:  # rosbags' ROS 1 store lacks it
-        store.register(get_types_from_msg(_TF_MSG, "tf2_msgs/msg/TFMessage"))
-    return store
-
-
-class BagBuilder:
-    """Messages of one type store, serialised and written to a rosbags writer."""
+class BagBuilder(BagWriter):
+    """crfdepth's bag writer plus what the tests need beyond it: other image encodings (bgr8, mono8, a
+    Bayer pattern, JPEG) and clouds with a ring field and x y z of another type. ``kind`` is
+    "ros1" (``path`` ends in .bag), "sqlite3" or "mcap"."""
 
     def __init__(self, path: Path, kind: str) -> None:
-        from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import StoragePlugin
-        from rosbags.rosbag2 import Writer as Writer2
-
-        self.kind, self.store = kind, typestore(kind)
-        self.types = self.store.types
-        if kind == "ros1":
-            self.writer = Writer1(path)
-        else:
-            plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
-            self.writer = Writer2(path, version=9, storage_plugin=plugin)
-        self.writer.open()
-        self.connections = {}
-
-    def header(self, stamp_ns: int, frame_id: str):
-        stamp = self.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
-        cls = self.types["std_msgs/msg/Header"]
-        extra = {"seq": 0} if "seq" in cls.__dataclass_fields__ else {}
-        return cls(stamp=stamp, frame_id=frame_id, **extra)
-
-    def write(self, topic: str, log_ns: int, msg) -> None:
-        msgtype = msg.__msgtype__
-        if topic not in self.connections:
-            self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
-        raw = self.store.serialize_ros1(msg, msgtype) if self.kind == "ros1" else self.store.serialize_cdr(msg, msgtype)
-        self.writer.write(self.connections[topic], log_ns, raw)
+        super().__init__(path, storage=kind)
 
     def image(self, rgb: np.ndarray, stamp_ns: int, encoding: str = "rgb8", frame_id: str = "camera_optical"):
+        if encoding == "rgb8":
+            return super().image(rgb, stamp_ns, frame_id)
         if encoding == "jpeg":
             ok, data = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
             return self.types["sensor_msgs/msg/CompressedImage"](
                 header=self.header(stamp_ns, frame_id), format="rgb8; jpeg compressed bgr8", data=data.ravel())
-        pixels = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., :1], "bayer_rggb8": rgb[..., :1]}[encoding]
+        pixels = {"bgr8": rgb[..., ::-1], "mono8": rgb[..., :1], "bayer_rggb8": rgb[..., :1]}[encoding]
         pixels = np.ascontiguousarray(pixels)
         h, w, c = pixels.shape
         return self.types["sensor_msgs/msg/Image"](header=self.header(stamp_ns, frame_id), height=h, width=w,
                                                    encoding=encoding, is_bigendian=0, step=w * c,
                                                    data=pixels.ravel())
 
-    def camera_info(self, K: np.ndarray, size: tuple[int, int], stamp_ns: int, distortion=None,
-                    frame_id: str = "camera_optical"):
-        cls = self.types["sensor_msgs/msg/CameraInfo"]
-        names = {n.lower(): n for n in cls.__dataclass_fields__}
-        P = np.zeros((3, 4))
-        P[:, :3] = K
-        roi = self.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                             do_rectify=False)
-        values = dict(header=self.header(stamp_ns, frame_id), height=size[0], width=size[1],
-                      distortion_model="plumb_bob", d=np.zeros(5) if distortion is None else np.asarray(distortion),
-                      k=np.asarray(K, float).ravel(), r=np.eye(3).ravel(), p=P.ravel(), binning_x=0, binning_y=0,
-                      roi=roi)
-        return cls(**{names[k]: v for k, v in values.items()})
-
     def cloud(self, points: np.ndarray, stamp_ns: int, frame_id: str = "velodyne", xyz_type: int = 7):
-        """x y z intensity (float32, or ``xyz_type``) and a uint16 ring field, point_step 24."""
+        """x y z (float32, or PointField type ``xyz_type``), intensity float32 and a uint16 ring field."""
         field_cls = self.types["sensor_msgs/msg/PointField"]
         xyz_dtype = {7: "<f4", 8: "<f8", 3: "<i2"}[xyz_type]
         size = np.dtype(xyz_dtype).itemsize
@@ -146,38 +90,19 @@ class BagBuilder:
             point_step=dtype.itemsize, row_step=dtype.itemsize * len(points),
             data=np.frombuffer(table.tobytes(), dtype=np.uint8), is_dense=False)
 
-    def tf(self, edges: list[tuple[str, str, np.ndarray]], stamp_ns: int):
-        """A TFMessage of ``(parent, child, T_parent_child)`` edges."""
-        t = self.types
-        transforms = []
-        for parent, child, T in edges:
-            q = Rotation.from_matrix(T[:3, :3]).as_quat()
-            transforms.append(t["geometry_msgs/msg/TransformStamped"](
-                header=self.header(stamp_ns, parent), child_frame_id=child,
-                transform=t["geometry_msgs/msg/Transform"](
-                    translation=t["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-                    rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))))
-        return t["tf2_msgs/msg/TFMessage"](transforms=transforms)
-
     def close(self) -> None:
-        self.writer.close()
-
-
-def rig_edges(T_cam_lidar: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
-    """Three tf edges whose chain velodyne -> camera_optical is ``T_cam_lidar``."""
-    T_base_optical = T_BASE_LIDAR @ np.linalg.inv(T_cam_lidar)
-    return [("base_link", "velodyne", T_BASE_LIDAR), ("base_link", "camera_link", T_BASE_CAMLINK),
-            ("camera_link", "camera_optical", np.linalg.inv(T_BASE_CAMLINK) @ T_base_optical)]
+        self.commit()
 
 
 def write_bag(path: Path, kind: str = "mcap", *, count: int = 3, frames=None, encoding: str = "rgb8",
-              cloud_offsets_ns=None, image_jitter_ns=None, camera_info: bool = True, tf: bool = True,
-              xyz_type: int = 7, size: tuple[int, int] = (64, 96)) -> Recorded:
+              cloud_offsets_ns=None, image_jitter_ns=None, camera_info: bool = True, tf: str | None = "/tf_static",
+              distortion=None, info_size=None, xyz_type: int = 7, size: tuple[int, int] = (64, 96)) -> Recorded:
     """Record ``count`` frames (or ``frames = (images, clouds, K, T_cam_lidar)``) at 10 Hz.
 
     Cloud k is stamped ``START_NS + k * PERIOD_NS + cloud_offsets_ns[k]`` (default 0), image k
     ``START_NS + k * PERIOD_NS + image_jitter_ns[k]`` (default 0); record times are the stamps plus
-    2 ms. A ROS 1 bag is one file (``path`` should end in .bag); a ROS 2 bag a folder.
+    2 ms. The rig's transform goes on ``tf`` (None: nowhere): once on /tf_static, or with every frame on /tf.
+    A ROS 1 bag is one file (``path`` should end in .bag); a ROS 2 bag a folder.
     """
     images, clouds, K, T = frames if frames is not None else synthetic_frames(count, *size)
     count = len(images)
@@ -185,8 +110,8 @@ def write_bag(path: Path, kind: str = "mcap", *, count: int = 3, frames=None, en
     jitter = np.zeros(count, np.int64) if image_jitter_ns is None else np.asarray(image_jitter_ns)
     builder = BagBuilder(path, kind)
     recorded = Recorded(path=path, K=K, T_cam_lidar=T)
-    if tf:
-        builder.write("/tf_static", START_NS - PERIOD_NS, builder.tf(rig_edges(T), START_NS - PERIOD_NS))
+    if tf == "/tf_static":
+        builder.write(tf, START_NS - PERIOD_NS, builder.transforms(rig_edges(T), START_NS - PERIOD_NS))
     messages = []
     image_topic = IMAGE_TOPIC + "/compressed" if encoding == "jpeg" else IMAGE_TOPIC
     for k in range(count):
@@ -195,7 +120,10 @@ def write_bag(path: Path, kind: str = "mcap", *, count: int = 3, frames=None, en
         messages.append((cloud_ns + 2_000_000, POINTS_TOPIC, builder.cloud(clouds[k], cloud_ns, xyz_type=xyz_type)))
         messages.append((image_ns + 2_000_000, image_topic, builder.image(images[k], image_ns, encoding)))
         if camera_info:
-            messages.append((image_ns + 2_000_000, INFO_TOPIC, builder.camera_info(K, images[k].shape[:2], image_ns)))
+            info = builder.camera_info(K, info_size or images[k].shape[:2], image_ns, "camera_optical", distortion)
+            messages.append((image_ns + 2_000_000, INFO_TOPIC, info))
+        if tf == "/tf":
+            messages.append((image_ns - 1_000_000, tf, builder.transforms(rig_edges(T), image_ns - 3_000_000)))
         recorded.images.append(images[k])
         recorded.clouds.append(clouds[k])
         recorded.image_ns.append(image_ns)
