@@ -39,8 +39,8 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_model, load_pretrain
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "MAX_WORKERS", "add_batch_arguments", "add_model_arguments", "build_model", "check_output_file",
-           "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least", "make_output_dir", "same_file",
-           "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
+           "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
+           "make_output_dir", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).

@@ -131,9 +131,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "metres * 256) with the CRF model, for one frame (--image, --sparse, "
                     "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
                     "cloud) or every frame of a val_selection_cropped / "
-                    "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera image of a ROS 1 / "
-                    "ROS 2 recording with the LiDAR cloud nearest in time (--bag, --image-topic, --points-topic, "
-                    "--out-dir).",
+                    "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera "
+                    "image of a ROS 1 / ROS 2 recording with the LiDAR cloud nearest in time (--bag, "
+                    "--image-topic, --points-topic, --out-dir).",
     )
     one = parser.add_argument_group("one frame")
     one.add_argument("--image", metavar="RGB.png", help="8-bit RGB camera image")
