@@ -116,8 +116,10 @@ def test_compressed_images_and_pairing_with_jitter(main, model, tmp_path, capsys
     recorded = write_bag(tmp_path / "in", "mcap", count=4, encoding="jpeg", image_jitter_ns=jitter,
                          cloud_offsets_ns=offsets)
     args = ["complete", "--bag", str(recorded.path), "--image-topic", IMAGE_TOPIC + "/compressed",
-            "--points-topic", POINTS_TOPIC, "--out-dir", str(tmp_path / "d"), "--potentials", "colour"]
+            "--points-topic", POINTS_TOPIC, "--out-dir", str(tmp_path / "d"), "--potentials", "colour", "--vis"]
     assert main([*args, "--max-dt", "0.045"]) == 0
+    pictures = sorted(p.name for p in (tmp_path / "d_vis").iterdir())
+    assert pictures == sorted(f"{recorded.image_ns[k]}_vis_{kind}.png" for k in (0, 1, 3) for kind in ("depth", "std"))
     out = capsys.readouterr().out
     assert "1 of 4 image(s) unpaired: no cloud within --max-dt 0.045 s (their gaps 0.05-0.05 s)" in out
     rows = _index(tmp_path / "d")
