@@ -63,7 +63,16 @@ from crfdepth.cli.common import (
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
-from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, Pairing, Recording, camera_info_topic, pair_nearest
+from crfdepth.io.ros.bag import (
+    CLOUD_TYPE,
+    IMAGE_TYPES,
+    INFO_TYPE,
+    Pairing,
+    Recording,
+    Stream,
+    camera_info_topic,
+    pair_nearest,
+)
 from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
 from crfdepth.projection import count_in_image
 
@@ -161,8 +170,8 @@ def _check_out_dirs(args: argparse.Namespace, bag: Path) -> None:
 class _Plan:
     """What pass 1 found: streams, pairing and each paired frame's calibration."""
 
-    images: object
-    clouds: object
+    images: Stream
+    clouds: Stream
     pairing: Pairing
     calibrations: dict[int, RigCalibration] = field(default_factory=dict)  # image index -> calibration
     duplicates: int = 0
@@ -205,13 +214,14 @@ def _camera_infos(bag: Recording, args: argparse.Namespace) -> tuple[str, np.nda
     times, cameras = [], []
     for _, log_ns, msg in bag.messages([topic]):
         times.append(log_ns)
-        cameras.append(camera_from_info(msg, f"{topic} (CameraInfo at {log_ns} ns)", rectified=rectified))
+        cameras.append(camera_from_info(msg, f"--camera-info-topic {topic} (CameraInfo recorded at {log_ns} ns)",
+                                        rectified=rectified))
     if not cameras:
         raise InputError(f"{flag}: no CameraInfo message on {topic} in {bag.name}; give the camera with --calib FILE")
     return topic, np.asarray(times, dtype=np.int64), cameras
 
 
-def _drop_duplicates(images, pairing: Pairing) -> int:
+def _drop_duplicates(images: Stream, pairing: Pairing) -> int:
     """Unpair later images whose stamp repeats an earlier paired one (their PNG names would collide)."""
     seen, dropped = set(), 0
     for i in np.flatnonzero(pairing.cloud >= 0):
@@ -222,7 +232,7 @@ def _drop_duplicates(images, pairing: Pairing) -> int:
     return dropped
 
 
-def _no_pairs(args, images, clouds, pairing: Pairing, max_dt: float) -> InputError:
+def _no_pairs(args, images: Stream, clouds: Stream, pairing: Pairing, max_dt: float) -> InputError:
     closest = pairing.gap_ns.min() / 1e9
     return InputError(
         f"--max-dt {max_dt:g}: no image of {args.image_topic} has a cloud of {args.points_topic} within {max_dt:g} s; "
