@@ -6,57 +6,81 @@ sensor frame, metres, plus intensity when the file has it) from:
 - ``.bin``: KITTI Velodyne scan, raw little-endian float32, 4 values per point;
 - ``.npy``: a 2-D array with 3 or 4 columns (further columns are an error: say which
   three are x y z by slicing before saving);
-- ``.ply``: ``ascii`` or ``binary_little_endian``, ``element vertex`` with properties
-  ``x y z`` and optionally ``intensity`` (other vertex properties are skipped; other
-  elements after the vertices, e.g. faces, are ignored);
-- ``.pcd``: ``DATA ascii`` or ``DATA binary`` (not ``binary_compressed``), fields ``x y z``
-  and optionally ``intensity`` (other fields are skipped).
+- ``.ply``, read by `plyfile <https://github.com/dranjan/python-plyfile>`_: ``ascii``,
+  ``binary_little_endian`` or ``binary_big_endian``, an ``element vertex`` with scalar
+  properties ``x y z`` and optionally ``intensity`` (other vertex properties and other
+  elements, e.g. faces, are read by plyfile and ignored here);
+- ``.pcd``, read by `pypcd4 <https://github.com/MapIV/pypcd4>`_: ``DATA ascii``, ``binary``
+  or ``binary_compressed`` (LZF), fields ``x y z`` and optionally ``intensity`` (other
+  fields are ignored; a field with COUNT > 1 contributes its first value). pypcd4 needs
+  the COUNT and POINTS lines, at most 10 header lines besides comments, and ascii rows
+  separated by single spaces (PCL's own output is all three).
 
-:func:`write_ply` and :func:`write_pcd` write binary (default) or ascii files that
-:func:`read_points` reads back exactly (float32). No dependency beyond NumPy: the
-readers parse the headers and hand the body to ``numpy.frombuffer`` / ``numpy.loadtxt``.
+x, y, z (and intensity) of any numeric type are converted to float32 (integers exactly
+up to 2**24, float64 rounded to nearest). :func:`write_ply` (plyfile) and
+:func:`write_pcd` (pypcd4) write files that :func:`read_points` reads back exactly.
+The ``.bin`` and ``.npy`` readers stay hand-written: both formats are a bare array that
+``numpy.fromfile`` / ``numpy.load`` read directly; no library reads them better.
 
-Missing files raise ``FileNotFoundError``; unsupported formats, wrong column counts and
-truncated files raise :class:`crfdepth.errors.InputError` naming the file, what was
-expected and what was found.
+Both libraries raise their own exceptions (pydantic, LZF, struct and NumPy errors from
+pypcd4; ``PlyParseError`` from plyfile) and pypcd4 returns fewer points than announced
+for a binary file cut at a point boundary, so every call is wrapped: missing files
+raise ``FileNotFoundError``; unsupported formats, malformed headers, missing x/y/z,
+wrong column counts and truncated files raise :class:`crfdepth.errors.InputError`, one
+line starting ``points:`` that names the file, what was expected and what was found.
 """
 
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
+from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseError, PlyListProperty
+from pypcd4 import Encoding, MetaData, PointCloud
 
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes, check_input_file, check_output_file
+from crfdepth.io.files import atomic_write, check_input_file, check_output_file
 
 __all__ = ["POINT_FORMATS", "read_points", "write_pcd", "write_ply"]
 
 PathLike = str | os.PathLike
 POINT_FORMATS = (".bin", ".npy", ".ply", ".pcd")
 _NPY_MAGIC = b"\x93NUMPY"
-
-# PLY scalar type names (both spellings) -> little-endian NumPy dtype.
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
-}
-# PCD (TYPE, SIZE) -> NumPy dtype (PCD binary data is little-endian in practice).
-_PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4",
-              ("I", 8): "<i8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
+_NAMES = ("x", "y", "z", "intensity")
+# pypcd4 reads at most this many non-comment header lines looking for DATA.
+_PCD_HEADER_LINES = 10
+# What pypcd4 raises on data that does not match its header: NumPy (frombuffer, loadtxt,
+# broadcasting) and LZF ValueErrors, struct.error (short size prefix), TypeError (LZF
+# output that does not fit) and RuntimeError (wrong decompressed size).
+_PCD_DATA_ERRORS = (ValueError, TypeError, RuntimeError, struct.error)
 
 
 def _columns(fields: dict[str, np.ndarray], path: Path, what: str) -> np.ndarray:
     """Stack x, y, z (+ intensity) into float32 (N, 3|4); InputError when x y z are missing."""
-    missing = [name for name in ("x", "y", "z") if name not in fields]
+    missing = [name for name in _NAMES[:3] if name not in fields]
     if missing:
         raise InputError(f"points: {what} {path} has no {', '.join(missing)} field(s); expected x y z "
                          f"[intensity], found {' '.join(fields) or 'none'}")
-    names = ["x", "y", "z"] + (["intensity"] if "intensity" in fields else [])
+    names = _NAMES if "intensity" in fields else _NAMES[:3]
     return np.stack([np.asarray(fields[n], dtype=np.float32) for n in names], axis=1)
+
+
+def _reason(exc: BaseException, *, name: bool = True) -> str:
+    """A library exception as one short line: its class (``struct.error``, ``ValueError``) and the
+    first clause of its message, at most 120 characters."""
+    text = (str(exc).strip().splitlines() or [""])[0].split("; ")[0]
+    text = text if len(text) <= 120 else text[:117] + "..."
+    cls = type(exc)
+    qualified = cls.__name__ if cls.__module__ == "builtins" else f"{cls.__module__}.{cls.__name__}"
+    return f"{qualified}: {text}" if name and text else (text or qualified)
+
+
+def _check_not_empty(path: Path, what: str) -> None:
+    if path.stat().st_size == 0:
+        raise InputError(f"points: {path} is empty (0 bytes); expected a {what} file")
 
 
 # --------------------------------------------------------------------------- reading
@@ -76,8 +100,9 @@ def read_points(path: PathLike) -> np.ndarray:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        InputError: unsupported extension, malformed header, missing x/y/z fields, wrong
-            column count or truncated data.
+        InputError: unsupported extension, empty file, malformed or unsupported header,
+            missing x/y/z fields, list or unsupported field types, wrong column count or
+            truncated data.
     """
     path = check_input_file(path, "points")
     suffix = path.suffix.lower()
@@ -127,131 +152,122 @@ def _read_npy(path: Path) -> np.ndarray:
     return array.astype(np.float32)
 
 
-def _read_header(handle, path: Path, what: str, end: str, max_lines: int = 200) -> list[str]:
-    """Header lines up to and including the one starting with ``end`` (ASCII)."""
-    lines = []
-    for _ in range(max_lines):
-        raw = handle.readline()
-        if not raw:
-            break
-        line = raw.decode("ascii", errors="replace").strip()
-        lines.append(line)
-        if line.split(" ", 1)[0] == end:
-            return lines
-    raise InputError(f"points: {what} {path}: header has no '{end}' line (truncated or not a {what} file)")
-
-
 def _read_ply(path: Path) -> np.ndarray:
+    """PLY through ``plyfile.PlyData.read`` (memory-mapped binary, copied out here)."""
+    _check_not_empty(path, "PLY")
+    try:
+        ply = PlyData.read(str(path))
+    except PlyHeaderParseError as exc:
+        if exc.line == 1:
+            raise InputError(f"points: {path} is not a PLY file: expected a first line 'ply', "
+                             f"got another one (plyfile: {_reason(exc, name=False)})") from None
+        raise InputError(f"points: PLY {path}: malformed or unsupported header (plyfile: "
+                         f"{_reason(exc, name=False)}); expected format ascii, binary_little_endian or "
+                         f"binary_big_endian 1.0 and scalar types char uchar short ushort int uint float double "
+                         f"(or int8 ... float64)") from None
+    except PlyElementParseError as exc:
+        raise InputError(f"points: PLY {path}: {_ply_data_reason(exc)}") from None
+    except ValueError as exc:  # non-ASCII header, two elements of one name, a negative count
+        raise InputError(f"points: PLY {path}: malformed header ({_reason(exc)})") from None
+    if "vertex" not in ply:
+        found = " ".join(element.name for element in ply.elements) or "none"
+        raise InputError(f"points: PLY {path} has no 'vertex' element; expected 'element vertex N' with "
+                         f"properties x y z [intensity], found elements: {found}")
+    vertex = ply["vertex"]
+    lists = [prop.name for prop in vertex.properties if isinstance(prop, PlyListProperty)]
+    if lists:
+        raise InputError(f"points: PLY {path}: list property {', '.join(lists)} in the vertex element; "
+                         f"expected scalar vertex properties x y z [intensity]")
+    return _columns({prop.name: vertex[prop.name] for prop in vertex.properties}, path, "PLY")
+
+
+def _ply_data_reason(exc: PlyElementParseError) -> str:
+    """What a plyfile element error means: truncation (with counts) or data not matching the header."""
+    element = exc.element
+    if exc.message == "early end-of-file" and element is not None:
+        what = "vertices" if element.name == "vertex" else f"{element.name!r} elements"
+        return f"header announces {element.count} {what}, the file holds {exc.row} (truncated)"
+    return f"data do not match the header (plyfile: {_reason(exc, name=False)})"
+
+
+def _pcd_header(path: Path) -> MetaData:
+    """The header as pypcd4 parses it, checked before pypcd4 reads the data.
+
+    pypcd4 collects up to 10 non-comment lines, stops at ``DATA`` and validates them with
+    ``MetaData.parse_header``; a header without ``DATA`` is silently taken as
+    ``binary_compressed`` and unequal FIELDS/SIZE/TYPE lists misread, so the same lines
+    are collected here and those cases refused by name.
+    """
+    lines = []
     with open(path, "rb") as handle:
-        if handle.readline().strip() != b"ply":
-            raise InputError(f"points: {path} is not a PLY file (first line is not 'ply')")
-        header = _read_header(handle, path, "PLY", "end_header")
-        body = handle.read()
-    fmt, count, props, in_vertex, seen_vertex = None, None, [], False, False
-    for line in header:
-        tokens = line.split()
-        if not tokens or tokens[0] in ("comment", "obj_info"):
-            continue
-        if tokens[0] == "format":
-            fmt = tokens[1] if len(tokens) > 1 else ""
-        elif tokens[0] == "element":
-            in_vertex = len(tokens) == 3 and tokens[1] == "vertex"
-            if in_vertex:
-                if seen_vertex:
-                    raise InputError(f"points: PLY {path}: two 'element vertex' lines")
-                seen_vertex, count = True, int(tokens[2])
-            elif not seen_vertex:
-                raise InputError(f"points: PLY {path}: element {tokens[1:2]} comes before 'element vertex'; "
-                                 f"only files whose first element is the vertices are supported")
-        elif tokens[0] == "property" and in_vertex:
-            if tokens[1] == "list":
-                raise InputError(f"points: PLY {path}: list property in the vertex element is not supported")
-            if tokens[1] not in _PLY_TYPES or len(tokens) != 3:
-                raise InputError(f"points: PLY {path}: unknown vertex property type in {line!r}")
-            props.append((tokens[2], _PLY_TYPES[tokens[1]]))
-    if count is None:
-        raise InputError(f"points: PLY {path}: no 'element vertex N' line in the header")
-    names = [name for name, _ in props]
-    if fmt == "ascii":
-        rows = body.decode("ascii", errors="replace").split("\n")
-        rows = [r for r in rows if r.strip()][:count]
-        if len(rows) < count:
-            raise InputError(f"points: PLY {path}: header announces {count} vertices, the file holds "
-                             f"{len(rows)} (truncated)")
-        try:
-            table = np.array([r.split()[: len(props)] for r in rows], dtype=np.float64).reshape(count, len(props))
-        except ValueError:
-            raise InputError(f"points: PLY {path}: expected {len(props)} numbers per vertex line") from None
-        fields = {name: table[:, i] for i, name in enumerate(names)}
-    elif fmt == "binary_little_endian":
-        dtype = np.dtype([(f"f{i}", t) for i, (_, t) in enumerate(props)])
-        need = count * dtype.itemsize
-        if len(body) < need:
-            raise InputError(f"points: PLY {path}: header announces {count} vertices ({need} bytes), the "
-                             f"file holds {len(body)} bytes of data (truncated)")
-        table = np.frombuffer(body, dtype=dtype, count=count)
-        fields = {name: table[f"f{i}"] for i, name in enumerate(names)}
-    else:
-        raise InputError(f"points: PLY {path}: unsupported format {fmt!r}; expected ascii or "
-                         f"binary_little_endian")
-    return _columns(fields, path, "PLY")
+        while len(lines) < _PCD_HEADER_LINES and (raw := handle.readline(1 << 16)):
+            try:
+                line = raw.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                raise InputError(f"points: {path} is not a PCD file: expected a text header ending with a DATA "
+                                 f"line, found binary bytes after {len(lines)} header line(s)") from None
+            if line and not line.startswith("#"):
+                lines.append(line)
+                if line.startswith("DATA"):
+                    break
+    if not lines or not lines[-1].startswith("DATA"):
+        found = " | ".join(line[:40] for line in lines[:3]) or "no text"
+        raise InputError(f"points: {path} is not a PCD file or its header is malformed: expected at most "
+                         f"{_PCD_HEADER_LINES} header lines (VERSION FIELDS SIZE TYPE COUNT WIDTH HEIGHT "
+                         f"[VIEWPOINT] POINTS) ending with DATA, found {found!r}")
+    try:
+        header = MetaData.parse_header(lines)
+    except ValueError as exc:  # pydantic.ValidationError, int()/float() of a header value
+        raise InputError(f"points: PCD {path}: malformed or unsupported header ({_header_reason(exc)})") from None
+    _check_pcd_fields(header, path)
+    return header
+
+
+def _header_reason(exc: ValueError) -> str:
+    """A pydantic ValidationError as ``field: message (got value)``; other errors via :func:`_reason`."""
+    errors = getattr(exc, "errors", None)
+    if not callable(errors):
+        return _reason(exc)
+    parts = []
+    for error in errors()[:3]:
+        where = ".".join(str(part) for part in error["loc"]).upper()
+        got = "" if error["type"] == "missing" else f", got {error['input']!r}"
+        parts.append(f"{where}: {error['msg']}{got}")
+    return "; ".join(parts)
+
+
+def _check_pcd_fields(header: MetaData, path: Path) -> None:
+    """InputError unless FIELDS, SIZE, TYPE and COUNT agree and name types NumPy can read."""
+    lengths = [len(header.fields), len(header.size), len(header.type), len(header.count)]
+    if len(set(lengths)) > 1:
+        raise InputError(f"points: PCD {path}: malformed header: expected FIELDS, SIZE, TYPE and COUNT to list "
+                         f"one entry per field, found {'/'.join(map(str, lengths))} entries")
+    try:
+        header.build_dtype()
+    except KeyError as exc:  # pypcd4's (TYPE, SIZE) -> NumPy table has no entry
+        kind, size = exc.args[0]
+        name = next(n for n, k, s in zip(header.fields, header.type, header.size) if (k, s) == (kind, size))
+        raise InputError(f"points: PCD {path}: unsupported field type {kind} of size {size} for field {name!r}; "
+                         f"expected F 4/8 or I/U 1/2/4/8") from None
 
 
 def _read_pcd(path: Path) -> np.ndarray:
-    with open(path, "rb") as handle:
-        header = _read_header(handle, path, "PCD", "DATA")
-        body = handle.read()
-    entries = {}
-    for line in header:
-        tokens = line.split()
-        if tokens and not tokens[0].startswith("#"):
-            entries[tokens[0].upper()] = tokens[1:]
-    for key in ("FIELDS", "SIZE", "TYPE"):
-        if key not in entries:
-            raise InputError(f"points: PCD {path}: header has no {key} line")
-    names, sizes, types = entries["FIELDS"], entries["SIZE"], entries["TYPE"]
-    counts = entries.get("COUNT", ["1"] * len(names))
-    if not len(names) == len(sizes) == len(types) == len(counts):
-        raise InputError(f"points: PCD {path}: FIELDS, SIZE, TYPE and COUNT list different numbers of entries")
+    """PCD through ``pypcd4.PointCloud.from_path``, header checked first and point count after."""
+    _check_not_empty(path, "PCD")
+    header = _pcd_header(path)
+    data = header.data.value
     try:
-        sizes, counts = [int(s) for s in sizes], [int(c) for c in counts]
-        n = int(entries["POINTS"][0]) if "POINTS" in entries else (
-            int(entries["WIDTH"][0]) * int(entries.get("HEIGHT", ["1"])[0]))
-    except (ValueError, IndexError, KeyError):
-        raise InputError(f"points: PCD {path}: malformed SIZE/COUNT/POINTS/WIDTH in the header") from None
-    data = entries["DATA"][0].lower() if entries["DATA"] else ""
-    columns = []  # (name, dtype, count)
-    for name, size, kind, cnt in zip(names, sizes, types, counts):
-        dtype = _PCD_TYPES.get((kind.upper(), size))
-        if dtype is None:
-            raise InputError(f"points: PCD {path}: unsupported field type {kind} of size {size} for {name!r}")
-        columns.append((name, dtype, cnt))
-    if data == "ascii":
-        width = sum(c for _, _, c in columns)
-        rows = [r for r in body.decode("ascii", errors="replace").split("\n") if r.strip()][:n]
-        if len(rows) < n:
-            raise InputError(f"points: PCD {path}: header announces {n} points, the file holds {len(rows)} "
-                             f"(truncated)")
-        try:
-            table = np.array([r.split() for r in rows], dtype=np.float64).reshape(n, width)
-        except ValueError:
-            raise InputError(f"points: PCD {path}: expected {width} numbers per point line") from None
-        fields, offset = {}, 0
-        for name, _, cnt in columns:
-            fields[name] = table[:, offset]
-            offset += cnt
-    elif data == "binary":
-        dtype = np.dtype([(f"f{i}", t, (c,)) if c > 1 else (f"f{i}", t) for i, (_, t, c) in enumerate(columns)])
-        need = n * dtype.itemsize
-        if len(body) < need:
-            raise InputError(f"points: PCD {path}: header announces {n} points ({need} bytes), the file holds "
-                             f"{len(body)} bytes of data (truncated)")
-        table = np.frombuffer(body, dtype=dtype, count=n)
-        fields = {name: table[f"f{i}"] if c == 1 else table[f"f{i}"][:, 0]
-                  for i, (name, _, c) in enumerate(columns)}
-    else:
-        raise InputError(f"points: PCD {path}: unsupported DATA {data!r}; expected ascii or binary "
-                         f"(re-save binary_compressed clouds as binary, e.g. pcl_convert_pcd_ascii_binary)")
+        cloud = PointCloud.from_path(path)
+    except _PCD_DATA_ERRORS as exc:
+        raise InputError(f"points: PCD {path}: header announces {header.points} points (DATA {data}), the data "
+                         f"cannot be read ({_reason(exc)}): truncated, damaged or not as the header "
+                         f"describes") from None
+    table = np.atleast_1d(cloud.pc_data)[: header.points]  # pypcd4 gives a 0-d array for one ascii point
+    if len(table) < header.points:
+        raise InputError(f"points: PCD {path}: header announces {header.points} points, the file holds "
+                         f"{len(table)} (DATA {data}, truncated)")
+    meta = cloud.metadata
+    fields = {name: table[name if count == 1 else f"{name}__0000"] for name, count in zip(meta.fields, meta.count)}
     return _columns(fields, path, "PCD")
 
 
@@ -267,56 +283,69 @@ def _points_for_writing(points: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=np.float32)
 
 
-def _write_atomic(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically, after checking it as an output file (named ``path``)."""
+def _write_atomic(path: PathLike, write: Callable[[Path], None]) -> Path:
+    """Check ``path`` as an output file (named ``path``), then ``write`` it atomically."""
     path = check_output_file(path, "path")
-    atomic_write_bytes(path, data)
+    atomic_write(path, write)
     return path
 
 
-def _float_text(table: np.ndarray) -> bytes:
-    # repr-precision float32 text (9 significant digits) reads back bit for bit.
-    return "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in table.tolist()).encode("ascii")
-
-
 def write_ply(path: PathLike, points: np.ndarray, *, binary: bool = True) -> Path:
-    """Write points as a PLY file (vertex x y z [intensity], float32).
+    """Write points as a PLY file with plyfile (vertex x y z [intensity], float32).
 
     Args:
-        path: output file (its folder must exist); conventionally ``.ply``.
+        path: output file (its folder must exist); conventionally ``.ply``. Written
+            atomically (a temporary file renamed over it).
         points: (N, 3) or (N, 4) x, y, z (+ intensity); written as float32 (the input is
             not modified).
-        binary: ``binary_little_endian`` (default) or ``ascii``.
+        binary: ``binary_little_endian`` (default) or ``ascii`` (plyfile writes 18 significant digits).
 
     Returns:
         ``path`` as a Path. :func:`read_points` returns the same float32 values.
     """
     table = _points_for_writing(points)
-    names = ["x", "y", "z", "intensity"][: table.shape[1]]
-    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-              "comment written by crfdepth", f"element vertex {table.shape[0]}"]
-    header += [f"property float {n}" for n in names] + ["end_header"]
-    body = table.astype("<f4").tobytes() if binary else _float_text(table)
-    return _write_atomic(Path(path), ("\n".join(header) + "\n").encode("ascii") + body)
+    records = table.view(np.dtype([(name, np.float32) for name in _NAMES[: table.shape[1]]])).reshape(-1)
+    ply = PlyData([PlyElement.describe(records, "vertex")], text=not binary, byte_order="<",
+                  comments=["written by crfdepth"])
+    return _write_atomic(path, lambda temporary: ply.write(str(temporary)))
 
 
-def write_pcd(path: PathLike, points: np.ndarray, *, binary: bool = True) -> Path:
-    """Write points as a PCD v0.7 file (fields x y z [intensity], float32, unorganised).
+def write_pcd(path: PathLike, points: np.ndarray, *, binary: bool = True, compressed: bool = False) -> Path:
+    """Write points as a PCD v0.7 file with pypcd4 (fields x y z [intensity], float32, unorganised).
 
     Args:
-        path: output file (its folder must exist); conventionally ``.pcd``.
+        path: output file (its folder must exist); conventionally ``.pcd``. Written
+            atomically (a temporary file renamed over it).
         points: (N, 3) or (N, 4) x, y, z (+ intensity); written as float32.
         binary: ``DATA binary`` (default) or ``DATA ascii``.
+        compressed: ``DATA binary_compressed`` (LZF, per-field layout); needs ``binary``.
+            pypcd4 falls back to ``DATA binary`` when LZF cannot shrink the data (a few
+            points, noise-like values); :func:`read_points` reads either.
 
     Returns:
         ``path`` as a Path. :func:`read_points` returns the same float32 values.
+
+    Raises:
+        InputError: bad ``points`` shape or dtype, or ``compressed`` without ``binary``.
     """
+    if compressed and not binary:
+        raise InputError("compressed: binary_compressed is a binary PCD encoding; expected binary=True with "
+                         "compressed=True, got binary=False")
     table = _points_for_writing(points)
-    c = table.shape[1]
-    names = ["x", "y", "z", "intensity"][:c]
-    header = ["# .PCD v0.7 - Point Cloud Data file format (written by crfdepth)", "VERSION 0.7",
-              f"FIELDS {' '.join(names)}", f"SIZE {' '.join(['4'] * c)}", f"TYPE {' '.join(['F'] * c)}",
-              f"COUNT {' '.join(['1'] * c)}", f"WIDTH {table.shape[0]}", "HEIGHT 1",
-              "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {table.shape[0]}", f"DATA {'binary' if binary else 'ascii'}"]
-    body = table.astype("<f4").tobytes() if binary else _float_text(table)
-    return _write_atomic(Path(path), ("\n".join(header) + "\n").encode("ascii") + body)
+    names = _NAMES[: table.shape[1]]
+    cloud = PointCloud.from_points(table, names, [np.float32] * len(names))
+    if not binary:
+        return _write_atomic(path, lambda temporary: _save_pcd_ascii(cloud, table, temporary))
+    encoding = Encoding.BINARY_COMPRESSED if compressed else Encoding.BINARY
+    return _write_atomic(path, lambda temporary: cloud.save(temporary, encoding=encoding))
+
+
+def _save_pcd_ascii(cloud: PointCloud, table: np.ndarray, file: Path) -> None:
+    """pypcd4's ASCII header, then the (N, C) float32 ``table`` at 9 significant digits.
+
+    pypcd4's own ASCII body uses ``%.10f`` (10 decimals), which loses float32 values
+    below about 1e-3; 9 significant digits read back bit for bit.
+    """
+    with open(file, "wb") as handle:
+        handle.write(cloud.metadata.compose_header(data=Encoding.ASCII).encode("ascii"))
+        np.savetxt(handle, table, fmt="%.9g")
