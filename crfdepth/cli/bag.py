@@ -57,6 +57,7 @@ from crfdepth.cli.common import (
     check_output_file,
     complete_frame,
     make_output_dir,
+    positive_number,
     same_file,
     write_frame,
 )
@@ -86,16 +87,6 @@ INDEX_COLUMNS = ("timestamp_ns", "image_topic", "points_topic", "cloud_timestamp
                  "points_in_view", "depth_png", "std_png")
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds > 0, got {text!r}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The "a ROS bag" option group of ``complete``."""
     bag = parser.add_argument_group("a ROS bag", "ROS 1 .bag or ROS 2 (sqlite3, mcap) recordings; needs the "
@@ -108,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--rectified", action="store_true",
                      help="the images are already rectified: use CameraInfo's P, no distortion (default for "
                           "topics named *rect*)")
-    bag.add_argument("--max-dt", type=_seconds, default=None, metavar="SECONDS",
+    bag.add_argument("--max-dt", type=positive_number("seconds"), default=None, metavar="SECONDS",
                      help=f"largest time between an image and its cloud (default {DEFAULT_MAX_DT_S}: half a "
                           f"10 Hz LiDAR sweep)")
     bag.add_argument("--out-bag", metavar="OUT",

@@ -40,7 +40,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "MAX_WORKERS", "add_batch_arguments", "add_model_arguments", "build_model", "check_output_file",
            "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
-           "make_output_dir", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
+           "make_output_dir", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
@@ -194,15 +194,21 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
     return model.to(device=args.device, dtype=dtype).eval()
 
 
-def vis_range_type(text: str) -> float:
-    """One bound of ``--vis-range``: a finite number of metres > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number of metres > 0, got {text!r}")
-    return value
+def positive_number(unit: str):
+    """An argparse ``type`` accepting a finite number > 0 of ``unit`` (e.g. "metres", "seconds")."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not np.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a finite number of {unit} > 0, got {text!r}")
+        return value
+
+    return parse
+
+
+vis_range_type = positive_number("metres")  # one bound of --vis-range
 
 
 def write_pictures(folder: Path, stem: str, depth: np.ndarray, std: np.ndarray | None,

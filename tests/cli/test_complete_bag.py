@@ -322,3 +322,12 @@ def test_bad_frame_midway_keeps_earlier_frames_and_no_bag(main, tmp_path, capsys
     assert [r["timestamp_ns"] for r in _index(tmp_path / "d")] == [str(START_NS)]
     assert sorted(p.name for p in (tmp_path / "d").iterdir()) == [f"{START_NS}.png", "index.csv"]
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+
+
+@pytest.mark.parametrize("value", ["0", "-0.1", "nan", "soon"])
+def test_max_dt_must_be_positive_seconds(main, tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as info:
+        main(["complete", "--bag", str(tmp_path / "x.bag"), *TOPICS, "--out-dir", str(tmp_path / "d"),
+              "--max-dt", value])
+    assert info.value.code == 2
+    assert f"--max-dt: expected a finite number of seconds > 0, got {value!r}" in capsys.readouterr().err

@@ -104,6 +104,22 @@ def _byte_array(data, where: str) -> np.ndarray:
 # --------------------------------------------------------------------------- images
 
 
+def _rows(msg, where: str, kind: str, sizes: tuple[int, int, int, int], names: tuple[str, str],
+          what: str) -> np.ndarray:
+    """The ``height * step`` bytes of ``msg.data`` holding ``height`` rows of ``width`` items of ``item`` bytes,
+    each row ``step`` bytes long (padding allowed); ``sizes`` = (height, width, item, step), ``names`` the
+    message's words for item and step. Refuses a step shorter than a row and data shorter than the rows."""
+    height, width, item, step = sizes
+    if step < width * item:
+        raise InputError(f"{where}: expected {names[1]} >= width * {names[0]} = {width} * {item} = {width * item} "
+                         f"bytes for a {width}x{height} {what}, got {names[1]} {step}")
+    data = _byte_array(_field(msg, "data", where, kind), where)
+    if data.size < height * step:
+        raise InputError(f"{where}: expected at least height * {names[1]} = {height} * {step} = {height * step} "
+                         f"bytes of {what} data, got {data.size}: truncated {what.split()[-1]}")
+    return data[:height * step]
+
+
 def decode_image(msg, where: str) -> np.ndarray:
     """The (H, W, 3) uint8 RGB camera image of a ``sensor_msgs/Image`` or ``CompressedImage``.
 
@@ -144,14 +160,8 @@ def _decode_raw(msg, where: str) -> np.ndarray:
     height, width = _size(msg, "height", where, kind), _size(msg, "width", where, kind)
     step = _size(msg, "step", where, kind)
     channels = _CHANNELS[encoding]
-    if step < width * channels:
-        raise InputError(f"{where}: expected step >= width * channels = {width} * {channels} = {width * channels} "
-                         f"bytes for a {width}x{height} {encoding} image, got step {step}")
-    data = _byte_array(_field(msg, "data", where, kind), where)
-    if data.size < height * step:
-        raise InputError(f"{where}: expected at least height * step = {height} * {step} = {height * step} bytes "
-                         f"of {encoding} data, got {data.size}: truncated image")
-    rows = data[:height * step].reshape(height, step)[:, :width * channels]
+    data = _rows(msg, where, kind, (height, width, channels, step), ("channels", "step"), f"{encoding} image")
+    rows = data.reshape(height, step)[:, :width * channels]
     pixels = rows.reshape(height, width, channels)
     if encoding == "mono8":
         pixels = np.repeat(pixels, 3, axis=2)
@@ -380,13 +390,7 @@ def points_from_cloud(msg, where: str) -> np.ndarray:
     point_step = _size(msg, "point_step", where, kind)
     row_step = _size(msg, "row_step", where, kind, positive=False)
     dtype = _xyz_dtype(msg, where, point_step)
-    if row_step < width * point_step:
-        raise InputError(f"{where}: expected row_step >= width * point_step = {width} * {point_step} = "
-                         f"{width * point_step} bytes, got row_step {row_step}")
-    data = _byte_array(_field(msg, "data", where, kind), where)
-    if data.size < height * row_step:
-        raise InputError(f"{where}: expected at least height * row_step = {height} * {row_step} = "
-                         f"{height * row_step} bytes of point data, got {data.size}: truncated cloud")
+    data = _rows(msg, where, kind, (height, width, point_step, row_step), ("point_step", "row_step"), "cloud")
     records = np.ndarray(shape=(height, width), dtype=dtype, buffer=np.ascontiguousarray(data),
                          strides=(row_step, point_step))
     points = np.empty((height * width, 3), dtype=np.float32)
