@@ -8,8 +8,8 @@
 
 What is read (docs/design.md section 11; :mod:`crfdepth.io.ros`):
 
-- images: ``sensor_msgs/Image`` (rgb8, bgr8, mono8, rgba8, bgra8) or
-  ``sensor_msgs/CompressedImage`` (JPEG, PNG);
+- images: ``sensor_msgs/Image`` (rgb8, bgr8, mono8, rgba8, bgra8, Bayer ``bayer_*8``,
+  YUV 4:2:2) or ``sensor_msgs/CompressedImage`` (JPEG, PNG);
 - the camera: ``sensor_msgs/CameraInfo`` from ``--camera-info-topic`` (default: the
   ``camera_info`` topic beside the image topic), the message nearest in record time to
   each image; an image topic whose last name contains ``rect`` (or ``--rectified``) is

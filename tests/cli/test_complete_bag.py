@@ -249,8 +249,8 @@ BAD = {
                                    ["--camera-info-topic", "96x48", "96x64"]),
     "clocks never pair": (lambda t: _bag_with(t, cloud_offsets_ns=[1000 * 10**9] * 2), [],
                           ["--max-dt 0.05", "the closest gap is 999.9 s", "different clocks"]),
-    "unsupported encoding": (lambda t: _bag_with(t, encoding="bayer_rggb8"), [],
-                             ["--image-topic", "bayer_rggb8", "rgb8"]),
+    "unsupported encoding": (lambda t: _bag_with(t, encoding="mono16"), [],
+                             ["--image-topic", "mono16", "rgb8"]),
     "unsupported cloud layout": (lambda t: _bag_with(t, xyz_type=3), [],
                                  ["--points-topic", POINTS_TOPIC, "INT16", "FLOAT32"]),
     "truncated ROS 1 bag": (lambda t: _truncated(t, "ros1"), [], ["--bag", "cannot be read", "truncated"]),
@@ -331,3 +331,19 @@ def test_max_dt_must_be_positive_seconds(main, tmp_path, capsys, value):
               "--max-dt", value])
     assert info.value.code == 2
     assert f"--max-dt: expected a finite number of seconds > 0, got {value!r}" in capsys.readouterr().err
+
+
+def test_bayer_images_are_demosaiced_then_completed(main, model, tmp_path):
+    """A colour-filter camera's raw topic (bayer_rggb8): the depth is that of OpenCV's demosaiced image."""
+    import cv2
+
+    pytest.importorskip("rosbags.image")
+    from tests.io.ros.bags import _mosaic
+
+    recorded = write_bag(tmp_path / "in", "sqlite3", count=1, encoding="bayer_rggb8")
+    assert main(["complete", "--bag", str(recorded.path), *TOPICS, "--out-dir", str(tmp_path / "d"), *FAST]) == 0
+    rgb = cv2.cvtColor(_mosaic(recorded.images[0])[..., 0], cv2.COLOR_BayerBG2RGB)
+    depth, _ = complete_depth(rgb, points=recorded.clouds[0], K=recorded.K, T_cam_lidar=recorded.T_cam_lidar,
+                              model=model, return_std=False)
+    png = read_depth_png(tmp_path / "d" / f"{recorded.image_ns[0]}.png")
+    assert np.abs(png - _quantised(depth)).max() <= 1 / 256 + 1e-6

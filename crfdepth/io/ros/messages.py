@@ -1,12 +1,13 @@
 """ROS message contents as numpy arrays: camera images, camera calibration, point clouds.
 
 The functions read ``sensor_msgs`` messages of ROS 1 or ROS 2 as deserialised by
-``rosbags`` (``rosbags.highlevel.AnyReader``) by duck typing on their attributes: this
-module never imports ``rosbags``, so it works without the optional extra and with any
-object carrying the same field names (``types.SimpleNamespace`` in tests).
+``rosbags`` (``rosbags.highlevel.AnyReader``) by duck typing on their attributes, so it
+works with any object carrying the same field names (``types.SimpleNamespace`` in tests);
+only Bayer and YUV images need the optional extra (``rosbags-image``'s conversion).
 
 - :func:`decode_image`: ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``mono8``, ``rgba8``,
-  ``bgra8``) or ``sensor_msgs/CompressedImage`` (JPEG / PNG) -> (H, W, 3) uint8 RGB.
+  ``bgra8``; Bayer ``bayer_*8`` and YUV 4:2:2) or ``sensor_msgs/CompressedImage`` (JPEG /
+  PNG) -> (H, W, 3) uint8 RGB.
 - :func:`camera_from_info`: ``sensor_msgs/CameraInfo`` -> :class:`CameraModel` (K,
   OpenCV distortion, image size). ROS 2 spells the matrices ``k d r p``, ROS 1 ``K D R P``.
 - :func:`points_from_cloud`: ``sensor_msgs/PointCloud2`` -> (N, 3) float32 x y z (metres,
@@ -15,14 +16,14 @@ object carrying the same field names (``types.SimpleNamespace`` in tests).
   depth map (metres, 0 = missing), for writing.
 - :func:`stamp_ns`: a header's stamp in integer nanoseconds.
 
-Every bad message content raises :class:`~crfdepth.errors.InputError` with one line
-``<where>: expected ..., got ...``, where ``where`` is the caller's description of the
-message (``--image-topic /cam/image_raw (image at 1700000000123456789 ns)``).
+Bad message content raises :class:`~crfdepth.errors.InputError`, one line ``<where>: expected
+..., got ...``; ``where`` describes the message (``--image-topic /cam/image_raw (image at ...)``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -40,8 +41,12 @@ __all__ = [
     "stamp_ns",
 ]
 
-IMAGE_ENCODINGS = ("rgb8", "bgr8", "mono8", "rgba8", "bgra8")
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgba8": 4, "bgra8": 4}
+# Colour-filter and YUV encodings, converted by rosbags-image (the ros extra) with OpenCV:
+# encoding -> bytes per pixel.
+_CONVERTED = {"bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1, "bayer_grbg8": 1, "uyvy": 2, "yuv422": 2,
+              "yuyv": 2, "yuv422_yuy2": 2}
+IMAGE_ENCODINGS = (*_CHANNELS, *_CONVERTED)
 _DEPTH_ENCODINGS = ("16uc1", "32fc1")
 _DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)  # the lengths OpenCV accepts
@@ -125,8 +130,9 @@ def decode_image(msg, where: str) -> np.ndarray:
 
     A ``CompressedImage`` (it has ``format``) is decoded by OpenCV from JPEG or PNG; an
     ``Image`` (it has ``encoding``) must be one of :data:`IMAGE_ENCODINGS`: ``mono8`` is
-    replicated to three channels, alpha dropped, BGR reordered to RGB; padded rows
-    (``step > width * channels``) are honoured. The result is a new C-contiguous array.
+    replicated to three channels, alpha dropped, BGR reordered to RGB, Bayer patterns and
+    YUV 4:2:2 converted by rosbags-image; padded rows (``step > width * channels``) are
+    honoured. The result is a new C-contiguous array.
 
     Raises:
         InputError: unsupported encoding (depth images named as such), truncated data,
@@ -143,14 +149,14 @@ def decode_image(msg, where: str) -> np.ndarray:
 def _check_encoding(encoding: str, where: str) -> str:
     """The lower-case ``encoding`` when supported, else an InputError listing the supported ones."""
     name = str(encoding).strip().lower()
-    if name in _CHANNELS:
+    if name in _CHANNELS or name in _CONVERTED:
         return name
     supported = ", ".join(IMAGE_ENCODINGS)
     if name in _DEPTH_ENCODINGS:
         raise InputError(f"{where}: expected an 8-bit camera image with encoding {supported}, got encoding "
                          f"{encoding!r}, which looks like a depth image, not a camera image (check --image-topic)")
-    raise InputError(f"{where}: expected an image with encoding {supported}, got unsupported encoding "
-                     f"{encoding!r} (use a debayered 8-bit colour or mono topic, e.g. image_color or image_rect_color)")
+    raise InputError(f"{where}: expected an 8-bit image with encoding {supported}, got unsupported encoding "
+                     f"{encoding!r} (use an 8-bit colour or mono topic, e.g. image_color or image_rect_color)")
 
 
 def _decode_raw(msg, where: str) -> np.ndarray:
@@ -159,10 +165,12 @@ def _decode_raw(msg, where: str) -> np.ndarray:
     encoding = _check_encoding(_field(msg, "encoding", where, kind), where)
     height, width = _size(msg, "height", where, kind), _size(msg, "width", where, kind)
     step = _size(msg, "step", where, kind)
-    channels = _CHANNELS[encoding]
+    channels = _CHANNELS.get(encoding) or _CONVERTED[encoding]
     data = _rows(msg, where, kind, (height, width, channels, step), ("channels", "step"), f"{encoding} image")
     rows = data.reshape(height, step)[:, :width * channels]
     pixels = rows.reshape(height, width, channels)
+    if encoding in _CONVERTED:
+        return _convert(np.ascontiguousarray(pixels[:, :, 0] if channels == 1 else pixels), encoding, where)
     if encoding == "mono8":
         pixels = np.repeat(pixels, 3, axis=2)
     elif encoding.startswith("bgr"):
@@ -170,6 +178,24 @@ def _decode_raw(msg, where: str) -> np.ndarray:
     else:
         pixels = pixels[:, :, :3]
     return np.array(pixels, dtype=np.uint8, order="C", copy=True)
+
+
+def _convert(pixels: np.ndarray, encoding: str, where: str) -> np.ndarray:
+    """RGB of a Bayer or YUV image (``pixels``: (H, W) or (H, W, 2), rows without padding) by rosbags-image's
+    conversion: OpenCV's, with the ROS names of the patterns (ROS's ``bayer_rggb8`` is OpenCV's ``BayerBG``)."""
+    try:
+        from rosbags.image import ImageError, image_to_cvimage
+    except ImportError:
+        raise InputError(f"{where}: {encoding} images are converted by the rosbags-image package, which is not "
+                         f"installed; install it with: pip install 'crfdepth[ros]'") from None
+    height, width = pixels.shape[:2]
+    unpadded = SimpleNamespace(encoding=encoding, height=height, width=width, is_bigendian=0, data=pixels.ravel())
+    try:
+        rgb = image_to_cvimage(unpadded, "rgb8")
+    except (ImageError, cv2.error) as exc:
+        raise InputError(f"{where}: could not convert the {encoding} image of {pixels.shape[1]}x{pixels.shape[0]} "
+                         f"pixels to RGB ({str(exc).strip().splitlines()[-1]})") from None
+    return np.array(rgb, dtype=np.uint8, order="C", copy=True)
 
 
 def _png_bit_depth(data: np.ndarray) -> int | None:

@@ -48,6 +48,14 @@ def synthetic_frames(count: int, height: int = 64, width: int = 96, seed: int = 
     return images, [s.points for s in scenes], scenes[0].K, scenes[0].T_cam_lidar
 
 
+def _mosaic(rgb: np.ndarray) -> np.ndarray:
+    """What an RGGB colour-filter camera records of ``rgb``: (H, W, 1), red at even rows and columns."""
+    mosaic = rgb[..., 1].copy()
+    mosaic[0::2, 0::2] = rgb[0::2, 0::2, 0]
+    mosaic[1::2, 1::2] = rgb[1::2, 1::2, 2]
+    return mosaic[..., None]
+
+
 class BagBuilder(BagWriter):
     """crfdepth's bag writer plus what the tests need beyond it: other image encodings (bgr8, mono8, a
     Bayer pattern, JPEG) and clouds with a ring field and x y z of another type. ``kind`` is
@@ -63,7 +71,8 @@ class BagBuilder(BagWriter):
             ok, data = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
             return self.types["sensor_msgs/msg/CompressedImage"](
                 header=self.header(stamp_ns, frame_id), format="rgb8; jpeg compressed bgr8", data=data.ravel())
-        pixels = {"bgr8": rgb[..., ::-1], "mono8": rgb[..., :1], "bayer_rggb8": rgb[..., :1]}[encoding]
+        pixels = {"bgr8": rgb[..., ::-1], "mono8": rgb[..., :1], "mono16": np.repeat(rgb[..., :1], 2, axis=2),
+                  "bayer_rggb8": _mosaic(rgb)}[encoding]
         pixels = np.ascontiguousarray(pixels)
         h, w, c = pixels.shape
         return self.types["sensor_msgs/msg/Image"](header=self.header(stamp_ns, frame_id), height=h, width=w,
