@@ -54,11 +54,11 @@ from tqdm import tqdm
 from crfdepth.cli.common import (
     BAD_INPUT,
     build_model,
-    check_output_file,
+    check_output_folders,
+    check_writable_dir,
     complete_frame,
     make_output_dir,
     positive_number,
-    same_file,
     write_frame,
 )
 from crfdepth.errors import InputError
@@ -138,20 +138,8 @@ def _check_out_bag(args: argparse.Namespace) -> Path | None:
         raise InputError(f"--out-bag: expected OUT.bag (ROS 1) or a folder name (ROS 2 bags are folders), got {out}")
     if out.exists() or out.is_symlink():
         raise InputError(f"--out-bag: expected a new bag, got {out}, which exists; remove it or choose another name")
-    check_output_file(out.parent / "probe.png", "--out-bag")  # its folder exists and is writable
+    check_writable_dir(out.parent, "--out-bag")
     return out
-
-
-def _check_out_dirs(args: argparse.Namespace, bag: Path) -> None:
-    folders = [("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir)]
-    if args.vis:
-        folders.append(("--vis", args.vis))
-    for flag, value in folders:
-        if value is not None and same_file(value, bag):
-            raise InputError(f"{flag}: {value} is the --bag input; refusing to write there")
-    named = [str(Path(v).resolve()) for _, v in folders if v is not None]
-    if len(set(named)) != len(named):
-        raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
 
 
 # --------------------------------------------------------------------------- the plan (pass 1)
@@ -330,16 +318,14 @@ def run_bag(args: argparse.Namespace) -> int:
     _check_flags(args)
     max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
     out_bag = _check_out_bag(args)
-    _check_out_dirs(args, Path(args.bag))
+    targets = check_output_folders(args, [Path(args.bag)], "the --bag input")
     start = time.perf_counter()
     with Recording(args.bag, f"--bag {args.bag}") as bag:
         plan = _plan(bag, args, max_dt)
         model = build_model(args)
         out_dir = make_output_dir(args.out_dir, "--out-dir")
         std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
-        vis_dir = None
-        if args.vis is not None:
-            vis_dir = make_output_dir(args.vis or f"{out_dir.resolve()}_vis", "--vis")
+        vis_dir = make_output_dir(targets[-1][1], "--vis") if args.vis is not None else None
         with_std = std_dir is not None or vis_dir is not None
         topics = _output_topics(args.image_topic)
         storage = "sqlite3" if bag.storage == "sqlite3" else "mcap"  # of a ROS 2 output

@@ -39,6 +39,7 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_model, load_pretrain
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "MAX_WORKERS", "add_batch_arguments", "add_model_arguments", "build_model", "check_output_file",
+           "check_output_folders", "check_writable_dir",
            "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
            "make_output_dir", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
@@ -105,7 +106,8 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
                        help="default: float32")
 
 
-def _check_writable_dir(directory: Path, what: str) -> None:
+def check_writable_dir(directory: Path, what: str) -> None:
+    """An existing, writable folder (named ``what`` in the error)."""
     if not directory.is_dir():
         raise FileNotFoundError(f"{what}: output folder does not exist: {directory}")
     if not os.access(directory, os.W_OK | os.X_OK):
@@ -119,7 +121,7 @@ def check_output_file(path: str, what: str) -> Path:
         raise InputError(f"{what}: expected a file name ending in .png, got {out}")
     if out.is_dir():
         raise IsADirectoryError(f"{what}: expected a file name, got a folder: {out}")
-    _check_writable_dir(out.parent, what)
+    check_writable_dir(out.parent, what)
     return out
 
 
@@ -132,8 +134,24 @@ def make_output_dir(path: str | Path, what: str) -> Path:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise PermissionError(f"{what}: cannot create output folder {directory}: {exc.strerror}") from None
-    _check_writable_dir(directory, what)
+    check_writable_dir(directory, what)
     return directory
+
+
+def check_output_folders(args: argparse.Namespace, inputs: list[Path], source: str) -> list[tuple[str, str | None]]:
+    """The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders of the folder and bag modes as ``(flag, folder)``
+    (``--vis`` only when given; a bare ``--vis`` is ``<out-dir>_vis``), refused when one is among ``inputs``
+    (named ``source`` in the message) or two are the same folder. Nothing is created."""
+    targets = [("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir)]
+    if args.vis is not None:
+        targets.append(("--vis", args.vis or f"{Path(args.out_dir).resolve()}_vis"))
+    for flag, value in targets:
+        if value is not None and any(same_file(value, p) for p in inputs):
+            raise InputError(f"{flag}: {value} is {source}; refusing to write there")
+    resolved = [os.path.realpath(v) for _, v in targets if v is not None]
+    if len(set(resolved)) != len(resolved):
+        raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
+    return targets
 
 
 def same_file(a: Path, b: Path) -> bool:

@@ -85,7 +85,6 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -104,6 +103,7 @@ from crfdepth.cli.common import (
     add_model_arguments,
     build_model,
     check_output_file,
+    check_output_folders,
     check_sample,
     complete_batch,
     frame_batches,
@@ -282,15 +282,7 @@ def _run_folder(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"--input-dir: no such folder: {args.input_dir}")
     dataset = open_completion_folder(args.input_dir)
     inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
-    targets = [("--out-dir", args.out_dir), ("--out-std-dir", args.out_std_dir)]
-    if args.vis is not None:
-        targets.append(("--vis", args.vis or f"{Path(args.out_dir).resolve()}_vis"))
-    for flag, value in targets:
-        if value is not None and any(same_file(value, p) for p in inputs):
-            raise InputError(f"{flag}: {value} is an input folder of {dataset.root}; refusing to write there")
-    resolved = [os.path.realpath(v) for _, v in targets if v is not None]
-    if len(set(resolved)) != len(resolved):
-        raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
+    targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
     model = build_model(args)
     out_dir = make_output_dir(args.out_dir, "--out-dir")
     std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None

@@ -261,6 +261,7 @@ BAD = {
                        ["--out-bag", "exists"]),
     "calib of another size": (lambda t: _small_rig(t) and _bag_with(t), ["--calib", "{t}/rig.yaml"],
                               ["--calib", "rig.yaml", "96x64", "96x48"]),
+    "out-dir is the bag": (lambda t: _bag_with(t), ["--out-dir", "{t}/in"], ["--out-dir", "is the --bag input"]),
     "with --image": (lambda t: _bag_with(t), ["--image", "x.png"], ["--image", "cannot be combined with --bag"]),
 }
 
@@ -271,9 +272,9 @@ def test_bad_input(main, tmp_path, capsys, case):
     make, extra, expected = BAD[case]
     bag = make(tmp_path)
     extra = [a.format(t=tmp_path) for a in extra]
-    args = dict(zip(TOPICS[::2], TOPICS[1::2]))
+    args = {**dict(zip(TOPICS[::2], TOPICS[1::2])), "--out-dir": str(tmp_path / "d")}
     args.update(dict(zip(extra[::2], extra[1::2])))
-    argv = ["complete", "--bag", str(bag), *[a for kv in args.items() for a in kv], "--out-dir", str(tmp_path / "d")]
+    argv = ["complete", "--bag", str(bag), *[a for kv in args.items() for a in kv]]
     if "--out-bag" not in args:
         argv += ["--out-bag", str(tmp_path / "out")]
     assert main([*argv, *FAST]) == 2
