@@ -135,13 +135,14 @@ def _pretrained(cls: type[CRFDepth], name: str, overrides: Mapping[str, Any]) ->
 
 def own_structure(name: str) -> dict[str, Any]:
     """The structure the shipped weight set ``name`` is made for: its stored configuration with
-    ``CRFDepth``'s defaults for what it does not store (``"paper"``: all defaults).
+    ``CRFDepth``'s defaults for what it does not store (``"paper"``: ``CRFDepth().config``).
 
     Raises:
         InputError: an unknown ``name``.
     """
     config, _ = pretrained_state(name)
-    defaults = {k: p.default for k, p in inspect.signature(_model.CRFDepth.__init__).parameters.items()
+    defaults = {k: list(p.default) if isinstance(p.default, tuple) else p.default  # as in CRFDepth.config
+                for k, p in inspect.signature(_model.CRFDepth.__init__).parameters.items()
                 if p.default is not inspect.Parameter.empty}
     return {**defaults, **config}
 

@@ -29,8 +29,8 @@ import torch
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write, atomic_write_bytes, check_output_file
 
-__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS", "WEIGHTS_FORMAT",
-           "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint", "read_weights", "weights_path",
+__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
+           "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint", "read_weights", "weights_path",
            "write_model_file", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
@@ -221,8 +221,8 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         InputError: naming the file and the problem: a folder; not a checkpoint; no state
-            dict in it; a bare state dict without a configuration; a Lightning checkpoint without ``hyper_parameters["crf"]`` or
-            without ``model.`` keys; a tensor with NaN or inf (``path: <file>: parameter
+            dict in it; a bare state dict without a configuration; a Lightning checkpoint
+            without ``hyper_parameters["crf"]`` or without ``model.`` keys; a tensor with NaN or inf (``path: <file>: parameter
             raw_alpha: expected finite values, got nan``); a CUDA ``map_location``
             without CUDA.
     """

@@ -383,7 +383,8 @@ def _modified_model() -> CRFDepth:
 
 def _model_file(state: dict[str, torch.Tensor]):
     """Writes a crfdepth model file (crfdepth.weights.save_model's layout) of the default configuration."""
-    return lambda p: torch.save({"format": "crfdepth", "version": 1, "config": CRFDepth().config, "state_dict": state}, p)
+    return lambda p: torch.save({"format": "crfdepth", "version": 1, "config": CRFDepth().config,
+                                 "state_dict": state}, p)
 
 
 def test_complete_checkpoint_loads(main, synth, tmp_path):
