@@ -42,7 +42,6 @@ from crfdepth.potentials import (VARIABLES, EnergyTerms, Variable, colour_affini
 from crfdepth.robust import DEFAULT_IRLS_SCALE, reweight
 from crfdepth.superpixels import slic_batch
 from crfdepth.uncertainty import conditional_variance, grid_conditional_variance
-from crfdepth.weights.files import pretrained_state
 
 Mode = Literal["superpixel", "pixel"]
 POTENTIALS = ("colour", "normal", "distance")
@@ -217,13 +216,14 @@ class CRFDepth(ConstrainedWeights):
 
         ``"kitti"``: weights learned on real KITTI frames (``crfdepth/weights/README.md``
         says how); ``"paper"``: the hand-set initial values of ``CRFDepth()``.
-        ``overrides`` replace stored arguments, e.g. ``mode="pixel"``.
+        ``overrides`` replace stored arguments, e.g. ``mode="superpixel"``; without them
+        the model has the structure the weights were made for (kitti: pixel grid, log
+        depth, occlusion gate). Stored tensors are loaded with every key checked (a
+        missing or unexpected one is an error naming the file).
         """
-        config, state = pretrained_state(name)
-        model = cls(**{**config, **overrides})
-        if state:  # the learned head's tensors (the scalars are in ``config``)
-            model.load_state_dict(state, strict=False)
-        return model.eval()
+        from crfdepth.weights import _pretrained  # crfdepth.weights imports this module
+
+        return _pretrained(cls, name, overrides)
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
         """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""

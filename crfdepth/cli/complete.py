@@ -63,8 +63,8 @@ The model (:func:`build_model`): without ``--checkpoint``, the shipped weights n
 ``--weights`` (default ``kitti``, learned on KITTI; ``paper`` = the hand-set initial
 values of ``CRFDepth()``) with the options given. ``--checkpoint`` is read by
 :func:`crfdepth.weights.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
-:func:`crfdepth.weights.save_model`, or a bare state dict, which gets the default
-configuration): the checkpoint's configuration defines the model, and the model options
+:func:`crfdepth.weights.save_model` or a JSON weights file; a bare state dict, which holds
+no configuration, is refused): the checkpoint's configuration defines the model, and the model options
 given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
 override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.
 

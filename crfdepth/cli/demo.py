@@ -2,7 +2,9 @@
 
 With no arguments it generates the built-in synthetic street scene (no download),
 completes its simulated 64-beam LiDAR with the CRF through
-:func:`crfdepth.api.complete_depth`, prints the metrics against the scene's ground truth
+:func:`crfdepth.api.complete_depth` (the ``--weights`` set, default kitti, in the structure
+stored with it, kitti: pixel grid, log depth, occlusion gate; ``--mode`` overrides the
+graph; the first line printed names the model run), prints the metrics against the scene's ground truth
 next to the nearest-neighbour baseline, and writes to ``--out-dir`` (default
 ``./crfdepth_demo``):
 
@@ -45,12 +47,12 @@ import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
-from crfdepth.cli.common import vis_range_type, write_rgb_png
+from crfdepth.cli.common import model_line, vis_range_type, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
-from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained
+from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained, own_structure
 from crfdepth.pictures import depth_picture, std_picture
 from crfdepth.visualize import depth_range, draw_points, render_point_cloud
 
@@ -112,8 +114,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="seed of the synthetic scene, >= 0 (default 0)")
     parser.add_argument("--beams", type=_int_at_least(1, MAX_BEAMS), default=64,
                         help=f"beams of the simulated LiDAR, 1 to {MAX_BEAMS} (default 64)")
-    parser.add_argument("--mode", choices=("superpixel", "pixel"), default="superpixel",
-                        help="CRF graph (default: superpixel)")
+    own = ", ".join(f"{name}: {own_structure(name)['mode']}" for name in WEIGHTS)
+    parser.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
+                        help=f"CRF graph (default: the weights' own structure ({own}))")
     parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
                         help=f"shipped weight set: kitti (learned on KITTI) or paper (hand-set); "
                              f"default: {DEFAULT_WEIGHTS}")
@@ -222,13 +225,17 @@ def _pictures(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, depth:
 def run(args: argparse.Namespace) -> int:
     """Run the demo; returns 0.
 
-    Prints, per frame, one metrics line per method and one line per written file group,
-    then a last line saying what was written where.
+    Prints the model line (``model: kitti weights, pixel grid, log depth, occlusion gate``:
+    the weights in their own structure unless ``--mode`` overrides it), then per frame one
+    metrics line per method and one line per written file group, then a last line saying
+    what was written where.
     """
     out_dir = _check_out_dir(args.out_dir)
     frames = _frames(args)
-    model = load_pretrained(args.weights, mode=args.mode)
+    overrides = {} if args.mode is None else {"mode": args.mode}
+    model = load_pretrained(args.weights, **overrides)
     data_dir = _make_dirs(out_dir)
+    print(model_line(model, f"{args.weights} weights", overrides, own_structure(args.weights) if overrides else None))
     start = time.perf_counter()
     count = 0
     for name, image, sparse, K, target in frames:

@@ -8,7 +8,8 @@
 
 Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
 :func:`crfdepth.weights.load_model`; without it, the shipped ``--weights``, by default
-the ones learned on KITTI) over the
+the ones learned on KITTI), in the structure stored with the weights unless ``--mode``
+etc. override it (the line ``model: ...`` says which; ``--quiet`` drops it), over the
 frames of ``crfdepth.data.build_dataset(--layout, --data, ...)`` under
 ``torch.no_grad()`` and compares the float depth with the ground truth of each frame.
 The metrics are KITTI's (:func:`crfdepth.metrics.depth_metrics`): over the pixels with
@@ -53,7 +54,7 @@ of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and
   ``val_selection``, the ``velodyne_raw`` file names the benchmark devkit expects).
 
 Every check that needs no computation comes first (options, data folder and layout,
-checkpoint, output folder), so bad input exits with status 2 and a one-line message
+output folder, checkpoint), so bad input exits with status 2 and a one-line message
 before anything is written. The CSV and JSON are written atomically at the end, so a run
 that fails midway leaves neither (PNGs written before the failure stay). Frames with
 ground truth but no ground-truth pixel (possible after a crop) are skipped with a
@@ -90,7 +91,7 @@ from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
                               uncertainty_metrics)
-from crfdepth.weights import DEFAULT_WEIGHTS
+from crfdepth.weights import DEFAULT_WEIGHTS, describe
 
 logger = logging.getLogger(__name__)
 
@@ -163,7 +164,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     out.add_argument("--save-png", action="store_true",
                      help=f"also write each prediction to {PNG_FOLDER}/<frame name>.png (KITTI uint16, "
                           f"metres * 256)")
-    out.add_argument("--quiet", action="store_true", help="no progress bar")
+    out.add_argument("--quiet", action="store_true", help="no progress bar and no 'model: ...' line")
     add_model_arguments(parser)
     parser.set_defaults(func=run)
     return parser
@@ -397,8 +398,8 @@ def run(args: argparse.Namespace) -> int:
     """
     options = _dataset_options(args)
     dataset, root = _open_dataset(args, options)
-    model = build_model(args)
     out_dir = _check_out_dir(args, root)
+    model = build_model(args)  # prints the model line: after every refusal of the options
     png_dir = None
     if args.save_png:
         png_dir = out_dir / PNG_FOLDER
@@ -437,7 +438,7 @@ def run(args: argparse.Namespace) -> int:
 
     source = args.checkpoint if args.checkpoint is not None else f"{args.weights or DEFAULT_WEIGHTS} weights"
     data = f"{args.layout} {root}" if root is not None else args.layout
-    print(f"crfdepth evaluate: {source} on {data}, {model.mode} mode, {args.dtype}")
+    print(f"crfdepth evaluate: {source} on {data}, {describe(model)}, {args.dtype}")
     print(format_table(summary))
     if skipped:
         print(f"skipped {len(skipped)} frame(s) without ground-truth pixels (listed in {JSON_NAME})")

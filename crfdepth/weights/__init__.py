@@ -11,10 +11,11 @@ Shipped weight sets (:func:`load_pretrained`, ``CRFDepth.from_pretrained``, the 
   beside it says which frames, config and command made it, and what it measured.
 - ``"paper"``: the hand-set initial values of ``CRFDepth()`` (no file).
 
-:func:`load_model` reads four kinds of file (:func:`crfdepth.weights.files.read_checkpoint`).
-The first three are read with ``torch.load(weights_only=True)`` (only tensors and plain
-containers are unpickled; no code in the file runs), and every floating tensor in them
-must be finite:
+:func:`load_model` reads three kinds of file (:func:`crfdepth.weights.files.read_checkpoint`),
+each holding the weights *and* the structure they were made for (one structure per
+weights). The torch files are read with ``torch.load(weights_only=True)`` (only tensors and
+plain containers are unpickled; no code in the file runs), and every floating tensor in
+them must be finite:
 
 (a) a Lightning checkpoint (``.ckpt``) of the trainer in ``train/``: ``{"state_dict":
     {"model.<name>": tensor, ...}, "hyper_parameters": {"crf": {CRFDepth kwargs}}, ...}``.
@@ -23,10 +24,7 @@ must be finite:
     loss module, optimizer and loop states) are ignored.
 (b) crfdepth's own model file, written by :func:`save_model`: ``{"format": "crfdepth",
     "version": 1, "config": {CRFDepth kwargs}, "state_dict": {name: tensor}}``.
-(c) a bare ``CRFDepth().state_dict()`` (``torch.save(model.state_dict(), path)``): it
-    holds no configuration, so the model is built with the default configuration
-    (superpixel mode, all potentials, refinement on) unless ``overrides`` say otherwise.
-(d) a JSON weights file, written by :func:`save_weights` (such as the shipped
+(c) a JSON weights file, written by :func:`save_weights` (such as the shipped
     ``kitti.json``): recognised by its first character ``{``. The CRF has ten learnable
     numbers, so the file is not a pickle but its complete ``CRFDepth`` configuration
     (``model.config`` with the learned values of ``alpha .. std_scale`` written in) plus
@@ -41,6 +39,13 @@ must be finite:
     rounding of the logit/log, about 1e-7 relative). ``python -m train.export`` turns a
     trainer checkpoint into one.
 
+A bare ``state_dict()`` (``torch.save(model.state_dict(), path)``) is refused with a
+one-line :class:`~crfdepth.errors.InputError` (``path: <file>: expected a complete model
+file, got a bare state dict ...``): it holds no configuration, and the same tensors run in
+another structure (the shipped pixel / log-depth / gate weights in the default superpixel
+model) give a wrong depth without any error. Load it into the model it came from and
+:func:`save_model` that.
+
 The configuration is ``CRFDepth.config``: the constructor's keyword arguments, JSON
 friendly. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by the stored
 tensors; the structural options (``mode``, ``potentials``, ``refine``, solver settings)
@@ -52,6 +57,7 @@ The file formats themselves (reading, writing, checks) are in
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from pathlib import Path
@@ -84,8 +90,8 @@ if TYPE_CHECKING:
     from crfdepth.model import CRFDepth
 
 __all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS", "WEIGHTS_FORMAT",
-           "WEIGHTS_VERSION", "load_model", "load_pretrained", "pretrained_state", "read_checkpoint",
-           "read_weights", "save_model", "save_weights", "weights_path"]
+           "WEIGHTS_VERSION", "describe", "load_model", "load_pretrained", "own_structure", "pretrained_state",
+           "read_checkpoint", "read_weights", "save_model", "save_weights", "weights_path"]
 
 logger = logging.getLogger(__name__)
 
@@ -107,14 +113,68 @@ def load_pretrained(name: str = DEFAULT_WEIGHTS, **overrides: Any) -> CRFDepth:
     Raises:
         InputError: an unknown ``name``, or overrides that ``CRFDepth`` rejects.
     """
+    return _pretrained(_model.CRFDepth, name, overrides)
+
+
+def _pretrained(cls: type[CRFDepth], name: str, overrides: Mapping[str, Any]) -> CRFDepth:
+    """:func:`load_pretrained` for ``cls`` (``CRFDepth.from_pretrained`` of a subclass builds the subclass).
+
+    The stored tensors (the learned head's, if any; the scalars are in the configuration)
+    are loaded by :func:`_load_state`: every key checked, a missing, unexpected or
+    misshapen one is an error naming the file.
+    """
     config, state = pretrained_state(name)
     try:
-        model = _model.CRFDepth(**{**config, **overrides})
+        model = cls(**{**config, **overrides})
     except TypeError as exc:  # an unknown keyword argument
         raise InputError(f"overrides: not CRFDepth arguments ({exc})") from None
     if state:  # empty for the JSON weights files shipped today
         model = _load_state(weights_path(name), model, state)
     return model.eval()
+
+
+def own_structure(name: str) -> dict[str, Any]:
+    """The structure the shipped weight set ``name`` is made for: its stored configuration with
+    ``CRFDepth``'s defaults for what it does not store (``"paper"``: ``CRFDepth().config``).
+
+    Raises:
+        InputError: an unknown ``name``.
+    """
+    config, _ = pretrained_state(name)
+    defaults = {k: list(p.default) if isinstance(p.default, tuple) else p.default  # as in CRFDepth.config
+                for k, p in inspect.signature(_model.CRFDepth.__init__).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+    return {**defaults, **config}
+
+
+def describe(model_or_config: CRFDepth | Mapping[str, Any]) -> str:
+    """The structure of a model (or of a configuration) in words, for the commands' model line.
+
+    Example: ``"pixel grid, log depth, occlusion gate"`` (the shipped kitti weights) or
+    ``"superpixel graph (5500 segments) + pixel refinement, depth, no gate"`` (``CRFDepth()``).
+    Potentials other than all three, the learned head, the IP-Basic prior and the
+    posterior std are added where they are set.
+    """
+    config = model_or_config.config if isinstance(model_or_config, torch.nn.Module) else model_or_config
+    get = config.get
+    if get("mode", "superpixel") == "pixel":
+        parts = ["pixel grid"]
+    else:
+        graph = f"superpixel graph ({get('superpixels', 5500)} segments)"
+        parts = [graph + (" + pixel refinement" if get("refine", True) else ", no refinement")]
+    parts.append({"depth": "depth", "inverse": "inverse depth", "log": "log depth"}.get(get("variable", "depth"),
+                                                                                          str(get("variable"))))
+    parts.append("occlusion gate" if get("gate", False) else "no gate")
+    potentials = list(get("potentials", _model.POTENTIALS))
+    if sorted(potentials) != sorted(_model.POTENTIALS):
+        parts.append("potentials " + ",".join(potentials))
+    if get("head", False):
+        parts.append("learned head")
+    if get("prior", "nearest") != "nearest":
+        parts.append(f"{get('prior')} prior")
+    if get("uncertainty", "predictive") != "predictive":
+        parts.append(f"{get('uncertainty')} std")
+    return ", ".join(parts)
 
 
 def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, Any] | None = None) -> Path:
@@ -175,9 +235,9 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     """Rebuild a :class:`~crfdepth.model.CRFDepth` from a checkpoint file.
 
     Reads a Lightning ``.ckpt`` (configuration from ``hyper_parameters["crf"]``), a file of
-    :func:`save_model`, a bare ``CRFDepth`` state dict (which carries no configuration:
-    the **default** ``CRFDepth()`` configuration is used) or a JSON weights file of
-    :func:`save_weights`, as described in the module docstring. Torch files are read with
+    :func:`save_model` or a JSON weights file of :func:`save_weights`, as described in the
+    module docstring; the model is built in the structure stored with the weights. A bare
+    state dict (no configuration) is refused. Torch files are read with
     ``torch.load(path, weights_only=True, map_location=map_location)``: a file holding
     anything but tensors and plain containers is refused without running any of its code.
 
@@ -197,7 +257,9 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     Raises:
         FileNotFoundError: ``path`` does not exist (the path is named).
         InputError: naming the file and the problem: a folder; not a checkpoint (random
-            bytes, a text file, a pickle of other objects); no state dict in it; a
+            bytes, a text file, a pickle of other objects); no state dict in it; a bare
+            state dict without its configuration (``path: <file>: expected a complete
+            model file, got a bare state dict ...``); a
             Lightning checkpoint without ``hyper_parameters["crf"]`` or without
             ``model.`` keys; a tensor that is not finite (``path: <file>: parameter
             raw_alpha: expected finite values, got nan``); an invalid configuration;

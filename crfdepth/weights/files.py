@@ -9,9 +9,10 @@ the model can import it (docs/design.md section 8).
 - The shipped weight sets: :func:`weights_path`, :func:`pretrained_state`.
 - The JSON weights file: :func:`read_weights`, :func:`write_weights`.
 - crfdepth's own model file: :func:`write_model_file`.
-- Any checkpoint (the four kinds of the :mod:`crfdepth.weights` docstring):
+- Any checkpoint (the three kinds of the :mod:`crfdepth.weights` docstring):
   :func:`read_checkpoint`. Torch files are read with ``torch.load(weights_only=True)``;
-  every floating tensor must be finite.
+  every floating tensor must be finite. A bare ``state_dict()`` is refused
+  (:data:`BARE_STATE_DICT`): it does not say which structure its weights belong to.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ import torch
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write, atomic_write_bytes, check_output_file
 
-__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS", "WEIGHTS_FORMAT",
-           "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint", "read_weights", "weights_path",
+__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
+           "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint", "read_weights", "weights_path",
            "write_model_file", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
@@ -51,6 +52,13 @@ LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "
 #: What a configuration written before these options existed meant: an old checkpoint is
 #: rebuilt as it was trained (docs/design.md section 3b).
 _OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "nearest", "uncertainty": "posterior"}
+
+BARE_STATE_DICT = (
+    "path: {file}: expected a complete model file, got a bare state dict: it holds weights but not the "
+    "model's structure (mode, variable, gate ...); load it into the model it came from and save that with "
+    "crfdepth.weights.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
+"""The refusal of a bare ``state_dict()`` (no configuration): run in another structure (the default
+one), the weights would give wrong depth without any error."""
 
 _FOLDER = Path(__file__).resolve().parent  # the shipped files lie beside this module
 _LIGHTNING_PREFIX = "model."  # the trainer's LightningModule stores the CRF as ``self.model``
@@ -190,30 +198,31 @@ def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: 
 
 def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu"
                     ) -> tuple[dict[str, Any], dict[str, torch.Tensor], str]:
-    """The configuration, state dict and kind of a checkpoint file of any of the four kinds.
+    """The configuration, state dict and kind of a checkpoint file of any of the three kinds.
 
     A JSON weights file gives its configuration and an empty state dict (the learned
     values are in the configuration). A torch file is read with ``torch.load(path,
     weights_only=True, map_location=map_location)``: a file holding anything but tensors
     and plain containers is refused without running any of its code. Its state dict is
     brought to the current layout (the old buffer ``refine_prior`` becomes the parameter
-    ``log_refine_prior``) and every floating tensor in it must be finite.
+    ``log_refine_prior``) and every floating tensor in it must be finite. A bare state dict
+    (``torch.save(model.state_dict(), path)``) is refused: without its configuration the
+    weights would run in another structure (:data:`BARE_STATE_DICT`).
 
     Args:
         path: the checkpoint file.
         map_location: device to load the tensors to ("cpu", "cuda", a ``torch.device``).
 
     Returns:
-        ``(config, state, kind)``: the stored ``CRFDepth`` keyword arguments (``{}`` for a
-        bare state dict), the state dict (``{}`` for a weights file), and the kind of file
-        for messages ("weights file", "crfdepth model file", "Lightning checkpoint",
-        "state dict").
+        ``(config, state, kind)``: the stored ``CRFDepth`` keyword arguments, the state
+        dict (``{}`` for a weights file without a head), and the kind of file for messages
+        ("weights file", "crfdepth model file", "Lightning checkpoint").
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         InputError: naming the file and the problem: a folder; not a checkpoint; no state
-            dict in it; a Lightning checkpoint without ``hyper_parameters["crf"]`` or
-            without ``model.`` keys; a tensor with NaN or inf (``path: <file>: parameter
+            dict in it; a bare state dict without a configuration; a Lightning checkpoint
+            without ``hyper_parameters["crf"]`` or without ``model.`` keys; a tensor with NaN or inf (``path: <file>: parameter
             raw_alpha: expected finite values, got nan``); a CUDA ``map_location``
             without CUDA.
     """
@@ -317,7 +326,8 @@ def _unpack(file: Path, loaded: Any) -> tuple[dict[str, Any], dict[str, torch.Te
             raise InputError(f"{file}: {kind} has no '{_LIGHTNING_PREFIX}' keys in its state_dict (the CRF "
                              f"is stored as the LightningModule's 'model'); got {_some(sorted(full))}")
         return dict(config), state, kind
-    return {}, _state_dict(file, loaded, "file"), "state dict"
+    _state_dict(file, loaded, "file")  # not even a state dict: that is the message
+    raise InputError(BARE_STATE_DICT.format(file=file))
 
 
 def _state_dict(file: Path, value: Any, kind: str) -> dict[str, torch.Tensor]:
@@ -346,8 +356,9 @@ def _check_finite(file: Path, state: Mapping[str, torch.Tensor]) -> None:
 
 
 def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -> dict[str, Any]:
-    """Options a configuration predates take their old meaning; a bare state dict (no
-    configuration) says by its keys whether it has a gate and a head."""
+    """Options a configuration predates take their old meaning; an empty configuration (a
+    Lightning checkpoint of ``CRFDepth()`` with every default) says by its state's keys whether
+    it has a gate and a head."""
     if config:
         return {**_OLD_DEFAULTS, **config}
     if state:

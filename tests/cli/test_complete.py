@@ -24,7 +24,7 @@ from crfdepth.fill import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.weights import weights_path
+from crfdepth.weights import save_model, weights_path
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
 # Cheap model options for tests about files and names rather than accuracy.
@@ -372,13 +372,19 @@ def test_complete_bad_potentials_is_a_usage_error(main, synth, tmp_path, capsys)
 # --------------------------------------------------------------------------- checkpoints
 
 
-def _modified_state_dict() -> dict[str, torch.Tensor]:
+def _modified_model() -> CRFDepth:
     model = CRFDepth()
     with torch.no_grad():
         model.raw_beta += 4.0  # much stronger colour smoothing
         model.log_sigma_d += 1.5  # across colour edges too
         model.log_confidence -= 3.0  # weaker data term
-    return model.state_dict()
+    return model
+
+
+def _model_file(state: dict[str, torch.Tensor]):
+    """Writes a crfdepth model file (crfdepth.weights.save_model's layout) of the default configuration."""
+    return lambda p: torch.save({"format": "crfdepth", "version": 1, "config": CRFDepth().config,
+                                 "state_dict": state}, p)
 
 
 def test_complete_checkpoint_loads(main, synth, tmp_path):
@@ -388,15 +394,15 @@ def test_complete_checkpoint_loads(main, synth, tmp_path):
         return read_depth_png(out)
 
     default = complete("--weights", "paper")  # the hand-set weights of CRFDepth()
-    torch.save(CRFDepth().state_dict(), tmp_path / "default.pt")
+    save_model(CRFDepth(), tmp_path / "default.pt")
     np.testing.assert_array_equal(complete("--checkpoint", tmp_path / "default.pt"), default)
     shipped = complete()  # no --checkpoint, no --weights: the learned KITTI weights
     np.testing.assert_array_equal(complete("--weights", "kitti"), shipped)
     np.testing.assert_array_equal(complete("--checkpoint", weights_path("kitti")), shipped)
     assert np.abs(shipped - default).max() > 1e-3  # metres
 
-    state = _modified_state_dict()
-    torch.save(state, tmp_path / "modified.pt")
+    state = _modified_model().state_dict()
+    save_model(_modified_model(), tmp_path / "modified.pt")
     modified = complete("--checkpoint", tmp_path / "modified.pt")
     assert np.abs(modified - default).max() > 0.1  # metres: the weights changed the result
 
@@ -414,10 +420,10 @@ BAD_CHECKPOINTS = {
     "text file": (lambda p: p.write_text("alpha = 0.5\n"), ["not a torch state dict"]),
     "random pickle": (_write_pickle, ["not a torch state dict"]),
     "a tensor": (lambda p: torch.save(torch.ones(3), p), ["does not hold a state dict", "Tensor"]),
-    "wrong keys": (lambda p: torch.save({"encoder.weight": torch.ones(3)}, p),
+    "wrong keys": (_model_file({"encoder.weight": torch.ones(3)}),
                    ["does not match CRFDepth", "missing keys (11)", "log_confidence",
                     "unexpected keys (1): encoder.weight"]),
-    "wrong shape": (lambda p: torch.save({**CRFDepth().state_dict(), "raw_alpha": torch.ones(2)}, p),
+    "wrong shape": (_model_file({**CRFDepth().state_dict(), "raw_alpha": torch.ones(2)}),
                     ["does not match CRFDepth", "wrong shapes (1): raw_alpha"]),
 }
 

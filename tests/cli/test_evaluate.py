@@ -285,7 +285,8 @@ def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, m
     monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
-    assert code == 2 and stdout == ""
+    assert code == 2 and stdout.startswith("model: kitti weights, superpixel graph (800 segments)")
+    assert stdout.count("\n") == 1  # the model line of the started run, nothing else
     assert "--std: expected the model to return a standard deviation" in stderr and stderr.count("\n") == 1
     assert not (tmp_path / "out").exists()
 

@@ -114,14 +114,6 @@ def test_save_bad_arguments(tmp_path):
         save_model(CRFDepth(), tmp_path)
 
 
-def test_bare_state_dict_loads_with_the_default_configuration(tmp_path):
-    model = _trained()
-    torch.save(model.state_dict(), tmp_path / "weights.pt")
-    loaded = load_model(tmp_path / "weights.pt")
-    assert loaded.config == CRFDepth().config  # nothing stored: the default configuration
-    _assert_same_parameters(loaded, model)
-
-
 def _lightning(state: dict, crf: dict | None, **extra) -> dict:
     """A dict shaped like the trainer's Lightning checkpoint (the CRF stored as ``self.model``)."""
     out = {"epoch": 3, "global_step": 120, "pytorch-lightning_version": "2.4.0",
@@ -187,10 +179,10 @@ BAD = {
                                 ["is not a torch state dict", "datetime.datetime"]),
     "a tensor": (lambda p: torch.save(torch.ones(3), p), ["does not hold a state dict", "got Tensor"]),
     "empty dict": (lambda p: torch.save({}, p), ["does not hold a state dict", "empty dict"]),
-    "wrong keys": (lambda p: torch.save({"encoder.weight": torch.ones(3)}, p),
+    "wrong keys": (_crfdepth_file(state_dict={"encoder.weight": torch.ones(3)}),
                    ["does not match CRFDepth", "missing keys (11)", "log_confidence",
                     "unexpected keys (1): encoder.weight"]),
-    "wrong shape": (lambda p: torch.save({**CRFDepth().state_dict(), "raw_alpha": torch.ones(2)}, p),
+    "wrong shape": (_crfdepth_file(state_dict={**CRFDepth().state_dict(), "raw_alpha": torch.ones(2)}),
                     ["does not match CRFDepth", "wrong shapes (1): raw_alpha (2,) instead of ()"]),
     "lightning without hyper_parameters": (
         lambda p: torch.save(_lightning(CRFDepth().state_dict(), None), p),
@@ -288,11 +280,18 @@ def test_loads_a_lightning_checkpoint_without_lightning(tmp_path):
     assert mode == "pixel" and float(alpha) == pytest.approx(float(model.alpha.detach()))
 
 
+def _model_file(path: Path, state: dict, config: dict | None = None) -> Path:
+    """A crfdepth model file holding ``state`` (default configuration unless ``config``)."""
+    torch.save({"format": MODEL_FORMAT, "version": MODEL_VERSION,
+                "config": CRFDepth().config if config is None else config, "state_dict": state}, path)
+    return path
+
+
 def test_state_dict_with_the_old_refine_prior_buffer_loads(tmp_path):
     model = CRFDepth(refine_prior=0.02)
     state = {k: v for k, v in model.state_dict().items() if k != "log_refine_prior"}
     state["refine_prior"] = torch.tensor(0.02)  # the layout before the prior became learnable
-    torch.save(state, tmp_path / "old.pt")
+    _model_file(tmp_path / "old.pt", state, model.config)
     loaded = load_model(tmp_path / "old.pt")
     assert float(loaded.refine_prior.detach()) == pytest.approx(0.02, rel=1e-6)
     assert loaded.weights() == pytest.approx(model.weights(), rel=1e-6)
@@ -301,18 +300,15 @@ def test_state_dict_with_the_old_refine_prior_buffer_loads(tmp_path):
 # --------------------------------------------------------------------------- non-finite tensors
 
 
-@pytest.mark.parametrize("kind", ["state dict", "crfdepth model file", "Lightning checkpoint"])
+@pytest.mark.parametrize("kind", ["crfdepth model file", "Lightning checkpoint"])
 @pytest.mark.parametrize("key, value, got", [("raw_alpha", float("nan"), "nan"),
                                              ("log_sigma_d", float("inf"), "inf"),
                                              ("eps", float("-inf"), "-inf")])
 def test_non_finite_tensor_is_refused_naming_file_and_parameter(tmp_path, kind, key, value, got):
     state = {**_trained().state_dict(), key: torch.tensor(value)}
     path = tmp_path / "x.ckpt"
-    if kind == "state dict":
-        torch.save(state, path)
-    elif kind == "crfdepth model file":
-        torch.save({"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": CRFDepth().config,
-                    "state_dict": state}, path)
+    if kind == "crfdepth model file":
+        _model_file(path, state)
     else:
         torch.save(_lightning(state, CRFDepth().config), path)
     with pytest.raises(InputError) as info:
@@ -323,7 +319,7 @@ def test_non_finite_tensor_is_refused_naming_file_and_parameter(tmp_path, kind, 
 def test_non_finite_old_refine_prior_is_named_as_stored(tmp_path):
     state = {k: v for k, v in CRFDepth().state_dict().items() if k != "log_refine_prior"}
     for value, message in ((float("nan"), "expected finite values, got nan"), (0.0, "expected values > 0, got 0.0")):
-        torch.save({**state, "refine_prior": torch.tensor(value)}, tmp_path / "old.pt")
+        _model_file(tmp_path / "old.pt", {**state, "refine_prior": torch.tensor(value)})
         with pytest.raises(InputError) as info:
             load_model(tmp_path / "old.pt")
         assert str(info.value) == f"path: {tmp_path / 'old.pt'}: parameter refine_prior: {message}"
@@ -332,8 +328,8 @@ def test_non_finite_old_refine_prior_is_named_as_stored(tmp_path):
 def test_non_finite_entries_of_a_larger_tensor_are_counted(tmp_path):
     from crfdepth.weights.files import read_checkpoint
 
-    torch.save({"w": torch.tensor([1.0, float("nan"), float("nan"), 2.0]), "steps": torch.tensor([3])},
-               tmp_path / "x.pt")
+    _model_file(tmp_path / "x.pt", {"w": torch.tensor([1.0, float("nan"), float("nan"), 2.0]),
+                                    "steps": torch.tensor([3])})
     with pytest.raises(InputError, match=r"parameter w: expected finite values, got nan \(2 of 4 values not finite\)"):
         read_checkpoint(tmp_path / "x.pt")
 

@@ -108,10 +108,12 @@ def test_load_pretrained_and_from_pretrained_build_the_same_model(name, override
         assert a.weights()["alpha"] == pytest.approx(0.3, rel=1e-6)
 
 
-def _shipped_torch_file(monkeypatch, tmp_path, state: dict[str, torch.Tensor]):
-    """Let the "kitti" set be a torch file holding ``state`` (the shipped one is JSON)."""
+def _shipped_torch_file(monkeypatch, tmp_path, state: dict[str, torch.Tensor], config: dict | None = None):
+    """Let the "kitti" set be a crfdepth model file holding ``state`` and ``config`` (the shipped one is JSON)."""
     monkeypatch.setattr(files, "_FOLDER", tmp_path)
-    torch.save(state, tmp_path / "kitti.json")  # a zip archive: read as a torch file, not JSON
+    torch.save({"format": files.MODEL_FORMAT, "version": files.MODEL_VERSION,
+                "config": CRFDepth().config if config is None else config, "state_dict": state},
+               tmp_path / "kitti.json")  # a zip archive: read as a torch file, not JSON
     return tmp_path / "kitti.json"
 
 
@@ -119,10 +121,11 @@ def test_shipped_state_dict_of_the_old_layout_is_upgraded(monkeypatch, tmp_path)
     model = CRFDepth(refine_prior=0.02)
     state = {k: v for k, v in model.state_dict().items() if k not in ("log_refine_prior", "std_head.weights")}
     state["refine_prior"] = torch.tensor(0.02)  # the buffer before the prior became learnable
-    _shipped_torch_file(monkeypatch, tmp_path, state)
+    _shipped_torch_file(monkeypatch, tmp_path, state, {"refine_prior": 0.02})  # a configuration of that time
     config, loaded = pretrained_state("kitti")
-    # A bare state dict says by its keys that it has neither gate nor head nor predictive std.
-    assert config == {"gate": False, "head": False, "uncertainty": "posterior"} and "refine_prior" not in loaded
+    # The options the configuration predates take their old meaning: no gate, no head, posterior std.
+    assert config == {"variable": "depth", "gate": False, "head": False, "prior": "nearest",
+                      "uncertainty": "posterior", "refine_prior": 0.02} and "refine_prior" not in loaded
     assert float(loaded["log_refine_prior"].exp()) == pytest.approx(0.02, rel=1e-6)
     for built in (load_pretrained("kitti"), CRFDepth.from_pretrained("kitti")):
         assert built.weights() == pytest.approx(model.weights(), rel=1e-6)
