@@ -17,10 +17,13 @@ import sys
 import time
 from typing import TextIO
 
-__all__ = ["FrameProgress", "SECONDS_PER_PIXEL", "SHOW_AFTER_S", "STAGE_NAMES"]
+__all__ = ["FrameProgress", "REPEAT_AFTER_S", "SECONDS_PER_PIXEL", "SHOW_AFTER_S", "STAGE_NAMES"]
 
 SHOW_AFTER_S = 2.0
 """Seconds (expected or elapsed) from which a frame's stages are shown."""
+REPEAT_AFTER_S = 1.0
+"""A stage already shown (the model runs some once per frame or per round) is shown again only this many
+seconds after the last line."""
 SECONDS_PER_PIXEL = {"cpu": 1.0e-6}
 """Rough forward time per pixel by device type, for the expectation (2 CPU threads: 0.6-1.9 us per pixel at
 4000x3000-6000x4000, docs/design.md section 10); other devices start showing from the elapsed time only."""
@@ -46,6 +49,8 @@ class FrameProgress:
         self.expected = height * width * SECONDS_PER_PIXEL.get(device_type, 0.0)
         self.start = time.perf_counter()
         self.shown = False
+        self.seen: set[str] = set()
+        self.last = 0.0  # elapsed seconds at the last line
         self.width = 0  # characters of the line on a terminal
 
     def stage(self, name: str) -> None:
@@ -55,6 +60,10 @@ class FrameProgress:
         elapsed = time.perf_counter() - self.start
         if not self.shown and max(self.expected, elapsed) < SHOW_AFTER_S:
             return
+        if name in self.seen and elapsed - self.last < REPEAT_AFTER_S:
+            return  # a stage met again (per frame, per round) within the second: no new line
+        self.seen.add(name)
+        self.last = elapsed
         self._write(f"{self.prefix}: {STAGE_NAMES.get(name, name)}, {elapsed:.1f} s")
 
     def _write(self, line: str) -> None:
