@@ -54,32 +54,46 @@ API_ADVICE = ("use a smaller image (or batch), a device with more memory (device
 """The likely fix of a memory refusal in the Python API (the CLI names its own options)."""
 
 
-def cli_advice(device: str) -> str:
-    """The likely fix of a memory refusal in the CLI, whose ``--device`` is ``device``."""
-    return f"use a smaller image or {'--device cuda' if device == 'cpu' else '--device cpu'}"
+def cli_advice(device: str, batch: int | None = None) -> str:
+    """The likely fix of a memory refusal in the CLI, whose ``--device`` is ``device``: of one frame, or
+    (``batch`` given) of a batch of the folder modes."""
+    other = "--device cuda" if device == "cpu" else "--device cpu"
+    if batch is None:
+        return f"use a smaller image or {other}"
+    return f"use smaller images{', --batch-size 1' if batch > 1 else ''} or {other}"
 
 
 class MemoryRefusal(InputError):
     """A forward refused (or failed) for lack of memory; one line, like every :class:`InputError`.
 
-    Attributes: ``estimate`` (bytes, or None), ``limit`` (bytes, or None), ``what`` (the
-    user's name of the image), ``size`` ((batch, height, width)) and ``reason`` (the
-    message after the size, without the advice): enough for :meth:`retold` to say it
-    again with another name and another fix (the CLI's flags).
+    Made by :meth:`build`; ``MemoryRefusal(message)`` alone (as callers re-raise an
+    ``InputError`` with more text) keeps the message. Attributes: ``estimate`` and ``limit``
+    (bytes, or None), ``what`` (the user's name of the image), ``size`` ((batch, height,
+    width)), ``reason`` (the message after the size, without the advice): enough for
+    :meth:`retold` to say it again with another name and another fix (the CLI's flags).
     """
 
-    def __init__(self, what: str, size: tuple[int, int, int], reason: str, advice: str,
-                 estimate: int | None = None, limit: float | None = None) -> None:
-        self.what, self.size, self.reason, self.advice = what, size, reason, advice
-        self.estimate, self.limit = estimate, limit
+    what: str = "image"
+    size: tuple[int, int, int] | None = None
+    reason: str = ""
+    estimate: int | None = None
+    limit: float | None = None
+
+    @classmethod
+    def build(cls, what: str, size: tuple[int, int, int], reason: str, advice: str, estimate: int | None = None,
+              limit: float | None = None) -> "MemoryRefusal":
         batch, height, width = size
         frames = f"a frame of {width}x{height} pixels" if batch == 1 else \
             f"a batch of {batch} frame(s) of {width}x{height} pixels"
-        super().__init__(f"{what}: {frames} {reason}; {advice}")
+        refusal = cls(f"{what}: {frames} {reason}; {advice}")
+        refusal.what, refusal.size, refusal.reason, refusal.estimate, refusal.limit = what, size, reason, estimate, limit
+        return refusal
 
     def retold(self, what: str, advice: str) -> "MemoryRefusal":
-        """The same refusal naming the image ``what`` and advising ``advice``."""
-        return MemoryRefusal(what, self.size, self.reason, advice, self.estimate, self.limit)
+        """The same refusal naming the image ``what`` and advising ``advice`` (itself when it was not built)."""
+        if self.size is None:
+            return self
+        return MemoryRefusal.build(what, self.size, self.reason, advice, self.estimate, self.limit)
 
 
 def estimate_bytes(mode: str, pixels: int, return_std: bool, uncertainty: str, element_size: int = 4) -> int:
@@ -194,7 +208,7 @@ def check_memory(mode: str, batch: int, height: int, width: int, return_std: boo
     else:
         limit, source = available_memory(device), f"the memory available on {device}"
     if limit is not None and estimate > limit:
-        raise MemoryRefusal(what, (batch, height, width),
+        raise MemoryRefusal.build(what, (batch, height, width),
                             f"needs about {estimate / 1e9:.1f} GB ({_mode_text(mode, return_std, dtype)}), more than "
                             f"{source} ({limit / 1e9:.1f} GB)", advice, estimate, limit)
     return estimate
@@ -255,5 +269,5 @@ def out_of_memory(exc: BaseException, size: tuple[int, int, int], device: torch.
     known = [f"estimated about {estimate / 1e9:.1f} GB"] if estimate is not None else []
     if available is not None:
         known.append(f"{available / 1e9:.1f} GB available on {device} now")
-    return MemoryRefusal(what, size, f"ran out of memory on {device} ({'; '.join(known + [first])})", advice,
+    return MemoryRefusal.build(what, size, f"ran out of memory on {device} ({'; '.join(known + [first])})", advice,
                          estimate, available)

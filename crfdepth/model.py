@@ -126,8 +126,8 @@ class CRFDepth(ConstrainedWeights):
         std_terms: initial weights of the predictive std by name
             (:data:`crfdepth.predictive.STD_TERMS`; None: the hand-set ones), learnable.
         memory_limit_gb: refuse a forward whose estimated peak memory
-            (:mod:`crfdepth.memory`) exceeds this many GB, before allocating; None: the
-            device's memory.
+            (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
+            allocating; None: the memory the device has available at each forward.
     """
 
     def __init__(

@@ -247,3 +247,29 @@ def test_cli_allocator_failure_exits_2_with_one_line(main, capsys, tmp_path, mon
                            f"of memory on cpu (estimated about 0.3 GB; ")
     assert line.endswith(f"{ALLOCATOR_FAILURE}); use a smaller image or --device cuda")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("batch_size, advice", [(1, "use smaller images or --device cuda"),
+                                                (2, "use smaller images, --batch-size 1 or --device cuda")])
+def test_cli_folder_mode_refusal_is_one_line_with_the_folder_fix(main, capsys, tmp_path, monkeypatch, batch_size,
+                                                                 advice):
+    monkeypatch.setattr(memory, "available_memory", lambda device: 0.2e9)  # below the fixed overhead
+    root = tmp_path / "folder"
+    for sub in ("image", "velodyne_raw", "intrinsics"):
+        (root / sub).mkdir(parents=True)
+    for name in ("0000000000", "0000000001"):
+        frame = _frame(tmp_path / "tmp")
+        frame["image"].rename(root / "image" / f"{name}.png")
+        frame["sparse"].rename(root / "velodyne_raw" / f"{name}.png")
+        frame["intrinsics"].rename(root / "intrinsics" / f"{name}.txt")
+    out_dir = tmp_path / "out"
+    code = main(["complete", "--input-dir", str(root), "--out-dir", str(out_dir), "--mode", "pixel", "--quiet",
+                 "--batch-size", str(batch_size)])
+    assert code == 2
+    frames = "a frame of 64x48 pixels" if batch_size == 1 else "a batch of 2 frame(s) of 64x48 pixels"
+    line = _first_line(capsys)
+    assert line.startswith(f"crfdepth complete: error: image: {frames} needs about 0.3 GB (pixel mode, float32: "
+                           f"about 250 bytes per pixel), more than the memory available on cpu (0.2 GB); {advice} "
+                           f"[stopped at ")
+    assert line.endswith(f"0 of 2 frame(s) written to {out_dir}]")
+    assert not any(out_dir.iterdir())

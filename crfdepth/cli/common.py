@@ -339,9 +339,14 @@ def check_sample(sample: Sample) -> None:
 
 def complete_batch(model: CRFDepth, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`crfdepth.api.complete_batch` of a batch of frames checked by :func:`check_sample`, on the
-    model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres."""
+    model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. A memory refusal
+    advises the CLI's options."""
     device = next(model.parameters()).device
-    return api.complete_batch(batch.image, batch.sparse, batch.K, model=model, device=device, return_std=return_std)
+    try:
+        return api.complete_batch(batch.image, batch.sparse, batch.K, model=model, device=device,
+                                  return_std=return_std)
+    except MemoryRefusal as exc:
+        raise exc.retold("image", cli_advice(device.type, len(batch))) from None
 
 
 @dataclass(frozen=True)
