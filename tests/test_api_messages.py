@@ -3,7 +3,6 @@ a 1x1 image, ``device='tpu'``, a channel mismatch in ``CRFRefine``."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
