@@ -32,6 +32,8 @@ import torch
 from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_units
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
+from crfdepth.memory import (check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory,
+                              out_of_memory)
 from crfdepth.projection import count_in_image, project_points
 
 __all__ = ["check_frame", "complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
@@ -227,12 +229,34 @@ def _points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image_size: 
 # --------------------------------------------------------------------------- model
 
 
+DEVICE_TYPES = ("cpu", "cuda", "mps")  # the devices the model runs on
+
+
+def _device(device) -> torch.device:
+    """``device`` as a torch.device the model can run on here, else an InputError naming ``device``."""
+    here = ["'cpu'"] + ([f"'cuda' / 'cuda:0'..'cuda:{torch.cuda.device_count() - 1}'"] if torch.cuda.is_available()
+                        else []) + (["'mps'"] if torch.backends.mps.is_available() else [])
+    expected = f"'cpu', 'cuda', 'cuda:N' or 'mps' (a str or torch.device; available here: {', '.join(here)})"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise InputError(f"device: expected {expected}, got {device!r}") from None
+    if parsed.type not in DEVICE_TYPES:
+        raise InputError(f"device: expected {expected}, got {device!r}")
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device: CUDA is not available in this PyTorch installation/machine; use device='cpu'")
+    if parsed.type == "cuda" and parsed.index is not None and parsed.index >= torch.cuda.device_count():
+        raise InputError(f"device: expected {expected}, got {device!r}: this machine has "
+                         f"{torch.cuda.device_count()} CUDA device(s)")
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise InputError(f"device: MPS is not available in this PyTorch installation/machine; expected {expected}")
+    return parsed
+
+
 def _model_on(model, device: str | torch.device):
     from crfdepth.weights import load_pretrained
 
-    device = torch.device(device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device: CUDA is not available in this PyTorch installation/machine; use device='cpu'")
+    device = _device(device)
     if model is None:
         return load_pretrained().to(device)
     if not isinstance(model, torch.nn.Module):
@@ -242,6 +266,16 @@ def _model_on(model, device: str | torch.device):
     if param is not None and param.device != device and not (device.index is None and param.device.type == device.type):
         model = copy.deepcopy(model).to(device)  # the caller's model is left where it is
     return model
+
+
+def _image_size(image) -> tuple[int, int] | None:
+    """(height, width) of an image of an accepted layout from its shape alone (no conversion); None otherwise."""
+    shape = tuple(getattr(image, "shape", ()))
+    if not isinstance(image, (np.ndarray, torch.Tensor)) or len(shape) != 3:
+        return None
+    if isinstance(image, torch.Tensor) and shape[0] == 3 and shape[-1] != 3:
+        return shape[1], shape[2]
+    return (shape[0], shape[1]) if shape[2] == 3 else None
 
 
 def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
@@ -281,7 +315,8 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             for the hand-set weights); None = ``CRFDepth.from_pretrained()``, the weights
             learned on KITTI. Used in its current train/eval mode, under ``no_grad``; a
             model on another device is copied there (the caller's model is not moved).
-        device: "cpu", "cuda" or a torch.device for the computation.
+        device: "cpu", "cuda", "cuda:N", "mps" or a torch.device for the computation
+            (another value, or one this machine lacks, is refused naming ``device``).
         return_std: also return the standard deviation (the model's: predictive by default,
             docs/design.md section 5).
         trust_transform: with ``points``, use ``T_cam_lidar`` as given even when its
@@ -298,8 +333,17 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             map not in metres, a non-rigid or inverted ``T_cam_lidar``, a ``K`` that does
             not fit the image (principal point far outside it), an image size different
             from the calibration's, or no point landing in the image (the message gives
-            the point counts and the usual causes).
+            the point counts and the usual causes). First of all, from the image's shape
+            alone: an image smaller than 2x2 pixels, or (:class:`crfdepth.memory.MemoryRefusal`)
+            one whose estimated peak memory exceeds the memory available on ``device`` (or
+            the model's ``memory_limit_gb``), refused before anything is converted; an
+            allocator failure in the forward is turned into the same kind of error.
     """
+    known = _image_size(image)
+    if known is not None:  # size and memory from the shape alone, before any conversion allocates
+        model = _model_on(model, device)
+        check_frame_size("image", *known)
+        check_model_memory(model, 1, *known, bool(return_std))
     rgb, is_tensor, out_device = _image_to_numpy(image)
     size = rgb.shape[:2]
     if not isinstance(trust_transform, bool):
@@ -363,7 +407,10 @@ def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *
     ``sparse``, ``K``) and refuses a batch too large for the memory up front
     (:mod:`crfdepth.memory`). In a batch the frames' CG solves run together, each frozen
     once it has converged, so a frame's depth differs from its batch-of-one depth within
-    the solver tolerance; a batch of one is :func:`complete_depth` bit for bit.
+    the solver tolerance; a batch of one is :func:`complete_depth` bit for bit. An allocator
+    failure in the forward (``DefaultCPUAllocator: can't allocate memory``,
+    ``torch.cuda.OutOfMemoryError``) is raised as a one-line
+    :class:`~crfdepth.memory.MemoryRefusal` naming ``image``.
 
     Args:
         image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) z-depth in metres, 0 = no
@@ -377,6 +424,26 @@ def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *
     """
     model = _model_on(model, device)
     param = next(model.parameters())
+    failure = None
     with torch.no_grad():
-        out = model(*(t.to(param.device, param.dtype) for t in (image, sparse, K)), return_std=return_std)
+        try:
+            out = model(*(t.to(param.device, param.dtype) for t in (image, sparse, K)), return_std=return_std)
+        except (RuntimeError, MemoryError) as exc:  # the last line of defence behind the up-front estimate
+            if not is_out_of_memory(exc):
+                raise
+            failure = _allocator_failure(exc, model, sparse, return_std)
+    if failure is not None:  # raised here, once the failed forward's tensors are released
+        if param.device.type == "cuda":
+            torch.cuda.empty_cache()
+        raise failure
     return out.depth[:, 0].float(), (out.std[:, 0].float() if return_std else None)
+
+
+def _allocator_failure(exc: BaseException, model, sparse, return_std: bool) -> InputError:
+    """The one-line error for an allocator failure in ``model``'s forward of ``sparse``'s frames."""
+    shape = tuple(sparse.shape)
+    size = (shape[0], shape[-2], shape[-1]) if len(shape) == 4 else (1, *shape[-2:])
+    param = next(model.parameters())
+    estimate = estimate_bytes(model.mode, size[0] * size[1] * size[2], bool(return_std), model.uncertainty,
+                              torch.finfo(param.dtype).bits // 8)
+    return out_of_memory(exc, size, param.device, estimate=estimate)

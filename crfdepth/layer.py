@@ -71,14 +71,16 @@ class RefineOutput:
 # input checks (all before any solve; the shared ones are in crfdepth.checks)
 # ----------------------------------------------------------------------------------------
 
-def _check_projection(projection_weight, channels: int, ref: torch.Tensor) -> torch.Tensor:
+def _check_projection(projection_weight, channels: int, ref: torch.Tensor,
+                      ref_features: torch.Tensor) -> torch.Tensor:
     p = projection_weight
     is_1x1 = isinstance(p, torch.Tensor) and p.dim() == 4 and tuple(p.shape[2:]) == (1, 1)
     if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or is_1x1):
         raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {describe(p)}")
     if p.shape[1] != channels:
-        raise InputError(f"projection_weight: expected C = {channels} input channels (features has "
-                         f"{channels}), got {describe(p)}")
+        raise InputError(f"features: expected {p.shape[1]} channels, the C of projection_weight (E, C) = "
+                         f"{tuple(p.shape[:2])}, got {channels} (features {describe(ref_features)}); give features "
+                         f"with C channels or a projection_weight for {channels}")
     if p.dtype != ref.dtype or p.device != ref.device:
         raise InputError(f"projection_weight: expected dtype {ref.dtype} on {ref.device} like depth, "
                          f"got {p.dtype} on {p.device}")
@@ -193,7 +195,7 @@ def crf_refine(
     check_map("depth", depth, None, 1)
     check_map("confidence", confidence, depth, 1, nonneg=True)
     check_map("features", features, depth, None)
-    projection = _check_projection(projection_weight, features.shape[1], depth)
+    projection = _check_projection(projection_weight, features.shape[1], depth, features)
     scale = check_scalar_tensor("edge_scale", edge_scale, depth, positive=True)
     eps = check_scalar_tensor("prior_weight", prior_weight, depth, positive=True)
     if sparse is not None:
@@ -326,6 +328,11 @@ class CRFRefine(nn.Module):
         ``labels``. Parameters are cast to ``depth``'s dtype (the module may stay float32
         while the inputs are float64).
         """
+        channels = self.projection.in_channels
+        if isinstance(features, torch.Tensor) and features.dim() == 4 and features.shape[1] != channels:
+            raise InputError(f"features: expected {channels} channels (CRFRefine(in_channels={channels})), got "
+                             f"{features.shape[1]} ({describe(features)}); build the layer with "
+                             f"in_channels={features.shape[1]} or give it {channels}-channel features")
         if labels is None and self.superpixels is not None:
             labels = self._segment(image, depth)
         dtype = depth.dtype if isinstance(depth, torch.Tensor) and depth.is_floating_point() else None

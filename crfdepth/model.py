@@ -17,7 +17,7 @@ gradients reach every parameter through all rounds.
 
 from __future__ import annotations
 
-from typing import Literal, Mapping, Sequence
+from typing import Callable, Literal, Mapping, Sequence
 
 import torch
 from kornia.geometry.camera import unproject_points
@@ -30,7 +30,7 @@ from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
 from crfdepth.graph import SuperpixelGraph, build_superpixel_graphs
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
-from crfdepth.memory import check_memory
+from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.parameters import ConstrainedWeights
 from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
@@ -125,8 +125,8 @@ class CRFDepth(ConstrainedWeights):
         std_terms: initial weights of the predictive std by name
             (:data:`crfdepth.predictive.STD_TERMS`; None: the hand-set ones), learnable.
         memory_limit_gb: refuse a forward whose estimated peak memory
-            (:mod:`crfdepth.memory`) exceeds this many GB, before allocating; None: the
-            device's memory.
+            (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
+            allocating; None: the memory the device has available at each forward.
     """
 
     def __init__(
@@ -248,6 +248,10 @@ class CRFDepth(ConstrainedWeights):
         return max(16, round(self.superpixels * height * width / REFERENCE_AREA))
 
     # -- forward -------------------------------------------------------------------------
+    progress: Callable[[str], None] | None = None
+    """Called with each stage's name (those of ``CRFOutput.timings``) as the stage starts; None: no calls.
+    Set on an instance, e.g. by the CLI for its progress line (:mod:`crfdepth.cli.progress`)."""
+
     def forward(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *,
                 return_std: bool = False) -> CRFOutput:
         """Complete ``sparse`` into dense depth.
@@ -261,10 +265,20 @@ class CRFDepth(ConstrainedWeights):
 
         Returns:
             :class:`CRFOutput`; tensors in the dtype of ``sparse`` on its device.
+
+        Raises:
+            InputError: bad inputs (:func:`crfdepth.checks.check_frames`), a frame smaller
+                than 2x2 pixels, or (:class:`crfdepth.memory.MemoryRefusal`) an estimated
+                peak memory above ``memory_limit_gb`` or, without it, above the memory the
+                device has available; size and memory are checked from the shape alone,
+                before anything is allocated.
         """
+        if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
+            # Size and memory first, from the shape alone: the checks below allocate per pixel.
+            check_frame_size("image", *sparse.shape[2:])
+            check_memory(self.mode, *sparse.shape[:1], *sparse.shape[2:], return_std, self.uncertainty, sparse.dtype,
+                         sparse.device, self.memory_limit_gb)
         image, sparse, K = check_frames(image, sparse, K)
-        check_memory(self.mode, *sparse.shape[:1], *sparse.shape[2:], return_std, self.uncertainty, sparse.dtype,
-                     sparse.device, self.memory_limit_gb)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         if self.mode == "pixel":
@@ -280,7 +294,7 @@ class CRFDepth(ConstrainedWeights):
     def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
         dtype, device = sparse.dtype, sparse.device
-        stage = Stages(sparse.device)
+        stage = Stages(sparse.device, self.progress)
         with stage("fill"):
             gate, kept, fill = self._evidence(sparse)
         n_seg = self.segments_for(h, w)
@@ -420,7 +434,7 @@ class CRFDepth(ConstrainedWeights):
 
     def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
         bsz, _, h, w = sparse.shape
-        stage = Stages(sparse.device)
+        stage = Stages(sparse.device, self.progress)
         with stage("fill"):
             gate, kept, fill = self._evidence(sparse)
         eps = self._scales()[4]

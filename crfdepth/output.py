@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -60,14 +61,19 @@ class Stages:
 
     On a CUDA ``device`` each stage starts and ends with ``torch.cuda.synchronize()``, so
     that a stage's time is its own work and not that of kernels still queued before it.
+    ``progress``, when given, is called with the stage's name as each stage starts
+    (:attr:`crfdepth.model.CRFDepth.progress`).
     """
 
-    def __init__(self, device: torch.device | None = None) -> None:
+    def __init__(self, device: torch.device | None = None, progress: Callable[[str], None] | None = None) -> None:
         self.seconds: dict[str, float] = {}
         self.sync = device is not None and device.type == "cuda"
+        self.progress = progress
 
     @contextmanager
     def __call__(self, name: str):
+        if self.progress is not None:
+            self.progress(name)
         if self.sync:
             torch.cuda.synchronize()
         start = time.perf_counter()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,10 +29,12 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from crfdepth import api
+from crfdepth.cli.progress import FrameProgress
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
+from crfdepth.memory import MemoryRefusal, cli_advice
 from crfdepth.model import POTENTIALS, CRFDepth
 from crfdepth.pictures import depth_picture, std_picture
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, describe, load_model, load_pretrained, own_structure
@@ -302,12 +305,31 @@ def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
 def complete_frame(args: argparse.Namespace, model, image, where: dict[str, str], with_std: bool, **inputs):
     """One frame through :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
     calls its batched form, :func:`complete_batch`); errors name ``where``'s flags. Returns float64 numpy
-    (H, W) depth and std (None without ``with_std``), metres."""
+    (H, W) depth and std (None without ``with_std``), metres.
+
+    A frame too large for the memory (refused up front, or an allocator failure in the forward) is an
+    InputError naming the image's flag with the CLI's fix. Outside the bag mode and without ``--quiet``, a
+    frame expected to take or taking more than a few seconds gets a status line of the model's stages on
+    stderr when it is a terminal or with ``--verbose`` (:mod:`crfdepth.cli.progress`).
+    """
+    bag = getattr(args, "bag", None) is not None
+    show = not getattr(args, "quiet", False) and not bag and (sys.stderr.isatty() or getattr(args, "verbose", False))
+    height, width = np.shape(image)[:2]
+    progress = FrameProgress(height, width, torch.device(args.device).type, enabled=show)
+    hook = model.progress if isinstance(model, CRFDepth) else None
+    if isinstance(model, CRFDepth) and show:
+        model.progress = progress.stage
     try:
-        depth, std = api.complete_depth(image, model=model, device=args.device, return_std=with_std,
-                                        trust_transform=args.trust_transform, **inputs)
+        with progress:
+            depth, std = api.complete_depth(image, model=model, device=args.device, return_std=with_std,
+                                            trust_transform=args.trust_transform, **inputs)
+    except MemoryRefusal as exc:
+        raise exc.retold(where.get("image", "image"), cli_advice(args.device)) from None
     except InputError as exc:
         raise flag_names(exc, where) from None
+    finally:
+        if isinstance(model, CRFDepth):
+            model.progress = hook
     as_numpy = (lambda a: a.double().cpu().numpy()) if isinstance(depth, torch.Tensor) else \
         (lambda a: a.astype(np.float64))
     return as_numpy(depth), (None if std is None else as_numpy(std))
@@ -357,9 +379,14 @@ def check_sample(sample: Sample) -> None:
 
 def complete_batch(model: CRFDepth, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`crfdepth.api.complete_batch` of a batch of frames checked by :func:`check_sample`, on the
-    model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres."""
+    model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. A memory refusal
+    advises the CLI's options."""
     device = next(model.parameters()).device
-    return api.complete_batch(batch.image, batch.sparse, batch.K, model=model, device=device, return_std=return_std)
+    try:
+        return api.complete_batch(batch.image, batch.sparse, batch.K, model=model, device=device,
+                                  return_std=return_std)
+    except MemoryRefusal as exc:
+        raise exc.retold("image", cli_advice(device.type, len(batch))) from None
 
 
 @dataclass(frozen=True)

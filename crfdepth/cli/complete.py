@@ -116,6 +116,7 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
 from crfdepth.io.pointcloud import read_points
+from crfdepth.memory import check_image_file, cli_advice
 
 logger = logging.getLogger(__name__)
 
@@ -231,6 +232,8 @@ def _run_one(args: argparse.Namespace) -> int:
     if stray:
         raise InputError(f"{', '.join(stray)}: folder options need --input-dir; for one frame use --out / --out-std")
     out, out_std = _check_outputs(args, {flag: Path(given[flag]) for flag in needed[:-1]})
+    check_image_file(args.image, f"--image {args.image}", device=args.device, dtype=args.dtype, mode=args.mode,
+                     return_std=out_std is not None or args.vis is not None, advice=cli_advice(args.device))
     rgb = read_rgb(args.image)
     if points_mode:
         try:
