@@ -346,7 +346,7 @@ def _check_pairs(bag: Recording, args, plan: _Plan) -> list[tuple[int, type[Base
     """Pass 1b: every paired frame decoded and checked as :func:`_one` will (image, cloud, projection with its
     calibration: :func:`crfdepth.api.points_to_sparse`), nothing kept: ``(image index, error type, message)``
     of each bad frame."""
-    bad = []
+    bad, checked = [], 0
     progress = tqdm(total=plan.pairing.paired, unit="frame", desc="check",
                     disable=args.quiet or not sys.stderr.isatty())
     try:
@@ -359,9 +359,10 @@ def _check_pairs(bag: Recording, args, plan: _Plan) -> list[tuple[int, type[Base
                     raise flag_names(exc, flags) from None
             except BAD_INPUT as exc:
                 bad.append((i, type(exc), str(exc)))
+            checked += 1
             progress.update(1)
     except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"while checking the frames ({progress.n} of {plan.pairing.paired} checked); "
+        raise KeyboardInterrupt(f"while checking the frames ({checked} of {plan.pairing.paired} checked); "
                                 f"nothing written") from None
     finally:
         progress.close()

@@ -299,13 +299,18 @@ def _check_frames(dataset, args, total: int) -> list[tuple[int, type[BaseExcepti
     """Pass 1 of folder mode: every frame read and checked (:func:`~crfdepth.cli.common.bad_frames`); each
     message names its frame (``frame 3/6 <name>: ...``; a check names the file too)."""
     progress = tqdm(total=total, unit="frame", desc="check", disable=args.quiet or not sys.stderr.isatty())
+    checked = []
+
+    def step(index: int) -> None:
+        checked.append(index)
+        progress.update(1)
+
     try:
-        bad = bad_frames(dataset, args.workers, functools.partial(_check_frame, total=total),
-                         lambda index: progress.update(1))
+        bad = bad_frames(dataset, args.workers, functools.partial(_check_frame, total=total), step)
         return [(i, error, message if message.startswith(_where(i, total, dataset.names[i]))
                  else f"{_where(i, total, dataset.names[i])}: {message}") for i, error, message in bad]
     except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"while checking the frames ({progress.n} of {total} checked); nothing "
+        raise KeyboardInterrupt(f"while checking the frames ({len(checked)} of {total} checked); nothing "
                                 f"written") from None
     finally:
         progress.close()
