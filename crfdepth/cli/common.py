@@ -467,8 +467,8 @@ def bad_frames(dataset: Dataset, workers: int, check: Callable[[Sample, int], No
     """Read and check every frame of ``dataset`` (``workers`` DataLoader processes, as :func:`frame_batches`)
     without keeping any: ``(index, exception type, one-line message)`` of each frame that fails (``BAD_INPUT``),
     in order. ``progress(i)`` is called after frame ``i``. The first pass of ``complete --input-dir``, so that a
-    bad frame is found before anything is written; it costs one extra read of each frame (measured: 23 ms for
-    a 1216x352 KITTI frame, against 0.2-0.6 s for its completion; README, "A folder")."""
+    bad frame is found before anything is written; it costs one extra read of each frame (measured: 23-56 ms
+    for a 1216x352 KITTI frame on a 2-core machine, under 10% of its completion; docs/design.md section 10)."""
     loader = DataLoader(_CheckedFrames(dataset, check, keep=False), batch_size=None, shuffle=False,
                         num_workers=workers, collate_fn=_as_is)
     bad = []

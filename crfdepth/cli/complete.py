@@ -50,8 +50,9 @@ into DIR; a bare ``--vis`` writes them next to ``--out`` (one frame) or into
 the depth PNGs). ``--vis`` computes the std map even without ``--out-std``.
 
 Checks before any computation: every output file name ends in ``.png``; the folder of
-``--out`` / ``--out-std`` exists and is writable (it is not created); no output is an
-input. Then the inputs are read and checked, naming the file in every message: image and
+``--out`` / ``--out-std`` exists and takes new files (a probe file is created and removed,
+so ``/proc`` or a read-only mount fails here, naming the flag; it is not created); no
+output is an input. Then the inputs are read and checked, naming the file in every message: image and
 sparse map of the same size; sparse a 16-bit single-channel PNG; image an 8-bit picture
 (a greyscale one is used as grey RGB, with a warning); K nine finite numbers with focal
 lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. Then the model is built
@@ -68,11 +69,24 @@ configuration): the checkpoint's configuration defines the model, and the model 
 given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
 override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.
 
-Folder mode checks the layout and the model first, then each frame as it is read (the
-checks above, naming the frame; in the worker that reads it); it stops at the first bad
-frame with exit status 2 and the same one-line message for any ``--workers`` and
-``--batch-size``. The frames before it are completed and written and stay (the message
-says how many), so a run can be resumed after fixing the frame.
+Folder mode checks the layout, the output folders (not locked by another run: see below)
+and the model first, then reads and checks every frame (the checks above, naming the
+frame; in the workers that read them) before it writes anything: with a bad frame it
+writes nothing and exits 2, the first bad frame's message on the first line (the same for
+any ``--workers`` and ``--batch-size``), the other bad frames (up to 20) on the lines
+below. ``--skip-bad`` completes the good frames instead, lists the bad ones with their
+reason in ``<out-dir>/skipped.csv`` (columns ``frame``, ``reason``; a run that skips
+nothing removes an earlier one) and in the summary, and exits 0. The extra read costs
+23-56 ms per 1216x352 frame, under 10% of its completion (docs/design.md section 10).
+A failure that only the model reveals (a non-finite depth) or Ctrl-C stops the run
+midway; the message says how many frames were written (``interrupted after 3 of 10
+frame(s) written to OUT``, exit status 130), and they stay.
+
+The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders are locked while the run writes
+(``.crfdepth.lock``: pid, host, start time, command; :func:`crfdepth.io.files.lock_folder`):
+a second run into one of them exits 2 naming the first. A folder holding a finished run's
+outputs may be written again: each PNG is replaced atomically; PNGs this run does not
+write stay, with a warning counting them.
 
 A ROS 1 / ROS 2 recording (:mod:`crfdepth.cli.bag`)::
 
