@@ -88,7 +88,7 @@ from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_argum
                                  frame_batches, int_at_least, output_folders)
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes, check_not_locked
+from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
                               uncertainty_metrics)
@@ -401,7 +401,6 @@ def run(args: argparse.Namespace) -> int:
     dataset, root = _open_dataset(args, options)
     model = build_model(args)
     out_dir = _check_out_dir(args, root)
-    check_not_locked(out_dir, "--out-dir")  # another run writing there is refused now, not after the evaluation
     with output_folders([("--out-dir", args.out_dir)]):  # created and locked for the run (.crfdepth.lock)
         return _evaluate_and_write(args, options, dataset, root, model, out_dir)
 
