@@ -8,7 +8,9 @@ Exit statuses: 0 on success; 2 for bad input, with one line on stderr naming the
 file written, whether argparse refuses an option (``SystemExit(2)``) or a sub-command
 raises :class:`~crfdepth.errors.InputError` / ``FileNotFoundError`` /
 ``PermissionError`` / ``IsADirectoryError`` (``main`` returns 2); 130 on Ctrl-C, with
-one line (``crfdepth project: interrupted``). ``crfdepth --version`` prints
+one line (``crfdepth project: interrupted``; a folder or bag run adds how many frames it
+wrote: ``crfdepth complete: interrupted after 3 of 10 frame(s) written to pred/``, the
+text of the ``KeyboardInterrupt`` it re-raises). ``crfdepth --version`` prints
 ``crfdepth <version>`` (:data:`crfdepth.__version__`).
 """
 
@@ -80,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
         except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
             print(f"crfdepth {command}: error: {exc}", file=sys.stderr)
             return 2
-    except KeyboardInterrupt:
-        print(f"crfdepth{' ' + command if command else ''}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        detail = str(exc)  # a command that writes several files says how far it got ("after 3 of 10 ...")
+        print(f"crfdepth{' ' + command if command else ''}: interrupted{' ' + detail if detail else ''}",
+              file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

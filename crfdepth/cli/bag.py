@@ -32,9 +32,20 @@ std PNG into ``--out-std-dir``, pictures with ``--vis``; at the end ``<out-dir>/
 
 Everything the run needs is checked before anything is written: topics and their types,
 every image encoding and cloud layout, the CameraInfo, the transform of every frame
-pair, and that some image pairs with a cloud. Bad input is one line and exit status 2. A
-frame that fails later stops the run: the frames before it stay (each file is written
-atomically; the index lists them) and no ``--out-bag`` is left.
+pair, that some image pairs with a cloud, then (a second read of the bag) every paired
+frame as it will be completed: its image decoded, its cloud read, its points projected
+with its calibration (:func:`crfdepth.api.points_to_sparse`: points in the image, not
+millimetres, transform not inverted). Bad input is one line and exit status 2; bad
+frames are listed (the first on the error's first line) and nothing is written, unless
+``--skip-bad`` leaves them out (``<out-dir>/skipped.csv``: frame stamp and reason; exit
+status 0). A frame that still fails while completing (a non-finite model output) or
+Ctrl-C stops the run: the frames before it stay (each file is written atomically), the
+index lists exactly them, the message says how many, and no ``--out-bag`` is left.
+
+The output folders are locked for the run (``.crfdepth.lock``,
+:func:`crfdepth.cli.common.output_folders`): a second run into them is refused naming the
+first. An ``--out-dir`` holding the ``index.csv`` of an earlier run is refused unless
+``--overwrite``, so that ``index.csv`` lists exactly the PNGs of one run.
 """
 
 from __future__ import annotations
@@ -51,15 +62,19 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from crfdepth.api import points_to_sparse
 from crfdepth.cli.common import (
     BAD_INPUT,
+    bad_frames_error,
     build_model,
     check_output_folders,
     check_writable_dir,
     complete_frame,
-    make_output_dir,
+    flag_names,
+    output_folders,
     positive_number,
     write_frame,
+    write_skipped,
 )
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
@@ -82,7 +97,9 @@ __all__ = ["DEFAULT_MAX_DT_S", "add_arguments", "run_bag"]
 # A 10 Hz LiDAR (the common rate) sweeps in 0.1 s: within half a sweep, every image of a
 # continuous recording has a cloud, and a cloud is never paired across a whole sweep.
 DEFAULT_MAX_DT_S = 0.05
-BAG_ONLY = ("--image-topic", "--points-topic", "--camera-info-topic", "--max-dt", "--out-bag", "--rectified")
+BAG_ONLY = ("--image-topic", "--points-topic", "--camera-info-topic", "--max-dt", "--out-bag", "--rectified",
+            "--overwrite")
+INDEX_NAME = "index.csv"
 INDEX_COLUMNS = ("timestamp_ns", "image_topic", "points_topic", "cloud_timestamp_ns", "dt_ms", "points",
                  "points_in_view", "depth_png", "std_png")
 
@@ -102,6 +119,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--max-dt", type=positive_number("seconds"), default=None, metavar="SECONDS",
                      help=f"largest time between an image and its cloud (default {DEFAULT_MAX_DT_S}: half a "
                           f"10 Hz LiDAR sweep)")
+    bag.add_argument("--overwrite", action="store_true",
+                     help="write into an --out-dir that holds the index.csv of an earlier run: its index.csv and "
+                          "the PNGs of the same names are replaced (by default such a folder is refused, so that "
+                          "index.csv always lists exactly the PNGs of one run)")
     bag.add_argument("--out-bag", metavar="OUT",
                      help="also write the depth (and std) as 32FC1 images with the images' headers: OUT.bag "
                           "(ROS 1) or a ROS 2 bag folder (the input's storage; mcap for a ROS 1 input)")
@@ -274,10 +295,11 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
 # --------------------------------------------------------------------------- pass 2
 
 
-def _frames(bag: Recording, args, plan: _Plan):
-    """``(image index, image message, cloud message, cloud index)`` of every paired frame, in image order,
-    holding only the clouds that a waiting image still needs."""
-    cloud_of = plan.pairing.cloud
+def _frames(bag: Recording, args, plan: _Plan, skip=frozenset()):
+    """``(image index, image message, cloud message, cloud index)`` of every paired frame not in ``skip``, in
+    image order, holding only the clouds that a waiting image still needs."""
+    cloud_of = plan.pairing.cloud.copy()
+    cloud_of[list(skip)] = -1
     users = np.bincount(cloud_of[cloud_of >= 0], minlength=len(plan.clouds))
     clouds, waiting = {}, deque()
     counters = {args.image_topic: 0, args.points_topic: 0}
@@ -311,6 +333,42 @@ def _index_bytes(rows: list[dict]) -> bytes:
     return text.getvalue().encode()
 
 
+def _check_index(out_dir: str, overwrite: bool) -> None:
+    """An ``--out-dir`` holding the ``index.csv`` of an earlier bag run is refused without ``--overwrite``:
+    the index of this run would replace it, and its PNGs of the same names would be replaced."""
+    index = Path(out_dir) / INDEX_NAME
+    if index.exists() and not overwrite:
+        raise InputError(f"--out-dir: {Path(out_dir)} already holds the {INDEX_NAME} of an earlier run; give "
+                         f"--overwrite to replace it (and the PNGs of the same names), or choose another folder")
+
+
+def _check_pairs(bag: Recording, args, plan: _Plan) -> list[tuple[int, type[BaseException], str]]:
+    """Pass 1b: every paired frame decoded and checked as :func:`_one` will (image, cloud, projection with its
+    calibration: :func:`crfdepth.api.points_to_sparse`), nothing kept: ``(image index, error type, message)``
+    of each bad frame."""
+    bad, checked = [], 0
+    progress = tqdm(total=plan.pairing.paired, unit="frame", desc="check",
+                    disable=args.quiet or not sys.stderr.isatty())
+    try:
+        for i, image_msg, cloud_msg, c in _frames(bag, args, plan):
+            try:
+                rgb, xyz, flags = _decode(args, plan, i, image_msg, cloud_msg, c)
+                try:
+                    points_to_sparse(xyz, plan.calibrations[i], rgb.shape[:2], trust_transform=args.trust_transform)
+                except InputError as exc:
+                    raise flag_names(exc, flags) from None
+            except BAD_INPUT as exc:
+                bad.append((i, type(exc), str(exc)))
+            checked += 1
+            progress.update(1)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"while checking the frames ({checked} of {plan.pairing.paired} checked); "
+                                f"nothing written") from None
+    finally:
+        progress.close()
+    return bad
+
+
 def run_bag(args: argparse.Namespace) -> int:
     """``complete --bag``: see the module docstring. Bad input raises ``BAD_INPUT`` naming the flag."""
     from crfdepth.io.ros.writer import BagWriter
@@ -319,60 +377,98 @@ def run_bag(args: argparse.Namespace) -> int:
     max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
     out_bag = _check_out_bag(args)
     targets = check_output_folders(args, [Path(args.bag)], "the --bag input")
+    _check_index(args.out_dir, args.overwrite)
     start = time.perf_counter()
     with Recording(args.bag, f"--bag {args.bag}") as bag:
         plan = _plan(bag, args, max_dt)
         model = build_model(args)
-        out_dir = make_output_dir(args.out_dir, "--out-dir")
-        std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
-        vis_dir = make_output_dir(targets[-1][1], "--vis") if args.vis is not None else None
-        with_std = std_dir is not None or vis_dir is not None
-        topics = _output_topics(args.image_topic)
-        storage = "sqlite3" if bag.storage == "sqlite3" else "mcap"  # of a ROS 2 output
-        writer = None if out_bag is None else BagWriter(out_bag, storage=storage)
-        rows = []
-        progress = tqdm(total=plan.pairing.paired, unit="frame", desc="complete",
-                        disable=args.quiet or not sys.stderr.isatty())
-        try:
-            for i, image_msg, cloud_msg, c in _frames(bag, args, plan):
-                rows.append(_one(args, model, plan, i, image_msg, cloud_msg, c, out_dir, std_dir, vis_dir, writer,
-                                 topics, with_std))
-                progress.update(1)
-        except BaseException as exc:
-            if writer is not None:
-                writer.abort()
-            if rows:
-                atomic_write_bytes(out_dir / "index.csv", _index_bytes(rows))
-            if isinstance(exc, BAD_INPUT):
-                raise type(exc)(f"{exc} [stopped after {len(rows)} of {plan.pairing.paired} frame(s), written to "
-                                f"{out_dir} and listed in its index.csv; no --out-bag written]") from None
-            raise
-        finally:
-            progress.close()
-        atomic_write_bytes(out_dir / "index.csv", _index_bytes(rows))
-        if writer is not None:
-            writer.commit()
+        bad = _check_pairs(bag, args, plan)
+        total = plan.pairing.paired
+        if bad and not args.skip_bad:
+            raise bad_frames_error([(error, message) for _, error, message in bad], total, f"--bag {args.bag}")
+        if len(bad) == total:
+            raise InputError(f"--skip-bad: all {total} paired frame(s) of --bag {args.bag} are bad (the first: "
+                             f"{bad[0][2]}); nothing written")
+        skip = {i: message for i, _, message in bad}
+        with output_folders(targets) as folders:
+            out_dir, std_dir = folders[0], folders[1]
+            vis_dir = folders[2] if args.vis is not None else None
+            _check_index(out_dir, args.overwrite)  # another run may have finished there since the first look
+            skipped_csv = write_skipped(out_dir, [(str(int(plan.images.stamps_ns[i])), m) for i, m in skip.items()])
+            rows = _complete_pairs(bag, args, plan, model, skip, out_dir, std_dir, vis_dir, out_bag, BagWriter)
     if not args.quiet:
         _summary(args, plan, len(rows), out_dir, std_dir, out_bag, max_dt, time.perf_counter() - start)
+        if skip:
+            print(f"skipped {len(skip)} bad frame(s) of {total} (--skip-bad), listed with the reasons in "
+                  f"{skipped_csv}")
     return 0
 
 
-def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir: Path, std_dir, vis_dir, writer,
-         topics, with_std: bool) -> dict:
-    """Complete, write and index one paired frame."""
+def _complete_pairs(bag: Recording, args, plan: _Plan, model, skip, out_dir: Path, std_dir, vis_dir, out_bag,
+                    BagWriter) -> list[dict]:
+    """Pass 2: complete, write and index the paired frames not in ``skip``; ``index.csv`` written atomically at
+    the end and, listing the frames written so far, when the run stops early (an error, Ctrl-C)."""
+    with_std = std_dir is not None or vis_dir is not None
+    topics = _output_topics(args.image_topic)
+    storage = "sqlite3" if bag.storage == "sqlite3" else "mcap"  # of a ROS 2 output
+    writer = None if out_bag is None else BagWriter(out_bag, storage=storage)
+    todo = plan.pairing.paired - len(skip)
+    rows = []
+    progress = tqdm(total=todo, unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
+    try:
+        for i, image_msg, cloud_msg, c in _frames(bag, args, plan, skip):
+            _one(args, model, plan, i, image_msg, cloud_msg, c, out_dir, std_dir, vis_dir, writer, topics,
+                 with_std, rows)
+            progress.update(1)
+    except BaseException as exc:
+        if writer is not None:
+            writer.abort()
+        rows = [row for row in rows if (out_dir / row["depth_png"]).exists()]  # a frame cut short is not listed
+        if rows:
+            atomic_write_bytes(out_dir / INDEX_NAME, _index_bytes(rows))
+        where = (f"{len(rows)} of {todo} frame(s) written to {out_dir}"
+                 + (f" and listed in its {INDEX_NAME}" if rows else "") + "; no --out-bag written")
+        if isinstance(exc, BAD_INPUT):
+            raise type(exc)(f"{exc} [stopped after {where}]") from None
+        if isinstance(exc, KeyboardInterrupt):
+            raise KeyboardInterrupt(f"after {where}") from None
+        raise
+    finally:
+        progress.close()
+    atomic_write_bytes(out_dir / INDEX_NAME, _index_bytes(rows))
+    if writer is not None:
+        writer.commit()
+    return rows
+
+
+def _decode(args, plan: _Plan, i: int, image_msg, cloud_msg, c: int):
+    """A paired frame's RGB image, finite (N, 3) points and the names of its parts for error messages."""
     stamp = int(plan.images.stamps_ns[i])
     where_image = f"--image-topic {args.image_topic} (image at {stamp} ns)"
     where_cloud = f"--points-topic {args.points_topic} (cloud at {int(plan.clouds.stamps_ns[c])} ns)"
     rgb = decode_image(image_msg, where_image)
     xyz = points_from_cloud(cloud_msg, where_cloud)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    calibration = plan.calibrations[i]
-    flags = {"image": where_image, "points": where_cloud, "*": f"{where_cloud} with {where_image}",
-             "K": f"camera of {where_image}", "T_cam_lidar": f"transform of {where_cloud}"}
     if xyz.shape[0] == 0:
         raise InputError(f"{where_cloud}: no point with finite coordinates")
+    flags = {"image": where_image, "points": where_cloud, "*": f"{where_cloud} with {where_image}",
+             "K": f"camera of {where_image}", "T_cam_lidar": f"transform of {where_cloud}"}
+    return rgb, xyz, flags
+
+
+def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir: Path, std_dir, vis_dir, writer,
+         topics, with_std: bool, rows: list[dict]) -> None:
+    """Complete, write and index (append to ``rows`` before writing) one paired frame."""
+    stamp = int(plan.images.stamps_ns[i])
+    rgb, xyz, flags = _decode(args, plan, i, image_msg, cloud_msg, c)
+    calibration = plan.calibrations[i]
     depth, std = complete_frame(args, model, rgb, flags, with_std, points=xyz, calibration=calibration)
     name = f"{stamp}.png"
+    in_view = count_in_image(xyz.astype(np.float64), calibration.T_cam_lidar, calibration.K, depth.shape)
+    rows.append({"timestamp_ns": stamp, "image_topic": args.image_topic, "points_topic": args.points_topic,
+                 "cloud_timestamp_ns": int(plan.clouds.stamps_ns[c]),
+                 "dt_ms": f"{(int(plan.clouds.stamps_ns[c]) - stamp) / 1e6:.3f}", "points": xyz.shape[0],
+                 "points_in_view": int(in_view), "depth_png": name, "std_png": name if std_dir is not None else ""})
     write_frame(depth, std, out_dir / name, std_dir / name if std_dir is not None else None, vis_dir, str(stamp),
                 args.vis_range)
     if writer is not None:
@@ -381,11 +477,6 @@ def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir
         if with_std:
             writer.write(topics["std"], log_ns, writer.image(std.astype(np.float32), stamp, frame_id, "32FC1"))
         writer.write(topics["camera_info"], log_ns, writer.camera_info(calibration.K, depth.shape, stamp, frame_id))
-    in_view = count_in_image(xyz.astype(np.float64), calibration.T_cam_lidar, calibration.K, depth.shape)
-    return {"timestamp_ns": stamp, "image_topic": args.image_topic, "points_topic": args.points_topic,
-            "cloud_timestamp_ns": int(plan.clouds.stamps_ns[c]),
-            "dt_ms": f"{(int(plan.clouds.stamps_ns[c]) - stamp) / 1e6:.3f}", "points": xyz.shape[0],
-            "points_in_view": int(in_view), "depth_png": name, "std_png": name if std_dir is not None else ""}
 
 
 def _summary(args, plan: _Plan, written: int, out_dir: Path, std_dir, out_bag, max_dt: float, seconds: float) -> None:

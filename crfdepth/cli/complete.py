@@ -50,8 +50,9 @@ into DIR; a bare ``--vis`` writes them next to ``--out`` (one frame) or into
 the depth PNGs). ``--vis`` computes the std map even without ``--out-std``.
 
 Checks before any computation: every output file name ends in ``.png``; the folder of
-``--out`` / ``--out-std`` exists and is writable (it is not created); no output is an
-input. Then the inputs are read and checked, naming the file in every message: image and
+``--out`` / ``--out-std`` exists and takes new files (a probe file is created and removed,
+so ``/proc`` or a read-only mount fails here, naming the flag; it is not created); no
+output is an input. Then the inputs are read and checked, naming the file in every message: image and
 sparse map of the same size; sparse a 16-bit single-channel PNG; image an 8-bit picture
 (a greyscale one is used as grey RGB, with a warning); K nine finite numbers with focal
 lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. Then the model is built
@@ -68,11 +69,24 @@ no configuration, is refused): the checkpoint's configuration defines the model,
 given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
 override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.
 
-Folder mode checks the layout and the model first, then each frame as it is read (the
-checks above, naming the frame; in the worker that reads it); it stops at the first bad
-frame with exit status 2 and the same one-line message for any ``--workers`` and
-``--batch-size``. The frames before it are completed and written and stay (the message
-says how many), so a run can be resumed after fixing the frame.
+Folder mode checks the layout, the output folders (not locked by another run: see below)
+and the model first, then reads and checks every frame (the checks above, naming the
+frame; in the workers that read them) before it writes anything: with a bad frame it
+writes nothing and exits 2, the first bad frame's message on the first line (the same for
+any ``--workers`` and ``--batch-size``), the other bad frames (up to 20) on the lines
+below. ``--skip-bad`` completes the good frames instead, lists the bad ones with their
+reason in ``<out-dir>/skipped.csv`` (columns ``frame``, ``reason``; a run that skips
+nothing removes an earlier one) and in the summary, and exits 0. The extra read costs
+23-56 ms per 1216x352 frame, under 10% of its completion (docs/design.md section 10).
+A failure that only the model reveals (a non-finite depth) or Ctrl-C stops the run
+midway; the message says how many frames were written (``interrupted after 3 of 10
+frame(s) written to OUT``, exit status 130), and they stay.
+
+The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders are locked while the run writes
+(``.crfdepth.lock``: pid, host, start time, command; :func:`crfdepth.io.files.lock_folder`):
+a second run into one of them exits 2 naming the first. A folder holding a finished run's
+outputs may be written again: each PNG is replaced atomically; PNGs this run does not
+write stay, with a warning counting them.
 
 A ROS 1 / ROS 2 recording (:mod:`crfdepth.cli.bag`)::
 
@@ -85,11 +99,13 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from torch.utils.data import Subset
 from tqdm import tqdm
 
 from crfdepth.cli.bag import BAG_ONLY, run_bag
@@ -97,6 +113,9 @@ from crfdepth.cli.bag import add_arguments as add_bag_arguments
 from crfdepth.cli.common import (
     BAD_INPUT,
     add_batch_arguments,
+    bad_frames,
+    bad_frames_error,
+    write_skipped,
     complete_frame,
     flag_names,
     write_frame,
@@ -108,6 +127,7 @@ from crfdepth.cli.common import (
     complete_batch,
     frame_batches,
     make_output_dir,
+    output_folders,
     same_file,
     vis_range_type,
 )
@@ -171,6 +191,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     one.add_argument("--trust-transform", action="store_true",
                      help="with --points: use T_cam_lidar even when its inverse lands more points in the image "
                           "(by default that is refused as a probably inverted transform)")
+    parser.add_argument("--skip-bad", action="store_true",
+                        help="--input-dir / --bag: every frame is checked before anything is written; a bad frame "
+                             "makes the run write nothing and exit 2, listing the bad frames. With --skip-bad the "
+                             "bad frames are left out instead, listed with the reason in <out-dir>/skipped.csv "
+                             "and in the summary, and the run exits 0")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)
@@ -186,13 +211,14 @@ def _where(index: int, total: int, name: str) -> str:
     return f"frame {index + 1}/{total} {name}"
 
 
-def _check_frame(sample, index: int, *, total: int) -> None:
+def _check_frame(sample, index: int, *, total: int, positions: list[int] | None = None) -> None:
     """:func:`~crfdepth.cli.common.check_sample` in the DataLoader workers, naming the frame's files
-    as the one-frame path names its flags (``frame 2/5 <name> (velodyne_raw/<name>.png): ...``)."""
+    as the one-frame path names its flags (``frame 2/5 <name> (velodyne_raw/<name>.png): ...``);
+    ``positions[index]`` is the frame's place in the folder when the run leaves frames out (--skip-bad)."""
     try:
         check_sample(sample)
     except InputError as exc:
-        where = _where(index, total, sample.name)
+        where = _where(index if positions is None else positions[index], total, sample.name)
         raise flag_names(exc, {"K": f"{where} (intrinsics/)", "sparse": f"{where} (velodyne_raw/{sample.name}.png)",
                                 "image": f"{where} (image/)"}) from None
 
@@ -272,6 +298,47 @@ def _run_one(args: argparse.Namespace) -> int:
     return 0
 
 
+def _open_folder(path: str):
+    """The ``depth_selection`` dataset of ``--input-dir`` (errors name the flag)."""
+    folder = Path(path)
+    if not folder.exists():
+        raise FileNotFoundError(f"--input-dir: no such folder: {path}")
+    if not folder.is_dir():
+        raise InputError(f"--input-dir: expected a folder with image/, velodyne_raw/ and intrinsics/ (a KITTI "
+                         f"val_selection_cropped or test_depth_completion_anonymous folder), got a file: {path}")
+    try:
+        return open_completion_folder(folder)
+    except InputError as exc:
+        raise InputError(f"--input-dir {path}: {exc}") from None
+
+
+def _check_frames(dataset, args, total: int) -> list[tuple[int, type[BaseException], str]]:
+    """Pass 1 of folder mode: every frame read and checked (:func:`~crfdepth.cli.common.bad_frames`); each
+    message names its frame (``frame 3/6 <name>: ...``; a check names the file too)."""
+    progress = tqdm(total=total, unit="frame", desc="check", disable=args.quiet or not sys.stderr.isatty())
+    checked = []
+
+    def step(index: int) -> None:
+        checked.append(index)
+        progress.update(1)
+
+    try:
+        bad = bad_frames(dataset, args.workers, functools.partial(_check_frame, total=total), step)
+        return [(i, error, message if message.startswith(_where(i, total, dataset.names[i]))
+                 else f"{_where(i, total, dataset.names[i])}: {message}") for i, error, message in bad]
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"while checking the frames ({len(checked)} of {total} checked); nothing "
+                                f"written") from None
+    finally:
+        progress.close()
+
+
+def _other_pngs(out_dir: Path, names: list[str]) -> int:
+    """PNG files in ``out_dir`` that this run does not write (an earlier run's, on other frames)."""
+    mine = {f"{name}.png" for name in names}
+    return sum(1 for entry in os.scandir(out_dir) if entry.name.endswith(".png") and entry.name not in mine)
+
+
 def _run_folder(args: argparse.Namespace) -> int:
     if args.out_dir is None:
         raise InputError("--input-dir needs --out-dir (the folder for the output PNGs)")
@@ -281,47 +348,78 @@ def _run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
-    if not Path(args.input_dir).exists():
-        raise FileNotFoundError(f"--input-dir: no such folder: {args.input_dir}")
-    dataset = open_completion_folder(args.input_dir)
+    dataset = _open_folder(args.input_dir)
     inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
     targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
     model = build_model(args)
-    out_dir = make_output_dir(args.out_dir, "--out-dir")
-    std_dir = make_output_dir(args.out_std_dir, "--out-std-dir") if args.out_std_dir is not None else None
-    vis_dir = make_output_dir(targets[-1][1], "--vis") if args.vis is not None else None
     total = len(dataset)
-    progress = tqdm(total=total, unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
-    batches = frame_batches(dataset, args.batch_size, args.workers, functools.partial(_check_frame, total=total))
-    written = 0
-    where = _where(0, total, dataset.names[0])
+    bad = _check_frames(dataset, args, total)
+    if bad and not args.skip_bad:
+        raise bad_frames_error([(error, message) for _, error, message in bad], total, f"--input-dir {args.input_dir}")
+    if len(bad) == total:
+        raise InputError(f"--skip-bad: all {total} frame(s) of --input-dir {args.input_dir} are bad (the first: "
+                         f"{bad[0][2]}); nothing written")
+    skipped = {index: message for index, _, message in bad}
+    good = [i for i in range(total) if i not in skipped]
+    names = [dataset.names[i] for i in good]
+    frames = Subset(dataset, good) if skipped else dataset
+    with_std = args.out_std_dir is not None or args.vis is not None
     start = time.perf_counter()
-    try:
-        for batch in batches:  # a frame that fails to read or check is raised here, after the frames before it
-            if len(batch) > 1:
-                where = f"frames {written + 1}-{written + len(batch)}/{total} ({', '.join(batch.names)})"
-            depth, std = complete_batch(model, batch, std_dir is not None or vis_dir is not None)
-            depth = depth.double().cpu().numpy()
-            std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
-            for name, frame_depth, frame_std in zip(batch.names, depth, std):
-                where = _where(written, total, name)
-                write_frame(frame_depth, frame_std, out_dir / f"{name}.png",
-                               std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name,
-                               args.vis_range)
-                written += 1
-                progress.update(1)
-            if written < total:
-                where = _where(written, total, dataset.names[written])
-    except BAD_INPUT as exc:
-        raise type(exc)(f"{exc} [stopped at {where}; {written} of {total} frame(s) written to {out_dir}]") from None
-    finally:
-        batches.close()  # stops the DataLoader workers
-        progress.close()
+    with output_folders(targets) as folders:
+        out_dir, std_dir = folders[0], folders[1]
+        vis_dir = folders[2] if args.vis is not None else None
+        others = _other_pngs(out_dir, names)
+        if others:
+            logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
+                           "run on other frames?); they stay", out_dir, others)
+        skipped_csv = write_skipped(out_dir, [(dataset.names[i], m) for i, m in skipped.items()])
+        written = _complete_frames(args, model, frames, names, total, good, out_dir, std_dir, vis_dir, with_std)
     seconds = time.perf_counter() - start
     if not args.quiet:
         print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
               + (f", pictures to {vis_dir}" if vis_dir else "") + f" in {seconds:.1f} s")
+        if skipped:
+            print(f"skipped {len(skipped)} bad frame(s) of {total} (--skip-bad), listed with the reasons in "
+                  f"{skipped_csv}")
     return 0
+
+
+def _complete_frames(args, model, frames, names: list[str], total: int, positions: list[int], out_dir: Path,
+                     std_dir: Path | None, vis_dir: Path | None, with_std: bool) -> int:
+    """Pass 2 of folder mode: complete and write ``frames`` (frame ``k`` is frame ``positions[k]`` of the
+    folder's ``total``); returns the number written. A failure now (the frame changed since pass 1, a
+    non-finite model output) stops the run saying how many frames were written, as does Ctrl-C."""
+    progress = tqdm(total=len(names), unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
+    check = functools.partial(_check_frame, total=total, positions=positions)
+    batches = frame_batches(frames, args.batch_size, args.workers, check)
+    written = 0
+    where = _where(positions[0], total, names[0])
+    try:
+        for batch in batches:  # a frame that fails to read or check is raised here, after the frames before it
+            if len(batch) > 1:
+                where = (f"frames {positions[written] + 1}-{positions[written + len(batch) - 1] + 1}/{total} "
+                         f"({', '.join(batch.names)})")
+            depth, std = complete_batch(model, batch, with_std)
+            depth = depth.double().cpu().numpy()
+            std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
+            for name, frame_depth, frame_std in zip(batch.names, depth, std):
+                where = _where(positions[written], total, name)
+                write_frame(frame_depth, frame_std, out_dir / f"{name}.png",
+                            std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name,
+                            args.vis_range)
+                written += 1
+                progress.update(1)
+            if written < len(names):
+                where = _where(positions[written], total, names[written])
+    except BAD_INPUT as exc:
+        raise type(exc)(f"{exc} [stopped at {where}; {written} of {len(names)} frame(s) written to "
+                        f"{out_dir}]") from None
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"after {written} of {len(names)} frame(s) written to {out_dir}") from None
+    finally:
+        batches.close()  # stops the DataLoader workers
+        progress.close()
+    return written
 
 
 def run(args: argparse.Namespace) -> int:
@@ -330,6 +428,9 @@ def run(args: argparse.Namespace) -> int:
     Bad input raises InputError / FileNotFoundError / PermissionError naming the file or
     option, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
     """
+    if args.skip_bad and args.bag is None and args.input_dir is None:
+        raise InputError("--skip-bad: applies to the runs over many frames (--input-dir or --bag); a single frame "
+                         "is either completed or refused")
     if args.bag is not None:
         return run_bag(args)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]

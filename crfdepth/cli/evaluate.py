@@ -55,7 +55,9 @@ of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and
 
 Every check that needs no computation comes first (options, data folder and layout,
 output folder, checkpoint), so bad input exits with status 2 and a one-line message
-before anything is written. The CSV and JSON are written atomically at the end, so a run
+before anything is written. The output folder is locked for the run (``.crfdepth.lock``,
+:func:`crfdepth.cli.common.output_folders`): a second run into it is refused naming the
+first. The CSV and JSON are written atomically at the end, so a run
 that fails midway leaves neither (PNGs written before the failure stay). Frames with
 ground truth but no ground-truth pixel (possible after a crop) are skipped with a
 warning and listed in the summary. The ``test_selection`` layout has no ground truth:
@@ -84,7 +86,7 @@ from torch.utils.data import Subset
 from tqdm import tqdm
 
 from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model, complete_batch,
-                                 frame_batches, int_at_least)
+                                 frame_batches, int_at_least, output_folders)
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -400,6 +402,13 @@ def run(args: argparse.Namespace) -> int:
     dataset, root = _open_dataset(args, options)
     out_dir = _check_out_dir(args, root)
     model = build_model(args)  # prints the model line: after every refusal of the options
+    with output_folders([("--out-dir", args.out_dir)]):  # created and locked for the run (.crfdepth.lock)
+        return _evaluate_and_write(args, options, dataset, root, model, out_dir)
+
+
+def _evaluate_and_write(args: argparse.Namespace, options: dict, dataset, root: Path | None, model,
+                        out_dir: Path) -> int:
+    """:func:`run` once the inputs are checked and ``out_dir`` is locked: evaluate, print, write."""
     png_dir = None
     if args.save_png:
         png_dir = out_dir / PNG_FOLDER

@@ -7,18 +7,38 @@ so a bad path fails at once, naming the user's argument, never after a long comp
 A file is written to a new temporary file beside its destination and renamed over it
 (``os.replace``, atomic on one file system): a reader never sees a partial file, and a
 failed write leaves no file behind and the old one, if any, untouched.
+
+An output folder is locked by the run that writes it (:func:`lock_folder`): a lock file
+``.crfdepth.lock`` in the folder, created exclusively (``O_CREAT | O_EXCL``), holding the
+run's pid, host, start time and command, and removed when the run ends (also on an error
+or Ctrl-C). A second run into the folder is refused naming the first
+(:class:`FolderLockedError`); a lock left by a run that is gone (its pid no longer runs on
+this host, e.g. after ``kill -9``) is taken over with a warning.
 """
 
 from __future__ import annotations
 
+import contextlib
+import datetime
+import json
+import logging
 import os
 import secrets
+import socket
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Callable
 
 from crfdepth.errors import InputError
 
-__all__ = ["atomic_write", "atomic_write_bytes", "check_input_file", "check_output_file"]
+__all__ = ["LOCK_NAME", "FolderLockedError", "atomic_write", "atomic_write_bytes", "check_input_file",
+           "check_not_locked", "check_output_file", "lock_folder", "probe_folder"]
+
+logger = logging.getLogger(__name__)
+
+LOCK_NAME = ".crfdepth.lock"  # the lock file of an output folder (lock_folder)
 
 
 def check_input_file(path: str | os.PathLike, name: str = "path") -> Path:
@@ -54,14 +74,159 @@ def check_output_file(path: str | os.PathLike, name: str = "path") -> Path:
         raise InputError(f"{name}: expected a file name, got a folder: {file}")
     if not file.parent.is_dir():
         raise FileNotFoundError(f"{name}: the folder of {file} does not exist")
-    probe = file.parent / f".{file.name}.{secrets.token_hex(6)}.probe"
+    problem = probe_folder(file.parent)
+    if problem is not None:
+        raise PermissionError(f"{name}: cannot create {file}: the folder {file.parent} does not accept new "
+                              f"files ({problem})")
+    return file
+
+
+def probe_folder(folder: Path) -> str | None:
+    """Create a hidden file in ``folder`` and remove it again: None when that works, else the reason
+    (``os.strerror``). Permission bits do not bind root and file systems such as ``/proc`` refuse new
+    files whatever ``os.access`` says, so only a real creation tells whether an output can be written."""
+    probe = Path(folder) / f".crfdepth-probe-{secrets.token_hex(6)}"
     try:
         os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     except OSError as exc:
-        raise PermissionError(f"{name}: cannot create {file}: the folder {file.parent} does not accept new "
-                              f"files ({exc.strerror})") from None
+        return exc.strerror or type(exc).__name__
     probe.unlink(missing_ok=True)
-    return file
+    return None
+
+
+# --------------------------------------------------------------------------- output-folder lock
+
+
+class FolderLockedError(PermissionError):
+    """An output folder is locked by another running crfdepth command (one-line message naming it)."""
+
+
+def _command() -> str:
+    """This process's command line as the user typed it (``crfdepth complete ...``)."""
+    argv = list(sys.argv) or ["crfdepth"]
+    argv[0] = "crfdepth" if Path(argv[0]).name in ("__main__.py", "crfdepth", "-c", "") else Path(argv[0]).name
+    return " ".join(argv)
+
+
+def _read_lock(lock: Path) -> dict | None:
+    """The holder recorded in ``lock`` (pid, host, started, command, token); None when there is no lock
+    file; ``{}`` when it cannot be read (being written this instant, or damaged)."""
+    for attempt in range(3):
+        try:
+            text = lock.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return None
+        except OSError:
+            text = ""
+        try:
+            holder = json.loads(text)
+            if isinstance(holder, dict) and isinstance(holder.get("pid"), int):
+                return holder
+        except ValueError:
+            pass
+        time.sleep(0.05 * (attempt + 1))  # created but not yet written by its run: look again
+    return {}
+
+
+def _gone(holder: dict) -> bool:
+    """Whether the run that wrote ``holder`` no longer runs: on this host, its pid is not a process."""
+    if not holder or holder.get("host") != socket.gethostname():
+        return False  # another machine (a shared folder) or an unreadable lock: assume it runs
+    pid = holder["pid"]
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # PermissionError: a process of another user
+        return False
+    return False
+
+
+def _describe(holder: dict) -> str:
+    if not holder:
+        return "a crfdepth run whose lock file cannot be read"
+    return (f"another crfdepth run (pid {holder['pid']} on {holder.get('host', '?')}, started "
+            f"{holder.get('started', '?')}: {holder.get('command', '?')})")
+
+
+def _locked(name: str, folder: Path, holder: dict) -> FolderLockedError:
+    return FolderLockedError(f"{name}: the folder {folder} is being written by {_describe(holder)}; wait for it "
+                             f"to finish or choose another folder; if that run is gone, delete {folder / LOCK_NAME}")
+
+
+def check_not_locked(folder: str | os.PathLike, name: str = "path") -> None:
+    """Refuse (:class:`FolderLockedError`, naming the argument ``name`` and the other run) an output
+    ``folder`` that a running crfdepth command holds locked; a missing folder or lock, or a stale lock,
+    passes. Takes no lock: :func:`lock_folder` does, once the run is about to write."""
+    folder = Path(folder)
+    holder = _read_lock(folder / LOCK_NAME)
+    if holder is not None and not _gone(holder):
+        raise _locked(name, folder, holder)
+
+
+@contextlib.contextmanager
+def lock_folder(folder: str | os.PathLike, name: str = "path") -> Iterator[Path]:
+    """Hold the lock of the existing output ``folder`` for the ``with`` block (docstring of the module).
+
+    The lock file is created with ``O_CREAT | O_EXCL`` (of two runs, exactly one gets it) and removed
+    on leaving the block, whatever the reason, if it is still this run's. A lock whose run is gone
+    (same host, pid not running) is taken over with a warning. Yields the lock file's path.
+
+    Raises:
+        FolderLockedError: another running crfdepth command holds the folder (pid, host, start time
+            and command named, and the lock file to delete if that run is gone).
+        PermissionError: the lock file cannot be created (the folder does not accept new files).
+    """
+    folder = Path(folder)
+    lock = folder / LOCK_NAME
+    token = secrets.token_hex(8)
+    record = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                         "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+                         "command": _command(), "token": token})
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            holder = _read_lock(lock)
+            if holder is None:
+                continue  # released meanwhile: try again
+            if not _gone(holder):
+                raise _locked(name, folder, holder) from None
+            _take_over(lock, holder, name)
+            continue
+        except OSError as exc:
+            raise PermissionError(f"{name}: cannot create the lock file {lock} ({exc.strerror})") from None
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(record + "\n")
+        break
+    else:
+        raise _locked(name, folder, _read_lock(lock) or {})
+    try:
+        yield lock
+    finally:
+        holder = _read_lock(lock)
+        if holder and holder.get("token") == token:
+            lock.unlink(missing_ok=True)
+
+
+def _take_over(lock: Path, holder: dict, name: str) -> None:
+    """Remove the stale ``lock`` of a run that is gone. It is renamed aside first and checked to be the
+    stale one, so that of two runs taking over at once neither removes the other's fresh lock."""
+    aside = lock.with_name(f"{LOCK_NAME}.{secrets.token_hex(6)}.stale")
+    try:
+        os.rename(lock, aside)
+    except FileNotFoundError:
+        return  # another run took it over first
+    if _read_lock(aside) != holder:  # a fresh lock of a run that took over just before: give it back
+        with contextlib.suppress(OSError):
+            os.link(aside, lock)
+        aside.unlink(missing_ok=True)
+        return
+    aside.unlink(missing_ok=True)
+    logger.warning("%s: taking over the lock of %s, which is no longer running (%s was left behind)",
+                   name, _describe(holder).removeprefix("another "), lock)
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:

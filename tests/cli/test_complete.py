@@ -146,14 +146,14 @@ def test_complete_test_layout_names(main, val_dir, tmp_path):
 
 
 @pytest.mark.kitti
-def test_complete_folder_stops_at_first_bad_frame(main, val_dir, tmp_path, capsys):
+def test_complete_folder_checks_every_frame_before_writing(main, val_dir, tmp_path, capsys):
     root = _fake_test_layout(val_dir, tmp_path / "test")
     write_depth_png(root / "velodyne_raw" / "0000000001.png", np.zeros((352, 1216)))
     out_dir = tmp_path / "out"
     assert main(["complete", "--input-dir", str(root), "--out-dir", str(out_dir), *FAST]) == 2
     err = capsys.readouterr().err
-    assert "no LiDAR point" in err and "0000000001" in err and "1 of 2 frame(s) written" in err
-    assert _files(out_dir) == ["0000000000.png"]  # the frame before the bad one stays
+    assert "no LiDAR point" in err and "0000000001" in err and "1 of 2 frame(s)" in err and "nothing written" in err
+    assert not out_dir.exists()  # the good frame before the bad one is not written either
 
 
 def test_complete_folder_without_frames(main, tmp_path, capsys):

@@ -300,8 +300,8 @@ def test_bag_options_need_bag(main, tmp_path, capsys):
     assert "--image-topic: bag options need --bag" in capsys.readouterr().err
 
 
-def test_bad_frame_midway_keeps_earlier_frames_and_no_bag(main, tmp_path, capsys):
-    """A JPEG that does not decode in frame 2 of 3: frames 1 is written and indexed, no output bag is left."""
+def _bag_with_bad_jpeg(tmp_path: Path) -> Path:
+    """Three frames of compressed images whose second JPEG does not decode."""
     images, clouds, K, T = synthetic_frames(3)
     builder = BagBuilder(tmp_path / "in", "mcap")
     builder.write("/tf_static", START_NS, builder.transforms(rig_edges(T), START_NS))
@@ -315,14 +315,39 @@ def test_bad_frame_midway_keeps_earlier_frames_and_no_bag(main, tmp_path, capsys
         builder.write(IMAGE_TOPIC + "/compressed", stamp + 1, image)
         builder.write(INFO_TOPIC, stamp + 1, builder.camera_info(K, images[k].shape[:2], stamp, "camera_optical"))
     builder.close()
-    assert main(["complete", "--bag", str(tmp_path / "in"), "--image-topic", IMAGE_TOPIC + "/compressed",
+    return tmp_path / "in"
+
+
+def test_bad_frame_midway_writes_nothing(main, tmp_path, capsys):
+    """A JPEG that does not decode in frame 2 of 3 is found before anything is written: exit 2, no file."""
+    bag = _bag_with_bad_jpeg(tmp_path)
+    assert main(["complete", "--bag", str(bag), "--image-topic", IMAGE_TOPIC + "/compressed",
                  "--points-topic", POINTS_TOPIC, "--out-dir", str(tmp_path / "d"), "--out-bag", str(tmp_path / "out"),
                  *FAST]) == 2
     err = capsys.readouterr().err
-    assert "could not be decoded" in err and "stopped after 1 of 3 frame(s)" in err and "no --out-bag" in err
-    assert [r["timestamp_ns"] for r in _index(tmp_path / "d")] == [str(START_NS)]
-    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == [f"{START_NS}.png", "index.csv"]
-    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+    assert err.count("\n") == 1
+    assert err.startswith(f"crfdepth complete: error: --image-topic {IMAGE_TOPIC}/compressed (image at "
+                          f"{START_NS + PERIOD_NS} ns): "), err
+    assert "could not be decoded" in err and f"[1 of 3 frame(s) of --bag {bag} bad; nothing written" in err
+    assert not (tmp_path / "d").exists() and not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+
+
+def test_skip_bad_completes_the_other_frames(main, tmp_path, capsys):
+    """--skip-bad: frames 1 and 3 written and indexed, frame 2 in skipped.csv with its reason, exit 0."""
+    bag = _bag_with_bad_jpeg(tmp_path)
+    assert main(["complete", "--bag", str(bag), "--image-topic", IMAGE_TOPIC + "/compressed",
+                 "--points-topic", POINTS_TOPIC, "--out-dir", str(tmp_path / "d"), "--out-bag", str(tmp_path / "out"),
+                 "--skip-bad", "--potentials", "colour"]) == 0
+    out = capsys.readouterr().out
+    stamps = [str(START_NS), str(START_NS + 2 * PERIOD_NS)]
+    assert [r["timestamp_ns"] for r in _index(tmp_path / "d")] == stamps
+    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == [f"{s}.png" for s in stamps] + ["index.csv",
+                                                                                                   "skipped.csv"]
+    with open(tmp_path / "d" / "skipped.csv", newline="") as handle:
+        skipped = list(csv.DictReader(handle))
+    assert [r["frame"] for r in skipped] == [str(START_NS + PERIOD_NS)] and "could not be decoded" in skipped[0]["reason"]
+    assert "skipped 1 bad frame(s) of 3 (--skip-bad)" in out
+    assert len(_read_bag(tmp_path / "out")["/camera/crfdepth/depth"]) == 2
 
 
 @pytest.mark.parametrize("value", ["0", "-0.1", "nan", "soon"])

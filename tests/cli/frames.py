@@ -1,0 +1,72 @@
+"""Small synthetic folders for the folder-mode CLI tests (output lock, check-first, interrupt).
+
+:func:`write_folder` writes synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
+16 beams) in the ``val_selection_cropped`` layout, so that ``complete --input-dir`` and
+``evaluate --layout val_selection`` read them; chosen frames can be made bad.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from crfdepth import cli
+from crfdepth.data.synthetic import make_scene
+from crfdepth.io.kitti import write_depth_png
+
+DRIVE = "2011_09_26_drive_0001_sync"
+SIZE = (48, 160)  # (H, W): small, so that a frame completes in well under a second
+# Cheap model options for tests about files rather than accuracy.
+FAST = ["--potentials", "colour", "--quiet"]
+COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
+
+
+def stem(kind: str, index: int) -> str:
+    return f"{DRIVE}_{kind}_{index:010d}_image_02"
+
+
+def png(index: int) -> str:
+    """The output PNG name of frame ``index`` (its velodyne_raw file name)."""
+    return f"{stem('velodyne_raw', index)}.png"
+
+
+def write_folder(root: Path, count: int, bad: dict[int, str] | None = None) -> Path:
+    """``count`` frames; ``bad`` maps a frame index to "zero sparse" (no LiDAR point) or "unreadable image"."""
+    bad = bad or {}
+    for sub in ("image", "velodyne_raw", "groundtruth_depth", "intrinsics"):
+        (root / sub).mkdir(parents=True)
+    for index in range(count):
+        scene = make_scene(index, *SIZE, beams=16)
+        rgb = np.round(scene.image * 255).astype(np.uint8)
+        image = root / "image" / f"{stem('image', index)}.png"
+        cv2.imwrite(str(image), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        sparse = np.zeros(SIZE) if bad.get(index) == "zero sparse" else scene.sparse
+        write_depth_png(root / "velodyne_raw" / png(index), sparse)
+        write_depth_png(root / "groundtruth_depth" / f"{stem('groundtruth_depth', index)}.png", scene.target())
+        np.savetxt(root / "intrinsics" / f"{stem('image', index)}.txt", scene.K.reshape(1, 9))
+        if bad.get(index) == "unreadable image":
+            image.write_bytes(b"not a png")
+    return root
+
+
+def files(folder: Path) -> list[str]:
+    """Every file under ``folder`` (hidden ones included: temporary files, the lock), relative, sorted."""
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def run(argv: list) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``crfdepth`` with ``argv`` in this process, argparse's SystemExit caught,
+    with only complete and evaluate registered."""
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        mp.setattr(cli, "_COMMANDS", COMMANDS)
+        try:
+            code = cli.main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()
