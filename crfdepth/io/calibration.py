@@ -53,6 +53,7 @@ __all__ = [
     "read_object_calibration",
     "read_raw_calibration",
     "read_rig_calibration",
+    "read_text",
 ]
 
 PathLike = str | os.PathLike
@@ -206,6 +207,22 @@ def _check_size(value, what: str) -> tuple[int, int]:
 # --------------------------------------------------------------------------- KITTI files
 
 
+def read_text(path: Path, what: str, holding: str) -> str:
+    """A text file's contents (undecodable bytes replaced), or InputError naming ``what`` when the
+    file is binary: an image or .npy signature, or NUL bytes (``<what>: expected a text file with
+    <holding>, got a binary file (a PNG image) <path>``)."""
+    data = path.read_bytes()
+    kind = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
+    if kind is not None or b"\x00" in data:
+        raise InputError(f"{what}: expected a text file with {holding}, got a binary file"
+                         f" ({kind or 'NUL bytes'}) {path}")
+    return data.decode("utf-8", errors="replace")
+
+
+_MAGIC = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+          (b"\x93NUMPY", "a .npy array"))
+
+
 def _check_camera(camera: int) -> int:
     if isinstance(camera, bool) or not isinstance(camera, (int, np.integer)) or not 0 <= camera <= 3:
         raise InputError(f"camera: expected one of 0, 1, 2, 3 (KITTI camera index), got {camera!r}")
@@ -215,7 +232,9 @@ def _check_camera(camera: int) -> int:
 def _read_key_values(path: Path, what: str) -> dict[str, str]:
     """``key: values`` lines of a KITTI calibration file (values kept as text)."""
     entries = {}
-    for line in path.read_text().splitlines():
+    for line in read_text(path, what, "'key: values' lines (a KITTI calibration)").splitlines():
+        if line.lstrip().startswith("#"):  # a comment (e.g. of a rig YAML given by mistake)
+            continue
         key, sep, value = line.partition(":")
         if sep and key.strip():
             entries[key.strip()] = value.strip()
@@ -284,9 +303,11 @@ def read_raw_calibration(day_dir: PathLike, camera: int = 2) -> Calibration:
     T = np.eye(4)
     T[:3, :3] = _matrix(velo, "R", (3, 3), velo_path)
     T[:3, 3] = _matrix(velo, "T", (3,), velo_path)
+    check_rigid(T, f"calibration: keys 'R', 'T' in {velo_path}")
     return Calibration(
         P_rect=_matrix(cam, f"P_rect_0{camera}", (3, 4), cam_path),
-        R_rect=_pad_rotation(_matrix(cam, "R_rect_00", (3, 3), cam_path)),
+        R_rect=check_rigid(_pad_rotation(_matrix(cam, "R_rect_00", (3, 3), cam_path)),
+                           f"calibration: key 'R_rect_00' in {cam_path}"),
         T_velo_to_cam=T,
         image_size=(int(round(height)), int(round(width))),
     )
@@ -311,10 +332,13 @@ def read_object_calibration(path: PathLike, camera: int = 2) -> Calibration:
     camera = _check_camera(camera)
     path = check_input_file(path, "calibration")
     entries = _read_key_values(path, "calibration")
+    T = check_rigid(_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
+                    f"calibration: key 'Tr_velo_to_cam' in {path}")
     return Calibration(
         P_rect=_matrix(entries, f"P{camera}", (3, 4), path),
-        R_rect=_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)),
-        T_velo_to_cam=_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
+        R_rect=check_rigid(_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)),
+                           f"calibration: key 'R0_rect' in {path}"),
+        T_velo_to_cam=T,
         image_size=None,
     )
 
@@ -364,7 +388,7 @@ def read_rig_calibration(path: PathLike) -> RigCalibration:
             failing the checks of :class:`RigCalibration`.
     """
     path = check_input_file(path, "calibration")
-    text = path.read_text(errors="replace")
+    text = read_text(path, "calibration", "a YAML/JSON rig calibration (K, T_cam_lidar)")
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
