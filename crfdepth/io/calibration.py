@@ -43,7 +43,7 @@ import yaml
 
 from crfdepth.checks import check_intrinsics, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.io.files import check_input_file
+from crfdepth.io.files import check_input_file, read_text
 
 __all__ = [
     "Calibration",
@@ -53,7 +53,6 @@ __all__ = [
     "read_object_calibration",
     "read_raw_calibration",
     "read_rig_calibration",
-    "read_text",
 ]
 
 PathLike = str | os.PathLike
@@ -207,22 +206,6 @@ def _check_size(value, what: str) -> tuple[int, int]:
 # --------------------------------------------------------------------------- KITTI files
 
 
-def read_text(path: Path, what: str, holding: str) -> str:
-    """A text file's contents (undecodable bytes replaced), or InputError naming ``what`` when the
-    file is binary: an image or .npy signature, or NUL bytes (``<what>: expected a text file with
-    <holding>, got a binary file (a PNG image) <path>``)."""
-    data = path.read_bytes()
-    kind = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
-    if kind is not None or b"\x00" in data:
-        raise InputError(f"{what}: expected a text file with {holding}, got a binary file"
-                         f" ({kind or 'NUL bytes'}) {path}")
-    return data.decode("utf-8", errors="replace")
-
-
-_MAGIC = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
-          (b"\x93NUMPY", "a .npy array"))
-
-
 def _check_camera(camera: int) -> int:
     if isinstance(camera, bool) or not isinstance(camera, (int, np.integer)) or not 0 <= camera <= 3:
         raise InputError(f"camera: expected one of 0, 1, 2, 3 (KITTI camera index), got {camera!r}")
@@ -332,15 +315,11 @@ def read_object_calibration(path: PathLike, camera: int = 2) -> Calibration:
     camera = _check_camera(camera)
     path = check_input_file(path, "calibration")
     entries = _read_key_values(path, "calibration")
+    P_rect = _matrix(entries, f"P{camera}", (3, 4), path)
+    R_rect = check_rigid(_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)), f"calibration: key 'R0_rect' in {path}")
     T = check_rigid(_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
                     f"calibration: key 'Tr_velo_to_cam' in {path}")
-    return Calibration(
-        P_rect=_matrix(entries, f"P{camera}", (3, 4), path),
-        R_rect=check_rigid(_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)),
-                           f"calibration: key 'R0_rect' in {path}"),
-        T_velo_to_cam=T,
-        image_size=None,
-    )
+    return Calibration(P_rect=P_rect, R_rect=R_rect, T_velo_to_cam=T, image_size=None)
 
 
 def load_calibration(path: PathLike, camera: int = 2) -> Calibration:

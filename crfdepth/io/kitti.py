@@ -19,8 +19,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.io.calibration import read_text
-from crfdepth.io.files import atomic_write_bytes, check_input_file
+from crfdepth.io.files import atomic_write_bytes, check_input_file, read_text
 
 __all__ = ["read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne", "write_depth_png"]
 

@@ -190,6 +190,6 @@ def test_key_listing_skips_comments(capsys, tmp_path):
     out = tmp_path / "out.png"
     first = _refused(capsys, ["project", "--velodyne", str(_scan(tmp_path)), "--calib", str(renamed), "--image",
                               str(EXAMPLE / "image.png"), "--out", str(out)], out)
-    assert first == (f"crfdepth project: error: --calib: key 'Tr_velo_to_cam' not found in {renamed} (keys present: "
+    assert first == (f"crfdepth project: error: --calib: key 'P2' not found in {renamed} (keys present: "
                      f"K, T_cam_lidar, image_size)")
     assert "#" not in first and "Rig calibration" not in first
