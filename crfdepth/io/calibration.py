@@ -26,7 +26,8 @@ imports nothing above :mod:`crfdepth.checks` and :mod:`crfdepth.io.files`.
 
 Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` and
 :func:`~crfdepth.checks.check_rigid` (a transform in millimetres passes, its rotation being
-fine: it is caught when no point lands in the image); ``distortion`` 4, 5, 8, 12 or 14
+fine: it is caught when no point lands in the image); KITTI's transforms by ``check_rigid``
+as read (``project`` and ``complete`` refuse the same files); binary files refused; ``distortion`` 4, 5, 8, 12 or 14
 finite numbers; ``image_size`` two positive integers. A failure is an
 :class:`~crfdepth.errors.InputError` naming the file and the key.
 """
