@@ -15,8 +15,8 @@ projected with that same ``K`` and no distortion.
 Every input is checked here, at the public boundary, and refused with an
 :class:`~crfdepth.errors.InputError` naming the argument (docs/design.md section 8):
 besides shapes and ranges, a ``K`` that does not fit the image, a sparse map that is
-not in metres (:func:`crfdepth.checks.check_sparse_units`) and a ``T_cam_lidar`` that
-looks inverted (unless ``trust_transform=True``).
+not in metres (:func:`crfdepth.checks.check_sparse_plausible`) and a ``T_cam_lidar`` that
+looks inverted (unless ``trust_transform=True``, :func:`points_to_sparse`).
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ import cv2
 import numpy as np
 import torch
 
-from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_units
+from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.memory import (check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory,
                               out_of_memory)
-from crfdepth.projection import count_in_image, project_points
+from crfdepth.projection import ground_normal, ground_tilt_deg, project_points
 
 __all__ = ["check_frame", "complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
@@ -42,8 +42,10 @@ logger = logging.getLogger(__name__)
 
 # A projected LiDAR map whose median depth exceeds this is in the wrong unit (millimetres).
 MAX_PLAUSIBLE_MEDIAN_DEPTH_M = MAX_LIDAR_DEPTH_M
-# Refuse T_cam_lidar as inverted when its inverse lands this many times more points.
-INVERTED_RATIO = 1.5
+# Refuse T_cam_lidar as inverted when it tilts the LiDAR's ground more than INVERTED_MIN_TILT_DEG
+# from level in the camera while its inverse keeps it within INVERTED_MAX_INVERSE_TILT_DEG.
+INVERTED_MIN_TILT_DEG = 45.0
+INVERTED_MAX_INVERSE_TILT_DEG = 30.0
 # More columns than this is taken for a transposed (3|4, N) array rather than extra fields.
 MAX_POINT_COLUMNS = 16
 
@@ -79,7 +81,9 @@ def _image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
     return array.astype(np.float32), is_tensor, device
 
 
-def _sparse_to_numpy(sparse, size: tuple[int, int]) -> np.ndarray:
+def _sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
+    """``sparse`` as an (H, W) float32 map in metres, checked (with ``K``, the image's intrinsics,
+    for the plausibility check :func:`crfdepth.checks.check_sparse_plausible`)."""
     array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
     if array.ndim == 3 and array.shape[0] == 1:
         array = array[0]
@@ -91,20 +95,21 @@ def _sparse_to_numpy(sparse, size: tuple[int, int]) -> np.ndarray:
     if not np.all(np.isfinite(array)) or array.min() < 0:
         raise InputError("sparse: expected finite depth >= 0 metres (0 = no LiDAR point), got NaN, inf or "
                          "negative values")
-    check_sparse_units("sparse", array)
-    array = array.astype(np.float32)
     if not np.any(array > 0):
         raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
-    return array
+    check_sparse_plausible("sparse", array, K)
+    return array.astype(np.float32)
 
 
 def check_frame(image, sparse, K) -> None:
     """Refuse a frame that :func:`complete_depth` would refuse for ``image``, ``sparse`` and ``K``,
     with its checks, messages and order: RGB not (3, H, W) / (H, W, 3) in [0, 1]; K not the
-    intrinsics of an image of this size; sparse depth not finite, >= 0, in metres, with a return."""
+    intrinsics of an image of this size (:func:`crfdepth.checks.check_intrinsics`); sparse depth
+    not finite, >= 0, with a return, or not plausibly metres of a LiDAR scene seen with this K
+    (:func:`crfdepth.checks.check_sparse_plausible`: the hints say what to divide by)."""
     rgb, _, _ = _image_to_numpy(image)
-    check_intrinsics(K, "K", rgb.shape[:2])
-    _sparse_to_numpy(sparse, rgb.shape[:2])
+    Kn = check_intrinsics(K, "K", rgb.shape[:2])
+    _sparse_to_numpy(sparse, rgb.shape[:2], Kn)
 
 
 def prepare_points(points) -> np.ndarray:
@@ -164,11 +169,26 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
     NaN rows are dropped with a warning (:func:`prepare_points`); KITTI calibrations use
     the exact KITTI projection (:func:`crfdepth.projection.project_points`).
 
-    A 360-degree scan lands points in the image even with an inverted ``T_cam_lidar``;
-    then the inverse transform usually lands more. When it lands more than
-    ``INVERTED_RATIO`` (1.5) times as many points, the transform is refused (measured on
-    the shared KITTI scans: the right transform lands 1.6-1.9x the points of its inverse;
-    on the synthetic 360-degree scans 1.2x, which this test does not catch).
+    A 360-degree scan lands points in the image even with an inverted ``T_cam_lidar``
+    (counts do not tell: on the docs/example rig the inverse lands 1.2x *more* points).
+    What tells is the ground: the LiDAR's ground plane (:func:`crfdepth.projection.ground_normal`,
+    the plane below the sensor with the most returns whose normal is within 30 degrees of
+    the LiDAR's +z) must appear level under the camera. The rotation of ``T_cam_lidar``
+    maps its up-normal into the camera (:func:`crfdepth.projection.ground_tilt_deg`: the
+    angle to the camera's up, -y); the inverse transform's rotation is the transpose, which
+    sends up to another camera axis (with the usual axes, LiDAR x forward / z up and camera z
+    forward / y down: to camera x, a ground standing as a wall beside the camera). The
+    transform is refused when it tilts the ground more than ``INVERTED_MIN_TILT_DEG`` (45)
+    degrees while its inverse keeps it within ``INVERTED_MAX_INVERSE_TILT_DEG`` (30). A
+    camera pitched or rolled by up to 45 degrees is accepted whatever its inverse does, and
+    for any pitch or roll the inverse of such a rig tilts the ground by about 90 degrees,
+    so a right transform is refused only for a camera tilted more than 45 degrees *and*
+    turned about 90 degrees about another axis. Measured (the right transform / its
+    inverse): shared KITTI raw scans of drives 0001 and 0060 and the 11 object frames, 64
+    beams and every 4th ring (16 beams): 0.1-3.9 / 89.8-91.1 degrees; synthetic street
+    seeds 0-5, 64 and 16 beams, and the docs/example rig: 0.4-0.8 / 89.8-90.3 degrees. No
+    ground found (an indoor scan of walls, a LiDAR tilted over 30 degrees): nothing is
+    refused. ``trust_transform=True`` skips the test.
 
     Args:
         points: (N, 3+) point cloud in the LiDAR frame, metres (see :func:`prepare_points`).
@@ -176,7 +196,7 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
             :class:`~crfdepth.io.calibration.Calibration`) of the camera.
         image_size: (height, width) of the image, pixels; K must fit it
             (:func:`crfdepth.checks.check_intrinsics`).
-        trust_transform: use ``T_cam_lidar`` even when its inverse lands more points.
+        trust_transform: use ``T_cam_lidar`` even when it looks inverted (the ground test).
 
     Raises:
         InputError: ``K`` does not fit ``image_size``; no point lands in the image
@@ -215,14 +235,16 @@ def _points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image_size: 
                          f"{MAX_PLAUSIBLE_MEDIAN_DEPTH_M:g} m), got a median projected depth of {median:.4g} m; the "
                          f"point coordinates look like millimetres: divide them by 1000")
     if not trust_transform:
-        T = calibration.T_cam_lidar
-        landed = count_in_image(xyz, T, calibration.K, image_size)
-        inverse = count_in_image(xyz, np.linalg.inv(T), calibration.K, image_size)
-        if inverse > INVERTED_RATIO * landed:
-            raise InputError(f"{_named('T_cam_lidar', calibration)}: expected the transform that maps LiDAR points "
-                             f"into the camera frame, got one that looks inverted: {landed} point(s) land in the "
-                             f"image with it, {inverse} with its inverse; pass its inverse (np.linalg.inv), or "
-                             f"trust_transform=True to use it as given")
+        normal = ground_normal(xyz)
+        if normal is not None:
+            T = calibration.T_cam_lidar
+            tilt, inverse = ground_tilt_deg(normal, T), ground_tilt_deg(normal, np.linalg.inv(T))
+            if tilt > INVERTED_MIN_TILT_DEG and inverse < INVERTED_MAX_INVERSE_TILT_DEG:
+                raise InputError(
+                    f"{_named('T_cam_lidar', calibration)}: expected the transform that maps LiDAR points into the "
+                    f"camera frame (x right, y down, z forward), got one that looks inverted: it turns the scan's "
+                    f"ground plane {tilt:.0f} degrees from level under the camera, its inverse {inverse:.0f} "
+                    f"degrees; pass its inverse (np.linalg.inv), or trust_transform=True to use it as given")
     return sparse
 
 
@@ -293,10 +315,11 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
         image: RGB as a numpy (H, W, 3) uint8 (0-255) or float array in [0, 1], or a
             tensor (3, H, W) / (H, W, 3) of the same kinds. Any size.
         sparse: (H, W) sparse z-depth in metres (0 = no point), numpy or tensor, any
-            real dtype. A map plainly not in metres is refused
-            (:func:`crfdepth.checks.check_sparse_units`): the raw codes of a KITTI PNG
-            (``cv2.imread(path, -1)``, metres * 256; use
-            :func:`crfdepth.io.kitti.read_depth_png`) or millimetres.
+            real dtype. A map that is not plausibly metres of a LiDAR scene seen with ``K``
+            is refused with the likely unit (:func:`crfdepth.checks.check_sparse_plausible`):
+            the raw codes of a KITTI PNG (``cv2.imread(path, -1)``, metres * 256; use
+            :func:`crfdepth.io.kitti.read_depth_png`), millimetres, centimetres, or a
+            millimetre / whole-metre PNG read as metres * 256.
         points: (N, 3) or (N, 4) point cloud in the LiDAR frame, metres (extra columns,
             e.g. intensity, are ignored); rows with NaN/inf are dropped with a warning
             giving the count.
@@ -319,9 +342,9 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             (another value, or one this machine lacks, is refused naming ``device``).
         return_std: also return the standard deviation (the model's: predictive by default,
             docs/design.md section 5).
-        trust_transform: with ``points``, use ``T_cam_lidar`` as given even when its
-            inverse lands more than 1.5 times as many points in the image (which is
-            otherwise refused as an inverted transform, :func:`points_to_sparse`).
+        trust_transform: with ``points``, use ``T_cam_lidar`` as given even when it looks
+            inverted (it tilts the scan's ground plane far from level under the camera while
+            its inverse keeps it level; otherwise refused, :func:`points_to_sparse`).
 
     Returns:
         ``(depth, std)``: (H, W) float32 z-depth in metres, > 0 everywhere, and the
@@ -385,7 +408,7 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     if points is not None:
         sparse_np = _points_to_sparse(prepare_points(points), calibration, size, trust_transform)
     else:
-        sparse_np = _sparse_to_numpy(sparse, size)
+        sparse_np = _sparse_to_numpy(sparse, size, calibration.K)
 
     image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
     depth, std = complete_batch(image_t, torch.from_numpy(sparse_np)[None, None], torch.from_numpy(calibration.K),

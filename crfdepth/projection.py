@@ -2,8 +2,9 @@
 
 All projection math lives here: the z-buffer (:func:`project_to_depth`), the exact
 KITTI chain (:func:`project_velodyne`), either calibration type
-(:func:`project_points`) and the in-image count used to spot an inverted transform
-(:func:`count_in_image`). Calibrations come from :mod:`crfdepth.io.calibration`, which
+(:func:`project_points`), the in-image count (:func:`count_in_image`) and the scan's
+ground plane used to spot an inverted transform (:func:`ground_normal`,
+:func:`ground_tilt_deg`). Calibrations come from :mod:`crfdepth.io.calibration`, which
 knows nothing of this module.
 
 Also the subsampling transforms used to simulate sparser LiDAR: keeping every k-th
@@ -21,6 +22,8 @@ from crfdepth.io.calibration import Calibration, RigCalibration
 
 __all__ = [
     "count_in_image",
+    "ground_normal",
+    "ground_tilt_deg",
     "fraction_mask",
     "keep_every_ring",
     "keep_fraction",
@@ -157,8 +160,8 @@ def count_in_image(points: np.ndarray, T_cam_lidar: np.ndarray, K: np.ndarray,
     """How many points ``K [I | 0] T_cam_lidar`` puts in front of the camera and inside the image.
 
     Counted before the z-buffer (several points may share a pixel), with the same
-    rounding as :func:`project_to_depth`. Comparing the count of a transform with that of
-    its inverse tells an inverted ``T_cam_lidar`` (:func:`crfdepth.api.points_to_sparse`).
+    rounding as :func:`project_to_depth` (``crfdepth complete --bag``'s index.csv). Counts do
+    not tell an inverted transform (:func:`ground_tilt_deg` does).
 
     Args:
         points: (N, 3+) points in the LiDAR frame, metres.
@@ -175,6 +178,64 @@ def count_in_image(points: np.ndarray, T_cam_lidar: np.ndarray, K: np.ndarray,
     v = np.round(K[1, 1] * cam[:, 1] / z + K[1, 2])
     return int(np.sum(front & (u >= 0) & (u < width) & (v >= 0) & (v < height)))
 
+# Ground-plane search of :func:`ground_normal` (docs/design.md section 1).
+GROUND_MAX_TILT_DEG = 30.0  # the ground's normal within this of the LiDAR's +z
+GROUND_TOLERANCE_M = 0.10  # a point within this of the plane supports it
+GROUND_MIN_SUPPORT = 0.05  # share of the (subsampled) scan a ground plane needs
+_GROUND_ITERATIONS = 200
+_GROUND_SAMPLE = 20000
+
+
+def ground_normal(points: np.ndarray) -> np.ndarray | None:
+    """Unit normal (pointing up) of the ground plane of a LiDAR scan, in the LiDAR frame, or None.
+
+    LiDAR drivers publish z up (REP 103: x forward, y left, z up); the ground is then the
+    plane below the sensor whose normal is within ``GROUND_MAX_TILT_DEG`` (30 deg) of +z
+    and which holds the most returns (RANSAC, 200 tries, a point within
+    ``GROUND_TOLERANCE_M`` = 0.1 m supports a plane; a fixed seed, so the same scan gives the
+    same plane). None when no such plane holds ``GROUND_MIN_SUPPORT`` (5 %) of the returns
+    (no ground in view of the LiDAR, or a LiDAR mounted tilted by more than 30 deg). On
+    the shared KITTI scans (64 and 16 beams), the synthetic street and the docs/example
+    scan it finds a plane within 4 degrees of level (docs/design.md section 1).
+
+    Args:
+        points: (N, 3+) points in the LiDAR frame, metres, finite.
+    """
+    xyz = _check_points(points, "points", 3)[:, :3].astype(np.float64)
+    rng = np.random.default_rng(0)
+    if xyz.shape[0] > _GROUND_SAMPLE:
+        xyz = xyz[rng.choice(xyz.shape[0], _GROUND_SAMPLE, replace=False)]
+    below = xyz[xyz[:, 2] < 0]
+    if below.shape[0] < 3:
+        return None
+    cos_max = np.cos(np.radians(GROUND_MAX_TILT_DEG))
+    best, best_normal = 0, None
+    triples = rng.integers(0, below.shape[0], size=(_GROUND_ITERATIONS, 3))
+    for triple in triples:
+        a, b, c = below[triple]
+        normal = np.cross(b - a, c - a)
+        length = np.linalg.norm(normal)
+        if length < 1e-9:
+            continue
+        normal = normal / length
+        if normal[2] < 0:
+            normal = -normal
+        offset = -normal @ a  # plane: normal . x + offset = 0; the sensor (origin) is offset above it
+        if normal[2] < cos_max or offset <= 0:
+            continue
+        count = int(np.count_nonzero(np.abs(xyz @ normal + offset) < GROUND_TOLERANCE_M))
+        if count > best:
+            best, best_normal = count, normal
+    if best_normal is None or best < GROUND_MIN_SUPPORT * xyz.shape[0]:
+        return None
+    return best_normal
+
+
+def ground_tilt_deg(normal: np.ndarray, T_cam_lidar: np.ndarray) -> float:
+    """Angle, degrees, between the ground's up-normal mapped into the camera by ``T_cam_lidar``'s
+    rotation and the camera's up (-y; camera x right, y down, z forward): 0 for a level camera."""
+    up = np.asarray(T_cam_lidar, dtype=np.float64)[:3, :3] @ np.asarray(normal, dtype=np.float64)
+    return float(np.degrees(np.arccos(np.clip(-up[1] / np.linalg.norm(up), -1.0, 1.0))))
 
 
 def recover_rings(points: np.ndarray, min_jump: float = np.pi) -> np.ndarray:

@@ -38,7 +38,7 @@ from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_ve
 from crfdepth.io.pointcloud import read_points, write_pcd, write_ply
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.projection import count_in_image, project_velodyne, ring_mask
+from crfdepth.projection import ground_normal, ground_tilt_deg, project_velodyne, ring_mask
 
 DRIVE = "raw/2011_09_26/2011_09_26_drive_0001_sync"
 SCAN = f"{DRIVE}/velodyne_points/data/0000000005.bin"
@@ -293,20 +293,22 @@ def test_distortion_undistorts_image_and_keeps_K():
 
 
 def test_inverted_transform_of_a_full_scan_is_refused_unless_trusted(kitti):
-    """A 360-degree scan still lands points with the inverse transform, but fewer than with
-    the right one (measured: 1.6-1.9x fewer on the shared scans): an inverted transform is
-    refused with both counts and the override; trust_transform=True uses it as given."""
+    """A 360-degree scan still lands points with the inverse transform; what tells is the scan's
+    ground plane: level under the camera with the right transform (measured 1.8 degrees), on its
+    side with the inverse (90.5): refused with both angles and the override; trust_transform=True
+    uses it as given."""
     rig = kitti["rig"]
     inverse = np.linalg.inv(rig.T_cam_lidar)
-    landed = count_in_image(kitti["points"], inverse, rig.K, (375, 1242))
-    right = count_in_image(kitti["points"], rig.T_cam_lidar, rig.K, (375, 1242))
-    assert right > 1.5 * landed > 0
+    normal = ground_normal(kitti["points"])
+    right, wrong = ground_tilt_deg(normal, rig.T_cam_lidar), ground_tilt_deg(normal, inverse)
+    assert right < 5 and 85 < wrong < 95
     with pytest.raises(InputError) as info:
         complete_depth(kitti["image"], points=kitti["points"], K=rig.K, T_cam_lidar=inverse)
     assert str(info.value) == (
-        f"T_cam_lidar: expected the transform that maps LiDAR points into the camera frame, got one that looks "
-        f"inverted: {landed} point(s) land in the image with it, {right} with its inverse; pass its inverse "
-        f"(np.linalg.inv), or trust_transform=True to use it as given")
+        f"T_cam_lidar: expected the transform that maps LiDAR points into the camera frame (x right, y down, z "
+        f"forward), got one that looks inverted: it turns the scan's ground plane {wrong:.0f} degrees from level "
+        f"under the camera, its inverse {right:.0f} degrees; pass its inverse (np.linalg.inv), or "
+        f"trust_transform=True to use it as given")
     inverted = RigCalibration(rig.K, inverse, source="rig.yaml")
     with pytest.raises(InputError, match=r"^T_cam_lidar \(rig.yaml\): .* looks inverted"):
         points_to_sparse(kitti["points"], inverted, (375, 1242))
@@ -329,7 +331,7 @@ def test_sparse_raw_png_codes_are_refused():
     with pytest.raises(InputError) as info:
         complete_depth(small.image, sparse=codes, K=small.K)
     message = str(info.value)
-    assert message.startswith("sparse: expected depth in metres") and "dtype uint16" in message
+    assert message.startswith("sparse: expected depth in metres (a median of at most 300 m")
     assert "raw codes of a KITTI depth PNG" in message and "divide by 256" in message
     assert "\n" not in message
     with pytest.raises(InputError, match="divide by 256"):  # a tensor of the codes too
@@ -353,7 +355,7 @@ def test_real_kitti_sparse_png_read_raw_is_refused_and_read_right_passes(kitti_r
     image = read_rgb(root / "image" / f"{SELECTION_FRAME.format('image')}.png")
     K = read_intrinsics(root / "intrinsics" / f"{SELECTION_FRAME.format('image')}.txt")
     path = root / "velodyne_raw" / f"{SELECTION_FRAME.format('velodyne_raw')}.png"
-    with pytest.raises(InputError, match=r"^sparse: .*median of 3685 .*divide by 256"):
+    with pytest.raises(InputError, match=r"^sparse: .*median 3685 m .*divide by 256"):
         complete_depth(image, sparse=cv2.imread(str(path), -1), K=K)
     check_sparse_units("sparse", read_depth_png(path))  # metres: passes
 

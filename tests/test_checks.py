@@ -26,7 +26,7 @@ def _sparse(median_m: float, count: int = 500, shape=(60, 80), seed=0) -> np.nda
 # --------------------------------------------------------------------------- sparse units
 
 
-@pytest.mark.parametrize("median", [0.5, 14.0, 80.0, 250.0])
+@pytest.mark.parametrize("median", [2.0, 14.0, 80.0, 120.0])
 def test_metres_pass(median):
     check_sparse_units("sparse", _sparse(median))
     check_sparse_units("sparse", torch.from_numpy(_sparse(median)).float())
@@ -45,11 +45,15 @@ def test_raw_png_codes_are_named_with_the_fix():
         check_sparse_units("sparse", codes)
     message = str(info.value)
     median = np.median(codes[codes > 0])
-    assert message.startswith(f"sparse: expected depth in metres (0 = no point; a median of at most 300 m, the "
-                              f"reach of a LiDAR), got a median of {median:.6g} (largest {codes.max()}) over the "
-                              f"500 non-zero pixel(s), dtype uint16; that looks like the raw codes of a KITTI depth "
-                              f"PNG (metres * 256")
-    assert "divide by 256" in message and "by 1000 if the map is in millimetres" in message
+    assert message.startswith(f"sparse: expected depth in metres (a median of at most 300 m, the reach of a "
+                              f"LiDAR), got a median {median:.4g} m over 500 return(s); that looks like the raw codes "
+                              f"of a KITTI depth PNG (metres * 256")
+    assert "divide by 256" in message
+
+
+def test_plain_metres_read_as_kitti_and_half_metre_medians_are_refused():
+    with pytest.raises(InputError, match=r"at most 50% of the returns nearer than 1 m\), got 100% of them"):
+        check_sparse_units("sparse", _sparse(0.5))
 
 
 def test_integer_map_with_large_values_is_refused_even_with_a_small_median():
@@ -66,7 +70,7 @@ def test_millimetres_are_named_with_the_fix():
         check_sparse_units("sparse", _sparse(14.0) * 1000.0)
     message = str(info.value)
     assert message.startswith("sparse: expected depth in metres")
-    assert message.endswith("that looks like millimetres: divide by 1000")
+    assert "that looks like millimetres: divide by 1000" in message
     with pytest.raises(InputError, match="millimetres: divide by 1000"):
         check_sparse_units("sparse", torch.from_numpy(_sparse(14.0) * 1000.0))
 

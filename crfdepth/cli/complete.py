@@ -132,6 +132,7 @@ from crfdepth.cli.common import (
     vis_range_type,
 )
 from crfdepth.data.kitti import open_completion_folder
+from crfdepth.checks import SPARSE_UNITS, check_intrinsics, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
@@ -160,6 +161,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     one.add_argument("--image", metavar="RGB.png", help="8-bit RGB camera image")
     one.add_argument("--sparse", metavar="SPARSE.png",
                      help="sparse LiDAR depth, KITTI 16-bit PNG (metres * 256, 0 = no point)")
+    one.add_argument("--sparse-units", choices=SPARSE_UNITS, default=None,
+                     help="what the --sparse PNG's 16-bit codes are: kitti = metres * 256 (the KITTI format, the "
+                          "default), mm = millimetres, m = whole metres. A map that is not plausibly metres in "
+                          "the chosen unit is refused with the likely one")
     one.add_argument("--intrinsics", metavar="K.txt", help="3x3 camera matrix as 9 numbers, row-major")
     one.add_argument("--points", metavar="CLOUD",
                      help="instead of --sparse/--intrinsics: LiDAR point cloud (.bin KITTI, .npy, .ply, .pcd; "
@@ -249,8 +254,9 @@ def _run_one(args: argparse.Namespace) -> int:
     if missing:
         mode = "point-cloud mode" if points_mode else "one-frame mode"
         raise InputError(f"{mode} needs {', '.join(needed[:-1])} and --out; missing {', '.join(missing)}")
+    given["--sparse-units"] = args.sparse_units
     folder_flags = ("--out-dir", "--out-std-dir", "--batch-size", "--workers")
-    stray_flags = ("--sparse", "--intrinsics", *folder_flags) if points_mode else folder_flags
+    stray_flags = ("--sparse", "--sparse-units", "--intrinsics", *folder_flags) if points_mode else folder_flags
     stray = [flag for flag in stray_flags if given[flag] is not None]
     if stray and points_mode:
         raise InputError(f"{', '.join(stray)}: cannot be combined with --points/--calib (the cloud and the "
@@ -269,17 +275,26 @@ def _run_one(args: argparse.Namespace) -> int:
         try:
             calibration = load_any_calibration(args.calib, camera=args.camera)
         except InputError as exc:
-            raise InputError(f"--calib: {exc}") from None
+            raise InputError(f"--calib: {str(exc).removeprefix('calibration: ')}") from None
         inputs = dict(points=points, calibration=calibration)
         where = {"points": f"--points {args.points}", "calibration": f"--calib {args.calib}",
                  "K": f"--calib {args.calib}", "T_cam_lidar": f"--calib {args.calib}", "image": f"--image {args.image}",
+                 f"K ({calibration.source})": f"--calib {args.calib}",
+                 f"T_cam_lidar ({calibration.source})": f"--calib {args.calib}",
                  "*": f"--points {args.points} with --calib {args.calib}"}
     else:
-        sparse = read_depth_png(args.sparse)
-        K = read_intrinsics(args.intrinsics)
+        units = args.sparse_units or "kitti"
+        sparse = read_depth_png(args.sparse, units=units)
+        try:
+            K = read_intrinsics(args.intrinsics)
+        except InputError as exc:
+            raise InputError(f"--intrinsics: {str(exc).removeprefix('intrinsics: ')}") from None
         if rgb.shape[:2] != sparse.shape:
             raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
                              f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
+        # the API checks both again; here the hints can name --sparse-units
+        check_sparse_plausible(f"--sparse {args.sparse}", sparse,
+                               check_intrinsics(K, f"--intrinsics {args.intrinsics}", sparse.shape), read_as=units)
         inputs = dict(sparse=sparse, K=K)
         where = {"sparse": f"--sparse {args.sparse}", "K": f"--intrinsics {args.intrinsics}",
                  "image": f"--image {args.image}"}

@@ -9,8 +9,11 @@ Order of the checks, so that bad input fails at once and never leaves a file beh
 the options at parse time (``--keep-every-ring`` an integer >= 1, ``--keep-fraction`` a
 number in (0, 1]); then ``--out`` (a ``.png`` name whose folder exists and accepts a new
 file, not one of the inputs) before any input is read; then the inputs, each error
-naming its flag (``--velodyne``, ``--calib``, ``--image``), and the calibration's K
-against the image size. The PNG is written atomically and one line says what was
+naming its flag (``--velodyne``, ``--calib``, ``--image``; a ``.pcd`` / ``.ply`` / ``.npy``
+cloud or a rig YAML/JSON is pointed to ``crfdepth complete --points --calib``), the
+calibration's transforms (rigid, the same check as ``complete``'s:
+:func:`crfdepth.checks.check_rigid` in :mod:`crfdepth.io.calibration`'s readers) and K
+against the image size (:func:`crfdepth.checks.check_intrinsics`, field of view included). The PNG is written atomically and one line says what was
 written (``--quiet`` drops it).
 """
 
@@ -23,7 +26,7 @@ from pathlib import Path
 
 from crfdepth.checks import check_intrinsics
 from crfdepth.errors import InputError
-from crfdepth.io.calibration import load_calibration
+from crfdepth.io.calibration import RIG_SUFFIXES, load_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
 from crfdepth.projection import keep_every_ring, keep_fraction, project_velodyne
@@ -106,6 +109,24 @@ def _named(flag: str, prefix: str, exc: Exception) -> Exception:
     return type(exc)(f"{flag}: {message}")
 
 
+# Inputs of ``crfdepth complete --points ... --calib ...`` that this command does not read.
+_CLOUD_SUFFIXES = (".pcd", ".ply", ".npy")
+
+
+def _check_kitti_inputs(args: argparse.Namespace) -> None:
+    """A point-cloud file or a rig calibration given to this KITTI-only command: point to the
+    command that reads them, before any reader fails on them with a less useful message."""
+    suffix = Path(args.velodyne).suffix.lower()
+    if suffix in _CLOUD_SUFFIXES:
+        raise InputError(f"--velodyne: expected a KITTI Velodyne scan (.bin, N x 4 float32), got a {suffix} point "
+                         f"cloud {args.velodyne}; for other point clouds and rig calibrations use crfdepth complete "
+                         f"--points CLOUD --calib CALIB")
+    if Path(args.calib).suffix.lower() in RIG_SUFFIXES:
+        raise InputError(f"--calib: expected a KITTI calibration (object-benchmark file or raw-data day folder), got "
+                         f"a rig calibration {args.calib}; for a rig calibration (K, T_cam_lidar) use crfdepth "
+                         f"complete --points CLOUD --calib {args.calib}")
+
+
 def run(args: argparse.Namespace) -> int:
     """Project ``args.velodyne`` into ``args.image``'s camera and write ``args.out``.
 
@@ -115,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
     with nothing written.
     """
     out = _check_out(args)
+    _check_kitti_inputs(args)
     try:
         points = read_velodyne(args.velodyne)
     except (InputError, FileNotFoundError, IsADirectoryError) as exc:

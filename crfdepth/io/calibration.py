@@ -26,7 +26,8 @@ imports nothing above :mod:`crfdepth.checks` and :mod:`crfdepth.io.files`.
 
 Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` and
 :func:`~crfdepth.checks.check_rigid` (a transform in millimetres passes, its rotation being
-fine: it is caught when no point lands in the image); ``distortion`` 4, 5, 8, 12 or 14
+fine: it is caught when no point lands in the image); KITTI's transforms by ``check_rigid``
+as read (``project`` and ``complete`` refuse the same files); binary files refused; ``distortion`` 4, 5, 8, 12 or 14
 finite numbers; ``image_size`` two positive integers. A failure is an
 :class:`~crfdepth.errors.InputError` naming the file and the key.
 """
@@ -43,7 +44,7 @@ import yaml
 
 from crfdepth.checks import check_intrinsics, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.io.files import check_input_file
+from crfdepth.io.files import check_input_file, read_text
 
 __all__ = [
     "Calibration",
@@ -215,7 +216,9 @@ def _check_camera(camera: int) -> int:
 def _read_key_values(path: Path, what: str) -> dict[str, str]:
     """``key: values`` lines of a KITTI calibration file (values kept as text)."""
     entries = {}
-    for line in path.read_text().splitlines():
+    for line in read_text(path, what, "'key: values' lines (a KITTI calibration)").splitlines():
+        if line.lstrip().startswith("#"):  # a comment (e.g. of a rig YAML given by mistake)
+            continue
         key, sep, value = line.partition(":")
         if sep and key.strip():
             entries[key.strip()] = value.strip()
@@ -284,9 +287,11 @@ def read_raw_calibration(day_dir: PathLike, camera: int = 2) -> Calibration:
     T = np.eye(4)
     T[:3, :3] = _matrix(velo, "R", (3, 3), velo_path)
     T[:3, 3] = _matrix(velo, "T", (3,), velo_path)
+    check_rigid(T, f"calibration: keys 'R', 'T' in {velo_path}")
     return Calibration(
         P_rect=_matrix(cam, f"P_rect_0{camera}", (3, 4), cam_path),
-        R_rect=_pad_rotation(_matrix(cam, "R_rect_00", (3, 3), cam_path)),
+        R_rect=check_rigid(_pad_rotation(_matrix(cam, "R_rect_00", (3, 3), cam_path)),
+                           f"calibration: key 'R_rect_00' in {cam_path}"),
         T_velo_to_cam=T,
         image_size=(int(round(height)), int(round(width))),
     )
@@ -311,12 +316,11 @@ def read_object_calibration(path: PathLike, camera: int = 2) -> Calibration:
     camera = _check_camera(camera)
     path = check_input_file(path, "calibration")
     entries = _read_key_values(path, "calibration")
-    return Calibration(
-        P_rect=_matrix(entries, f"P{camera}", (3, 4), path),
-        R_rect=_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)),
-        T_velo_to_cam=_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
-        image_size=None,
-    )
+    P_rect = _matrix(entries, f"P{camera}", (3, 4), path)
+    R_rect = check_rigid(_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)), f"calibration: key 'R0_rect' in {path}")
+    T = check_rigid(_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
+                    f"calibration: key 'Tr_velo_to_cam' in {path}")
+    return Calibration(P_rect=P_rect, R_rect=R_rect, T_velo_to_cam=T, image_size=None)
 
 
 def load_calibration(path: PathLike, camera: int = 2) -> Calibration:
@@ -364,7 +368,7 @@ def read_rig_calibration(path: PathLike) -> RigCalibration:
             failing the checks of :class:`RigCalibration`.
     """
     path = check_input_file(path, "calibration")
-    text = path.read_text(errors="replace")
+    text = read_text(path, "calibration", "a YAML/JSON rig calibration (K, T_cam_lidar)")
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:

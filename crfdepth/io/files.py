@@ -34,7 +34,7 @@ from typing import Callable
 from crfdepth.errors import InputError
 
 __all__ = ["LOCK_NAME", "FolderLockedError", "atomic_write", "atomic_write_bytes", "check_input_file",
-           "check_not_locked", "check_output_file", "lock_folder", "probe_folder"]
+           "check_not_locked", "check_output_file", "lock_folder", "probe_folder", "read_text"]
 
 logger = logging.getLogger(__name__)
 
@@ -254,3 +254,19 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             handle.write(data)
 
     atomic_write(path, write)
+
+
+def read_text(path: Path, what: str, holding: str) -> str:
+    """A text file's contents (undecodable bytes replaced), or InputError naming ``what`` when the
+    file is binary: an image or .npy signature, or NUL bytes (``<what>: expected a text file with
+    <holding>, got a binary file (a PNG image) <path>``)."""
+    data = path.read_bytes()
+    kind = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
+    if kind is not None or b"\x00" in data:
+        raise InputError(f"{what}: expected a text file with {holding}, got a binary file"
+                         f" ({kind or 'NUL bytes'}) {path}")
+    return data.decode("utf-8", errors="replace")
+
+
+_MAGIC = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
+          (b"\x93NUMPY", "a .npy array"))

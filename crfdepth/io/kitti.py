@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes, check_input_file
+from crfdepth.io.files import atomic_write_bytes, check_input_file, read_text
 
 __all__ = ["read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne", "write_depth_png"]
 
@@ -27,6 +27,8 @@ PathLike = str | os.PathLike
 
 # KITTI depth PNGs store depth * 256 as uint16.
 _DEPTH_SCALE = 256.0
+# Codes per metre of the units a depth PNG may be read in (read_depth_png).
+_UNIT_SCALES = {"kitti": _DEPTH_SCALE, "mm": 1000.0, "m": 1.0}
 _UINT16_MAX = np.iinfo(np.uint16).max
 
 
@@ -46,26 +48,30 @@ def _decode_image(path: PathLike, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------- depth PNG
 
 
-def read_depth_png(path: PathLike) -> np.ndarray:
-    """Read a KITTI depth PNG (velodyne_raw, groundtruth or a prediction).
+def read_depth_png(path: PathLike, units: str = "kitti") -> np.ndarray:
+    """Read a sparse or dense depth PNG (velodyne_raw, groundtruth or a prediction).
 
     Args:
-        path: 16-bit single-channel PNG holding ``depth * 256``.
+        path: 16-bit single-channel PNG.
+        units: what its codes are: ``"kitti"`` (the KITTI format, metres * 256), ``"mm"``
+            (millimetres) or ``"m"`` (whole metres); ``crfdepth complete --sparse-units``.
 
     Returns:
-        (H, W) float32 depth in metres (``value / 256``); 0 = no measurement.
+        (H, W) float32 depth in metres (codes / 256, / 1000 or / 1); 0 = no measurement.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        InputError: the file is not a 16-bit single-channel image.
+        InputError: the file is not a 16-bit single-channel image, or ``units`` is unknown.
     """
+    if units not in _UNIT_SCALES:
+        raise InputError(f"units: expected one of {', '.join(_UNIT_SCALES)}, got {units!r}")
     image = _decode_image(path, "depth png")
     if image.dtype != np.uint16 or image.ndim != 2:
         channels = 1 if image.ndim == 2 else image.shape[2]
         raise InputError(
             f"depth png: expected a 16-bit single-channel PNG (depth * 256), got {image.dtype} "
             f"with {channels} channel(s) in {path}")
-    return image.astype(np.float32) / np.float32(_DEPTH_SCALE)
+    return image.astype(np.float32) / np.float32(_UNIT_SCALES[units])
 
 
 def write_depth_png(path: PathLike, depth: np.ndarray) -> None:
@@ -156,10 +162,10 @@ def read_intrinsics(path: PathLike) -> np.ndarray:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        InputError: the file does not hold exactly 9 numbers.
+        InputError: the file does not hold exactly 9 numbers, or is not text (an image?).
     """
     path = check_input_file(path, "intrinsics")
-    tokens = path.read_text().split()
+    tokens = read_text(path, "intrinsics", "9 numbers (row-major 3x3 K)").split()
     try:
         values = np.array([float(token) for token in tokens], dtype=np.float64)
     except ValueError as exc:
