@@ -272,4 +272,4 @@ def test_cli_folder_mode_refusal_is_one_line_with_the_folder_fix(main, capsys, t
                            f"about 250 bytes per pixel), more than the memory available on cpu (0.2 GB); {advice} "
                            f"[stopped at ")
     assert line.endswith(f"0 of 2 frame(s) written to {out_dir}]")
-    assert not any(out_dir.iterdir())
+    assert not out_dir.exists()  # the run created it and removes it again when nothing was written

@@ -446,6 +446,9 @@ def run(args: argparse.Namespace) -> int:
     if args.skip_bad and args.bag is None and args.input_dir is None:
         raise InputError("--skip-bad: applies to the runs over many frames (--input-dir or --bag); a single frame "
                          "is either completed or refused")
+    if args.sparse_units is not None and (args.bag is not None or args.input_dir is not None):
+        raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
+                         f"{'--input-dir reads KITTI velodyne_raw PNGs (metres * 256)' if args.bag is None else '--bag reads point clouds in metres'}")
     if args.bag is not None:
         return run_bag(args)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]

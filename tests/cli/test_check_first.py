@@ -79,8 +79,9 @@ def test_skip_bad_completes_the_others_and_lists_the_bad_ones(tmp_path, workers)
     assert [r["frame"] for r in skipped] == [stem("velodyne_raw", 1), stem("velodyne_raw", 2)]
     assert "no LiDAR point" in skipped[0]["reason"] and "not a readable image" in skipped[1]["reason"]
     lines = stdout.splitlines()
-    assert lines[0].startswith(f"wrote 2 depth PNG(s) to {out} in ")
-    assert lines[1] == f"skipped 2 bad frame(s) of 4 (--skip-bad), listed with the reasons in {out / 'skipped.csv'}"
+    assert lines[0].startswith("model: kitti weights, pixel grid")  # the model line (build_model)
+    assert lines[1].startswith(f"wrote 2 depth PNG(s) to {out} in ")
+    assert lines[2] == f"skipped 2 bad frame(s) of 4 (--skip-bad), listed with the reasons in {out / 'skipped.csv'}"
 
 
 def test_skip_bad_with_every_frame_bad_writes_nothing(tmp_path):

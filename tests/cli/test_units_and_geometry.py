@@ -193,3 +193,28 @@ def test_key_listing_skips_comments(capsys, tmp_path):
     assert first == (f"crfdepth project: error: --calib: key 'P2' not found in {renamed} (keys present: "
                      f"K, T_cam_lidar, image_size)")
     assert "#" not in first and "Rig calibration" not in first
+
+
+def test_inverted_rig_through_a_bag_is_refused(capsys, tmp_path):
+    """--bag --calib goes through the same inverted-transform test as --points --calib."""
+    from crfdepth.data.example_bag import EXAMPLE_TOPICS, write_example_bag
+
+    bag = tmp_path / "street.bag"
+    write_example_bag(bag, frames=1)
+    rig, out = _inverted_rig(tmp_path), tmp_path / "depth"
+    assert main(["complete", "--bag", str(bag), "--image-topic", EXAMPLE_TOPICS["image"], "--points-topic",
+                 EXAMPLE_TOPICS["points"], "--calib", str(rig), "--out-dir", str(out)]) == 2
+    first = capsys.readouterr().err.splitlines()[0]
+    assert first.startswith("crfdepth complete: error: ")
+    assert "looks inverted: it turns the scan's ground plane 90 degrees from level under the camera" in first
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("mode", ["--input-dir", "--bag"])
+def test_sparse_units_outside_one_frame_mode_is_refused(capsys, tmp_path, mode):
+    """Folder mode reads KITTI PNGs and bag mode point clouds: a --sparse-units there would be ignored."""
+    source = tmp_path / "in"
+    source.mkdir()
+    out = tmp_path / "out"
+    first = _refused(capsys, ["complete", mode, str(source), "--out-dir", str(out), "--sparse-units", "mm"], out)
+    assert first.startswith("crfdepth complete: error: --sparse-units mm: applies to --sparse only; ")
