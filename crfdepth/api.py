@@ -302,7 +302,8 @@ def _image_size(image) -> tuple[int, int] | None:
 
 def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
                    calibration: RigCalibration | Calibration | None = None, distortion=None, model=None,
-                   device: str | torch.device = "cpu", return_std: bool = True, trust_transform: bool = False):
+                   device: str | torch.device = "cpu", return_std: bool = True, trust_transform: bool = False,
+                   trust_units: bool = False):
     """Dense depth (and std) for one camera image from sparse LiDAR or a raw point cloud.
 
     Give the camera either as ``K`` (+ ``T_cam_lidar`` for points, + optional
@@ -345,6 +346,9 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
         trust_transform: with ``points``, use ``T_cam_lidar`` as given even when it looks
             inverted (it tilts the scan's ground plane far from level under the camera while
             its inverse keeps it level; otherwise refused, :func:`points_to_sparse`).
+        trust_units: with ``sparse``, skip the plausibility rule that guesses the rig (the
+            ground at most 4 m below the camera where the median depth exceeds 20 m): for a
+            camera on a mast or a drone. The rules of the LiDAR's reach still apply.
 
     Returns:
         ``(depth, std)``: (H, W) float32 z-depth in metres, > 0 everywhere, and the
@@ -371,6 +375,8 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     size = rgb.shape[:2]
     if not isinstance(trust_transform, bool):
         raise InputError(f"trust_transform: expected True or False, got {trust_transform!r}")
+    if not isinstance(trust_units, bool):
+        raise InputError(f"trust_units: expected True or False, got {trust_units!r}")
     if calibration is not None:
         given = [name for name, value in (("K", K), ("T_cam_lidar", T_cam_lidar), ("distortion", distortion))
                  if value is not None]
@@ -408,7 +414,7 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     if points is not None:
         sparse_np = _points_to_sparse(prepare_points(points), calibration, size, trust_transform)
     else:
-        sparse_np = _sparse_to_numpy(sparse, size, calibration.K)
+        sparse_np = _sparse_to_numpy(sparse, size, None if trust_units else calibration.K)
 
     image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
     depth, std = complete_batch(image_t, torch.from_numpy(sparse_np)[None, None], torch.from_numpy(calibration.K),

@@ -438,6 +438,10 @@ def check_sparse_plausible(name: str, depth: object, K: object = None, *, read_a
         read_as: ``"api"`` for an array meant as metres (hints say what to divide by), or the
             ``--sparse-units`` the PNG was read in (hints name the option).
 
+    Rule 4 is a guess about the rig (a camera less than 4 m above the ground); a caller whose
+    camera is higher turns it off by passing ``K=None`` (``complete_depth(trust_units=True)``,
+    an explicit ``--sparse-units``), and its message says so.
+
     Raises:
         InputError: ``<name>: expected depth in metres (<rule>), got <statistic>; that looks
             like <unit>: <fix>``.
@@ -466,6 +470,10 @@ def check_sparse_plausible(name: str, depth: object, K: object = None, *, read_a
         message += f"; that looks like {hints[0]}" + "".join(f"; or {h}" for h in hints[1:])
     else:
         message += "; check the unit and the scale of the map"
+    if expected.startswith("the ground"):  # rule 4 is a guess about the rig: say how to overrule it
+        message += ("; if the camera really is that high (a mast, a drone), pass trust_units=True" if read_as == "api"
+                    else f"; if the camera really is that high (a mast, a drone), give --sparse-units {read_as} "
+                         f"explicitly")
     raise InputError(message)
 
 

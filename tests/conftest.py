@@ -3,6 +3,7 @@
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 
@@ -15,3 +16,17 @@ def kitti_root() -> Path:
             pytest.fail(f"KITTI sample data not found at {root} (CI=true)")
         pytest.skip(f"KITTI sample data not found at {root}")
     return root
+
+
+@pytest.fixture
+def mast_map():
+    """A camera 8 m up a mast over a flat ground, looking level: the ground's returns in the image's
+    bottom quarter lie 8 m below it, and the median return is beyond 20 m."""
+    height, width, f = 480, 640, 600.0  # a 56-degree lens: the nearest ground seen is 22 m away
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+    v = np.arange(height)[:, None] + 0.5
+    ground = np.where(v > height / 2 + 20, 8.0 * f / np.maximum(v - height / 2, 1e-6), 0.0)
+    sparse = np.zeros((height, width), np.float32)
+    sparse[::4, ::4] = np.broadcast_to(ground, (height, width))[::4, ::4]
+    sparse[sparse > 150] = 0
+    return sparse, K

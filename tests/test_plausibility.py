@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from crfdepth.api import check_frame, points_to_sparse
+from crfdepth.api import check_frame, complete_depth, points_to_sparse
 from crfdepth.checks import check_intrinsics, check_sparse_plausible
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
@@ -111,3 +112,30 @@ def test_real_kitti_sparse_maps_pass_with_their_K(kitti_root):
         check_frame(image, read_depth_png(path), K)
         with pytest.raises(InputError, match="millimetre PNG read as a KITTI PNG"):
             check_frame(image, read_depth_png(path) * 1000 / 256, K)
+
+
+def test_a_camera_up_a_mast_is_refused_by_the_rig_guess_and_accepted_with_trust_units(mast_map):
+    sparse, K = mast_map
+    image = np.full((*sparse.shape, 3), 128, np.uint8)
+    with pytest.raises(InputError, match=r"^sparse: expected depth in metres \(the ground at most 4 m below the "
+                                         r"camera .* pass trust_units=True$"):
+        complete_depth(image, sparse=sparse, K=K, return_std=False)
+    with pytest.raises(InputError, match=r"^trust_units: expected True or False, got 'yes'$"):
+        complete_depth(image, sparse=sparse, K=K, trust_units="yes")
+
+
+def test_a_camera_up_a_mast_passes_the_checks_with_trust_units(monkeypatch, mast_map):
+    """trust_units skips only the rig guess: the map reaches the model unchanged."""
+    import crfdepth.api as api
+
+    sparse, K = mast_map
+    seen = {}
+
+    def fake_batch(image, sparse_t, K_t, **kwargs):
+        seen["sparse"] = sparse_t[0, 0].numpy()
+        return torch.ones(1, *sparse.shape), None
+
+    monkeypatch.setattr(api, "complete_batch", fake_batch)
+    image = np.full((*sparse.shape, 3), 128, np.uint8)
+    api.complete_depth(image, sparse=sparse, K=K, return_std=False, trust_units=True)
+    np.testing.assert_allclose(seen["sparse"], sparse, rtol=0, atol=0)

@@ -164,7 +164,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     one.add_argument("--sparse-units", choices=SPARSE_UNITS, default=None,
                      help="what the --sparse PNG's 16-bit codes are: kitti = metres * 256 (the KITTI format, the "
                           "default), mm = millimetres, m = whole metres. A map that is not plausibly metres in "
-                          "the chosen unit is refused with the likely one")
+                          "the chosen unit is refused with the likely one; given explicitly, it also overrules "
+                          "the guess that the camera is at most 4 m above the ground (a mast, a drone)")
     one.add_argument("--intrinsics", metavar="K.txt", help="3x3 camera matrix as 9 numbers, row-major")
     one.add_argument("--points", metavar="CLOUD",
                      help="instead of --sparse/--intrinsics: LiDAR point cloud (.bin KITTI, .npy, .ply, .pcd; "
@@ -293,9 +294,11 @@ def _run_one(args: argparse.Namespace) -> int:
             raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
                              f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
         # the API checks both again; here the hints can name --sparse-units
-        check_sparse_plausible(f"--sparse {args.sparse}", sparse,
-                               check_intrinsics(K, f"--intrinsics {args.intrinsics}", sparse.shape), read_as=units)
-        inputs = dict(sparse=sparse, K=K)
+        # an explicit --sparse-units overrules the guess about the rig (a camera more than 4 m up)
+        explicit = args.sparse_units is not None
+        Kn = check_intrinsics(K, f"--intrinsics {args.intrinsics}", sparse.shape)
+        check_sparse_plausible(f"--sparse {args.sparse}", sparse, None if explicit else Kn, read_as=units)
+        inputs = dict(sparse=sparse, K=K, trust_units=explicit)
         where = {"sparse": f"--sparse {args.sparse}", "K": f"--intrinsics {args.intrinsics}",
                  "image": f"--image {args.image}"}
     if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):

@@ -218,3 +218,23 @@ def test_sparse_units_outside_one_frame_mode_is_refused(capsys, tmp_path, mode):
     out = tmp_path / "out"
     first = _refused(capsys, ["complete", mode, str(source), "--out-dir", str(out), "--sparse-units", "mm"], out)
     assert first.startswith("crfdepth complete: error: --sparse-units mm: applies to --sparse only; ")
+
+
+def test_an_explicit_sparse_units_overrules_the_rig_guess(capsys, tmp_path, mast_map):
+    """A camera 8 m up a mast: refused by default with the way out, completed with --sparse-units kitti."""
+    from crfdepth.io.kitti import write_depth_png
+
+    sparse, K = mast_map
+    png, k_path, image = tmp_path / "mast.png", tmp_path / "K.txt", tmp_path / "image.png"
+    write_depth_png(png, sparse)
+    k_path.write_text(" ".join(f"{v:g}" for v in K.ravel()))
+    cv2.imwrite(str(image), np.full((*sparse.shape, 3), 128, np.uint8))
+    out = tmp_path / "out.png"
+    argv = ["complete", "--image", str(image), "--sparse", str(png), "--intrinsics", str(k_path), "--out", str(out),
+            "--quiet"]
+    first = _refused(capsys, argv, out)
+    assert first.startswith(f"crfdepth complete: error: --sparse {png}: expected depth in metres (the ground at most "
+                            f"4 m below the camera")
+    assert first.endswith("if the camera really is that high (a mast, a drone), give --sparse-units kitti explicitly")
+    assert main([*argv, "--sparse-units", "kitti"]) == 0
+    assert read_depth_png(out).shape == sparse.shape
