@@ -76,3 +76,69 @@ def test_warning_filters_still_apply(capsys):
         with warnings_as_lines("complete"), pytest.raises(UserWarning, match="as an error"):
             warnings.warn("as an error", UserWarning, stacklevel=1)
     assert capsys.readouterr().err == ""
+
+
+# ----------------------------------------------------------------------------- README outputs
+
+_OUTPUT_FLAGS = ("--out", "--out-std", "--out-dir", "--out-std-dir", "--out-bag")
+# Where a README command writes without an output option (each command's default).
+_DEFAULT_OUTPUTS = {("crfdepth", "demo"): "crfdepth_demo/", ("crfdepth", "evaluate"): "evaluation/",
+                    ("python", "benchmarks/accuracy.py"): "accuracy_results/", ("python", "-m", "train"): "lightning_logs/"}
+
+
+def _readme_commands() -> list[list[str]]:
+    """Every ``crfdepth ...`` / ``python ...`` command of README.md: bash blocks and inline code."""
+    readme = (ROOT / "README.md").read_text()
+    texts = []
+    for block in re.findall(r"^```bash\n(.*?)^```", readme, flags=re.S | re.M):
+        texts += block.replace("\\\n", " ").splitlines()
+    texts += [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", re.sub(r"```.*?```", "", readme, flags=re.S))]
+    commands = []
+    for text in texts:
+        for part in re.split(r"&&|;", text):
+            words = shlex.split(part, comments=True)
+            if words and words[0] in ("crfdepth", "python", "python3") and len(words) > 1:
+                commands.append(words)
+    return commands
+
+
+def _outputs(words: list[str]) -> set[str]:
+    """The relative output paths a README command names (folders end in "/")."""
+    found = set()
+    for flag in _OUTPUT_FLAGS:
+        if flag in words[:-1]:
+            path = words[words.index(flag) + 1]
+            found.add(path.rstrip("/") + "/" if flag.endswith("dir") else path)
+    if "--vis" in words and "--out" in words:  # a bare --vis: pictures next to --out
+        stem = Path(words[words.index("--out") + 1]).with_suffix("")
+        found |= {f"{stem}_vis_depth.png", f"{stem}_vis_std.png"}
+    if words[1:3] == ["-m", "crfdepth.data.example_bag"]:
+        found.add(words[3])
+    if not any(flag in words for flag in _OUTPUT_FLAGS):
+        for prefix, default in _DEFAULT_OUTPUTS.items():
+            if tuple(words[:len(prefix)]) == prefix:
+                found.add(default)
+    # Placeholders (DEPTH.png, DIR) and absolute paths are the user's; crfdepth/weights/kitti.json
+    # (python -m train.export) regenerates a committed file.
+    return {p for p in found if not re.search(r"[A-Z]{2,}", p) and not p.startswith("/")
+            and not (ROOT / p).parent.samefile(ROOT / "crfdepth" / "weights")}
+
+
+def test_readme_outputs_are_ignored_by_git(tmp_path):
+    git = shutil.which("git")
+    if git is None:
+        pytest.skip("git is not installed")
+    outputs = set().union(*(_outputs(words) for words in _readme_commands()))
+    # The parser finds the README's outputs (a README rewrite that hides them fails here).
+    assert {"crfdepth_demo/", "depth.png", "std.png", "depth_vis_depth.png", "depth_vis_std.png", "street.bag",
+            "depth/", "std/", "street_depth.bag", "submission/", "lightning_logs/"} <= outputs, outputs
+    # git check-ignore --no-index on the project's .gitignore, in an empty repository (works
+    # from a copy of the files without .git, too).
+    shutil.copy(ROOT / ".gitignore", tmp_path / ".gitignore")
+    subprocess.run([git, "init", "-q", str(tmp_path)], check=True)
+    paths = sorted(p + "frame.png" if p.endswith("/") else p for p in outputs)
+    result = subprocess.run([git, "-C", str(tmp_path), "check-ignore", "--no-index", "--verbose",
+                             "--non-matching", *paths], capture_output=True, text=True)
+    not_ignored = [line.split("\t")[-1] for line in result.stdout.splitlines() if line.startswith("::")]
+    assert result.returncode in (0, 1) and len(result.stdout.splitlines()) == len(paths), result.stderr
+    assert not_ignored == [], f"README outputs not in .gitignore: {not_ignored}"
