@@ -142,3 +142,33 @@ def test_readme_outputs_are_ignored_by_git(tmp_path):
     not_ignored = [line.split("\t")[-1] for line in result.stdout.splitlines() if line.startswith("::")]
     assert result.returncode in (0, 1) and len(result.stdout.splitlines()) == len(paths), result.stderr
     assert not_ignored == [], f"README outputs not in .gitignore: {not_ignored}"
+
+
+# ----------------------------------------------------------------------------- benchmark progress
+
+
+def test_model_benchmark_prints_progress_on_stderr(capsys):
+    import importlib.util
+
+    import torch
+
+    from crfdepth.data.synthetic import make_scene
+
+    spec = importlib.util.spec_from_file_location("model_benchmark", ROOT / "benchmarks" / "model.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    t = make_scene(0, height=64, width=224).to_tensors()
+    frame = dict(image=t["image"][None], sparse=t["sparse"][None], target=t["target"][None], K=t["K"],
+                 name="small")
+    configs = [("pixel", None, None), ("superpixel", 150, True)]
+    with torch.inference_mode():
+        rows = bench.measure(configs, frame, "cpu", repeats=2, std_repeats=[0, 1])
+    captured = capsys.readouterr()
+    lines = [re.sub(r"^\[ *[0-9.]+ s\] ", "", line) for line in captured.err.splitlines()]
+    assert lines == ["configuration 1/2: pixel (build, warm-up)",
+                     "configuration 2/2: superpixel 150 refine=True (build, warm-up)",
+                     "round 1/2: 2 configurations", "round 2/2: 2 configurations"], captured.err
+    assert captured.out == ""  # stdout stays the table and the JSON
+    assert [(r["mode"], r["superpixels"], r["std_s"] is None) for r in rows] == [
+        ("pixel", None, True), ("superpixel", 150, False)]  # std timed only where std_repeats asked
+    assert all(r["total_s"] > 0 for r in rows)
