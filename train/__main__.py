@@ -62,22 +62,23 @@ _CPU_DDP = "--trainer.accelerator cpu --trainer.devices 2"
 
 
 def _requested_gpus(devices: Any) -> int | None:
-    """How many GPUs Lightning's ``devices`` value asks for; None = any number ("auto", -1)."""
-    if isinstance(devices, str):
-        text = devices.strip()
-        if text in ("auto", "-1"):
-            return None
-        if "," in text:  # "0,1": device indices
-            indices = [int(i) for i in text.split(",") if i.strip()]
-            return max(indices) + 1 if indices else None
-        try:
-            devices = int(text)
-        except ValueError:
-            return None  # Lightning reports what it cannot read
-    if isinstance(devices, (list, tuple)):
-        return max(int(i) for i in devices) + 1 if devices else None
-    if isinstance(devices, int) and not isinstance(devices, bool):
-        return None if devices == -1 else devices
+    """How many GPUs Lightning's ``devices`` value asks for (an index list: the highest + 1);
+    None = any number ("auto", -1) or a value Lightning itself will report."""
+    try:
+        if isinstance(devices, str):
+            text = devices.strip()
+            if text in ("auto", "-1"):
+                return None
+            if "," in text:  # "0,1": device indices
+                devices = [int(i) for i in text.split(",") if i.strip()]
+            else:
+                devices = int(text)
+        if isinstance(devices, (list, tuple)):
+            return max(int(i) for i in devices) + 1 if devices else None
+        if isinstance(devices, int) and not isinstance(devices, bool):
+            return None if devices == -1 else devices
+    except (TypeError, ValueError):
+        pass
     return None
 
 
