@@ -44,7 +44,9 @@ timings are not synchronised, so only totals are reported there (stage keys and
 ``std_over_solve`` are null). Prints a table, the verdicts on the targets (superpixel
 5500 end-to-end <= 0.5 s per frame without std; std cost <= 2x the depth solve and <= 0.5x
 the forward) and
-which stage dominates, then one JSON line per configuration.
+which stage dominates, then one JSON line per configuration. Progress goes to stderr, one
+line as each configuration is built and warmed up and one per round (the whole run takes
+minutes on a CPU), so stdout stays the table and the JSON.
 
     python benchmarks/model.py [--kitti-root PATH] [--frame 0] [--device cpu|cuda]
                                [--repeats 5] [--superpixels 1200 2400 5500]
@@ -57,6 +59,7 @@ import argparse
 import json
 import os
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -127,15 +130,30 @@ def make_model(mode: str, superpixels: int | None, refine: bool | None, device: 
     return CRFDepth(**kwargs).to(device)
 
 
+def _config_name(config: tuple) -> str:
+    """The table's name of a configuration tuple ``(mode, superpixels, refine[, part])``."""
+    mode, superpixels, refine, part = (*config, None)[:4]
+    return _name(dict(mode=mode, superpixels=superpixels, refine=refine, part=part))
+
+
+def progress(message: str, start: float) -> None:
+    """One progress line on stderr (flushed), with the seconds since ``start``."""
+    print(f"[{time.perf_counter() - start:6.1f} s] {message}", file=sys.stderr, flush=True)
+
+
 def measure(configs: list[tuple], f: dict, device: str, repeats: int, std_repeats: list[int]) -> list[dict]:
     """Round-robin over the configurations (a burst of outside load hits all of them alike)."""
-    models = [make_model(*c[:3], device, *c[3:]) for c in configs]
-    runs = [dict(totals=[], with_std=[], stages=[], unc=[], out=None) for _ in configs]
-    for model, c, k in zip(models, configs, std_repeats):
+    start = time.perf_counter()
+    models, runs = [], [dict(totals=[], with_std=[], stages=[], unc=[], out=None) for _ in configs]
+    for n, (c, k) in enumerate(zip(configs, std_repeats), 1):
+        progress(f"configuration {n}/{len(configs)}: {_config_name(c)} (build, warm-up)", start)
+        model = make_model(*c[:3], device, *c[3:])
+        models.append(model)
         timed_forward(model, f, device, False)  # warm-up
         if k and c[0] == "superpixel":
             timed_forward(model, f, device, True)  # warm-up of the std path (cheap here)
     for i in range(repeats):
+        progress(f"round {i + 1}/{repeats}: {len(configs)} configurations", start)
         for model, run, k in zip(models, runs, std_repeats):
             t, run["out"] = timed_forward(model, f, device, False)
             run["totals"].append(t)

@@ -212,9 +212,18 @@ def _load_example():
     return module
 
 
-def test_end_to_end_example_gradients_reach_cnn_and_crf_helps():
-    example = _load_example()
+@pytest.fixture
+def one_thread():
+    """torch on one thread, as the example's main() runs it; the process's count restored afterwards
+    (a bare set_num_threads(1) here made every later test in the session single-threaded)."""
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_end_to_end_example_gradients_reach_cnn_and_crf_helps(one_thread):
+    example = _load_example()
     r = example.run(steps=30, train_scenes=8, test_scenes=4)
     # (a) loss on the CRF output only reaches the CNN's first convolution
     g = r["grad_norm_first_conv_through_crf"]

@@ -15,14 +15,20 @@ Examples::
     python -m train fit --print_config --config configs/synthetic.yaml
 
 Bad input in the data (no frames under the root, a bad split) ends with exit status 2 and
-a one-line message; unknown config keys are reported by the CLI parser (status 2).
+a one-line message; unknown config keys are reported by the CLI parser (status 2). So does
+an accelerator the machine does not have (``configs/ddp.yaml`` on a machine without a CUDA
+GPU, or more GPUs than it has), checked before Lightning starts
+(:func:`check_accelerator`).
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Mapping
+from typing import Any
 
+import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
@@ -52,6 +58,63 @@ class EpochCheckpoint(ModelCheckpoint):
             self.last_model_path = path  # a later save of "last" this epoch overwrites it, no "-v1"
 
 
+_CPU_DDP = "--trainer.accelerator cpu --trainer.devices 2"
+
+
+def _requested_gpus(devices: Any) -> int | None:
+    """How many GPUs Lightning's ``devices`` value asks for (an index list: the highest + 1);
+    None = any number ("auto", -1) or a value Lightning itself will report."""
+    try:
+        if isinstance(devices, str):
+            text = devices.strip()
+            if text in ("auto", "-1"):
+                return None
+            if "," in text:  # "0,1": device indices
+                devices = [int(i) for i in text.split(",") if i.strip()]
+            else:
+                devices = int(text)
+        if isinstance(devices, (list, tuple)):
+            return max(int(i) for i in devices) + 1 if devices else None
+        if isinstance(devices, int) and not isinstance(devices, bool):
+            return None if devices == -1 else devices
+    except (TypeError, ValueError):
+        pass
+    return None
+
+
+def check_accelerator(trainer: Mapping[str, Any]) -> None:
+    """Refuse a ``trainer.accelerator`` / ``trainer.devices`` this machine does not have.
+
+    Lightning would fail later with a traceback (``MisconfigurationException``); this is one
+    line that names the option and the way to run the same DDP on CPU processes.
+
+    Raises:
+        InputError: ``gpu`` / ``cuda`` without a CUDA GPU, more GPUs (or a higher GPU index)
+            than there are, or ``mps`` without Apple's Metal backend.
+    """
+    accelerator = trainer.get("accelerator")
+    if not isinstance(accelerator, str):
+        return  # "auto" by default; an Accelerator object is Lightning's to check
+    name = accelerator.strip().lower()
+    if name in ("gpu", "cuda"):
+        available = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if available == 0:
+            ddp = "ddp" in str(trainer.get("strategy") or "").lower()
+            fix = f"{_CPU_DDP} (DDP over 2 CPU processes)" if ddp else "--trainer.accelerator cpu"
+            raise InputError(f"--trainer.accelerator: expected a device this machine has, got {accelerator!r} "
+                             f"on a machine without a CUDA GPU; likely fix: {fix}")
+        wanted = _requested_gpus(trainer.get("devices"))
+        if wanted is not None and wanted > available:
+            raise InputError(
+                f"--trainer.devices: expected at most {available} GPU{'s' if available != 1 else ''} "
+                f"(the CUDA GPUs of this machine), got {trainer.get('devices')!r}; likely fix: "
+                "--trainer.devices -1 (all of them)")
+    elif name == "mps" and not torch.backends.mps.is_available():
+        raise InputError(
+            f"--trainer.accelerator: expected a device this machine has, got {accelerator!r} without Apple's "
+            "Metal backend (torch.backends.mps.is_available() is False); likely fix: --trainer.accelerator cpu")
+
+
 class CRFDepthCLI(LightningCLI):
     """LightningCLI with a ``checkpoint:`` section for the always-present ModelCheckpoint."""
 
@@ -65,13 +128,20 @@ class CRFDepthCLI(LightningCLI):
             "checkpoint.auto_insert_metric_name": False,
         })
 
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        super().parse_arguments(parser, args)
+        # Checked here, before Lightning seeds, logs or builds anything.
+        subcommand = self.config.get("subcommand")
+        config = self.config[subcommand] if subcommand else self.config
+        check_accelerator(config.get("trainer") or {})
+
 
 def main(args: list[str] | None = None) -> int:
     """Run the CLI on ``args`` (None = ``sys.argv[1:]``); the exit status.
 
     Parser errors (unknown keys, bad values) exit through ``SystemExit`` as the CLI
-    parser does; :class:`~crfdepth.errors.InputError` from the data or the model becomes a
-    one-line message on stderr and status 2.
+    parser does; :class:`~crfdepth.errors.InputError` from the data, the model or
+    :func:`check_accelerator` becomes a one-line message on stderr and status 2.
     """
     try:
         CRFDepthCLI(CRFDepthModule, CRFDataModule, args=args, seed_everything_default=0)

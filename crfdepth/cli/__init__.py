@@ -10,16 +10,22 @@ raises :class:`~crfdepth.errors.InputError` / ``FileNotFoundError`` /
 ``PermissionError`` / ``IsADirectoryError`` (``main`` returns 2); 130 on Ctrl-C, with
 one line (``crfdepth project: interrupted``; a folder or bag run adds how many frames it
 wrote: ``crfdepth complete: interrupted after 3 of 10 frame(s) written to pred/``, the
-text of the ``KeyboardInterrupt`` it re-raises). ``crfdepth --version`` prints
+text of the ``KeyboardInterrupt`` it re-raises). Warnings raised while a command runs (NaN
+points dropped, a solve that did not converge) are one line each on stderr,
+``crfdepth complete: warning: points: dropped 3 of ...``, without Python's category and
+source line (:func:`warnings_as_lines`). ``crfdepth --version`` prints
 ``crfdepth <version>`` (:data:`crfdepth.__version__`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import sys
+import warnings
+from collections.abc import Iterator
 
 from crfdepth._version import __version__
 from crfdepth.errors import InputError
@@ -47,6 +53,31 @@ class _Parser(argparse.ArgumentParser):
         if message.startswith("argument "):
             message = message[len("argument "):]
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+@contextlib.contextmanager
+def warnings_as_lines(command: str | None) -> Iterator[None]:
+    """Within the block, print each warning as ``crfdepth <command>: warning: <message>``.
+
+    Python's default shows ``<file>:<line>: UserWarning: <message>`` and the source line,
+    which tells a command-line user nothing; the message alone (its lines joined) is what
+    they need. Filters (``-W``, ``PYTHONWARNINGS``) still decide which warnings show; the
+    previous ``warnings.showwarning`` and filters are restored afterwards.
+    """
+    prefix = f"crfdepth{' ' + command if command else ''}: warning: "
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split("\n")).strip()
+        if category is not UserWarning and not category.__module__.startswith("crfdepth."):
+            text = f"{category.__name__}: {text}"  # another library's FutureWarning etc.: say which kind
+        try:
+            print(prefix + text, file=file if file is not None else sys.stderr, flush=True)
+        except OSError:  # stderr closed: as warnings.showwarning, never fail the command over a warning
+            pass
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return 2
         try:
-            return int(args.func(args) or 0)
+            with warnings_as_lines(command):
+                return int(args.func(args) or 0)
         except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
             print(f"crfdepth {command}: error: {exc}", file=sys.stderr)
             return 2
