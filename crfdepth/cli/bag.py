@@ -65,7 +65,7 @@ from tqdm import tqdm
 from crfdepth.api import points_to_sparse
 from crfdepth.cli.common import (
     BAD_INPUT,
-    bad_frames_error,
+    skipped_frames,
     build_model,
     check_output_folders,
     check_writable_dir,
@@ -384,12 +384,7 @@ def run_bag(args: argparse.Namespace) -> int:
         model = build_model(args)
         bad = _check_pairs(bag, args, plan)
         total = plan.pairing.paired
-        if bad and not args.skip_bad:
-            raise bad_frames_error([(error, message) for _, error, message in bad], total, f"--bag {args.bag}")
-        if len(bad) == total:
-            raise InputError(f"--skip-bad: all {total} paired frame(s) of --bag {args.bag} are bad (the first: "
-                             f"{bad[0][2]}); nothing written")
-        skip = {i: message for i, _, message in bad}
+        skip = skipped_frames(bad, total, f"--bag {args.bag}", args.skip_bad)
         with output_folders(targets) as folders:
             out_dir, std_dir = folders[0], folders[1]
             vis_dir = folders[2] if args.vis is not None else None

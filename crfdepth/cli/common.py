@@ -39,6 +39,7 @@ from crfdepth import api
 from crfdepth.cli.progress import FrameProgress
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
+from crfdepth.io import files
 from crfdepth.io.files import atomic_write_bytes, check_not_locked, lock_folder, probe_folder
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, cli_advice
@@ -49,7 +50,7 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, describe, load_model, loa
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "LISTED_BAD", "MAX_WORKERS", "SKIPPED_CSV", "add_batch_arguments", "bad_frames",
-           "bad_frames_error", "write_skipped", "add_model_arguments", "build_model", "check_output_file",
+           "skipped_frames", "write_skipped", "add_model_arguments", "build_model", "check_output_file",
            "check_output_folders", "check_writable_dir",
            "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
            "make_output_dir", "output_folders", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
@@ -146,19 +147,11 @@ def check_writable_dir(directory: Path, what: str) -> None:
 
 def check_output_file(path: str, what: str) -> Path:
     """An output PNG path whose folder exists and takes new files (a probe file is created and removed:
-    :func:`crfdepth.io.files.probe_folder`), checked before any computation."""
+    :func:`crfdepth.io.files.check_output_file`), checked before any computation."""
     out = Path(path)
     if out.suffix.lower() != ".png":
         raise InputError(f"{what}: expected a file name ending in .png, got {out}")
-    if out.is_dir():
-        raise IsADirectoryError(f"{what}: expected a file name, got a folder: {out}")
-    if not out.parent.is_dir():
-        raise FileNotFoundError(f"{what}: output folder does not exist: {out.parent}")
-    problem = probe_folder(out.parent)
-    if problem is not None:
-        raise PermissionError(f"{what}: cannot write {out}: its folder {out.parent} is not writable (creating a "
-                              f"file there fails: {problem})")
-    return out
+    return files.check_output_file(out, what)
 
 
 def make_output_dir(path: str | Path, what: str) -> Path:
@@ -435,18 +428,29 @@ def write_skipped(out_dir: Path, skipped: list[tuple[str, str]]) -> Path | None:
     return path
 
 
-def bad_frames_error(bad: list[tuple[type[BaseException], str]], total: int, what: str) -> BaseException:
-    """The error of a run that found ``bad`` frames (exception type, message naming the frame) among ``total``
-    and writes nothing: the first line is the first bad frame's message, with the count; the next lines list
-    the further bad frames (up to ``LISTED_BAD`` in all). ``what`` names the source (``--input-dir DIR``)."""
-    error, first = bad[0]
-    more = "" if len(bad) == 1 else ", listed below"
-    lines = [f"{first} [{len(bad)} of {total} frame(s) of {what} bad{more}; nothing written; fix them, or give "
-             f"--skip-bad to complete the others]"]
-    lines += [f"  {message}" for _, message in bad[1:LISTED_BAD]]
-    if len(bad) > LISTED_BAD:
-        lines.append(f"  ... and {len(bad) - LISTED_BAD} more")
-    return error("\n".join(lines))
+def skipped_frames(bad: list[tuple[int, type[BaseException], str]], total: int, what: str,
+                   skip_bad: bool) -> dict[int, str]:
+    """The frames a run over ``total`` frames leaves out, ``{index: message}``, after its check pass found
+    ``bad`` ones (index, exception type, message naming the frame); ``what`` names the source
+    (``--input-dir DIR``, ``--bag FILE``).
+
+    Raises, so that nothing is written: without ``skip_bad``, the first bad frame's exception with the
+    count on its first line and the further bad frames below it (up to ``LISTED_BAD`` in all); with it,
+    an InputError when every frame is bad.
+    """
+    if bad and not skip_bad:
+        _, error, first = bad[0]
+        more = "" if len(bad) == 1 else ", listed below"
+        lines = [f"{first} [{len(bad)} of {total} frame(s) of {what} bad{more}; nothing written; fix them, or give "
+                 f"--skip-bad to complete the others]"]
+        lines += [f"  {message}" for _, _, message in bad[1:LISTED_BAD]]
+        if len(bad) > LISTED_BAD:
+            lines.append(f"  ... and {len(bad) - LISTED_BAD} more")
+        raise error("\n".join(lines))
+    if bad and len(bad) == total:
+        raise InputError(f"--skip-bad: all {total} {'paired ' if what.startswith('--bag') else ''}frame(s) of {what} "
+                         f"are bad (the first: {bad[0][2]}); nothing written")
+    return {index: message for index, _, message in bad}
 
 
 # --------------------------------------------------------------------------- batched frames

@@ -114,7 +114,7 @@ from crfdepth.cli.common import (
     BAD_INPUT,
     add_batch_arguments,
     bad_frames,
-    bad_frames_error,
+    skipped_frames,
     write_skipped,
     complete_frame,
     flag_names,
@@ -372,12 +372,7 @@ def _run_folder(args: argparse.Namespace) -> int:
     model = build_model(args)
     total = len(dataset)
     bad = _check_frames(dataset, args, total)
-    if bad and not args.skip_bad:
-        raise bad_frames_error([(error, message) for _, error, message in bad], total, f"--input-dir {args.input_dir}")
-    if len(bad) == total:
-        raise InputError(f"--skip-bad: all {total} frame(s) of --input-dir {args.input_dir} are bad (the first: "
-                         f"{bad[0][2]}); nothing written")
-    skipped = {index: message for index, _, message in bad}
+    skipped = skipped_frames(bad, total, f"--input-dir {args.input_dir}", args.skip_bad)
     good = [i for i in range(total) if i not in skipped]
     names = [dataset.names[i] for i in good]
     frames = Subset(dataset, good) if skipped else dataset

@@ -9,10 +9,8 @@ with a margin (module constants).
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import functools
-import io
 import pickle
 from pathlib import Path
 
@@ -22,7 +20,6 @@ import pytest
 import torch
 from torch.utils.data import Dataset, Subset
 
-from crfdepth import cli
 from crfdepth.api import complete_depth
 from crfdepth.cli import complete as complete_cli
 from crfdepth.cli.common import _CheckedFrames, check_sample, frame_batches
@@ -33,8 +30,8 @@ from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS
+from tests.cli.frames import run
 
-COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
 # Frame sizes (H, W) in folder order: batches of 3 are [A A A] [A] [B B] (cap, then size change).
 A, B = (64, 224), (56, 192)
 SIZES = (A, A, A, A, B, B)
@@ -48,17 +45,6 @@ STD_RELATIVE = 2e-3
 METRIC_RELATIVE = 1e-5
 
 
-def _run(argv: list) -> tuple[int, str, str]:
-    """(exit status, stdout, stderr) of ``crfdepth`` with ``argv`` in this process (argparse's
-    SystemExit caught), with only complete and evaluate registered."""
-    out, err = io.StringIO(), io.StringIO()
-    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        mp.setattr(cli, "_COMMANDS", COMMANDS)
-        try:
-            code = cli.main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
 
 
 def _stem(kind: str, index: int) -> str:
@@ -167,7 +153,7 @@ def completed(folder, tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("complete")
     runs = {"one": [], "three": ["--batch-size", 3, "--workers", 2]}
     for key, extra in runs.items():
-        code, _, err = _run(["complete", "--input-dir", folder, "--out-dir", root / key / "depth",
+        code, _, err = run(["complete", "--input-dir", folder, "--out-dir", root / key / "depth",
                              "--out-std-dir", root / key / "std", "--quiet", *extra])
         assert code == 0, err
     return {key: root / key for key in runs}
@@ -201,7 +187,7 @@ def test_complete_batch_of_one_equals_the_one_frame_path(folder, completed, tmp_
     """The folder path with --batch-size 1 gives exactly the depth of ``--image ... --out``."""
     index = 4  # the first frame of size B
     out = tmp_path / "one.png"
-    code, _, err = _run(["complete", "--image", folder / "image" / f"{_stem('image', index)}.png",
+    code, _, err = run(["complete", "--image", folder / "image" / f"{_stem('image', index)}.png",
                          "--sparse", folder / "velodyne_raw" / f"{_stem('velodyne_raw', index)}.png",
                          "--intrinsics", folder / "intrinsics" / f"{_stem('image', index)}.txt", "--out", out,
                          "--quiet"])
@@ -218,7 +204,7 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
 def test_evaluate_batches_agree_per_frame(folder, tmp_path):
     rows = {}
     for key, extra in {"one": [], "three": ["--batch-size", 3, "--workers", 2]}.items():
-        code, _, err = _run(["evaluate", "--layout", "val_selection", "--data", folder, "--quiet",
+        code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--quiet",
                              "--out-dir", tmp_path / key, *extra])
         assert code == 0, err
         rows[key] = _read_csv(tmp_path / key / "per_frame.csv")
@@ -245,7 +231,7 @@ def test_evaluate_batches_agree_per_frame(folder, tmp_path):
 def test_bad_batch_options_exit_2_with_one_line(command, option, value, expected, folder, tmp_path):
     argv = (["complete", "--input-dir", folder, "--out-dir", tmp_path / "out"] if command == "complete" else
             ["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", tmp_path / "out"])
-    code, stdout, stderr = _run([*argv, option, value])
+    code, stdout, stderr = run([*argv, option, value])
     assert code == 2 and stdout == ""
     assert stderr == f"crfdepth {command}: error: {option}: {expected}\n"
     assert not (tmp_path / "out").exists()
@@ -253,7 +239,7 @@ def test_bad_batch_options_exit_2_with_one_line(command, option, value, expected
 
 @pytest.mark.parametrize("option, value", [("--batch-size", 2), ("--workers", 1)])
 def test_one_frame_mode_refuses_batch_options(folder, tmp_path, option, value):
-    code, _, stderr = _run(["complete", "--image", folder / "image" / f"{_stem('image', 0)}.png",
+    code, _, stderr = run(["complete", "--image", folder / "image" / f"{_stem('image', 0)}.png",
                             "--sparse", folder / "velodyne_raw" / f"{_stem('velodyne_raw', 0)}.png",
                             "--intrinsics", folder / "intrinsics" / f"{_stem('image', 0)}.txt",
                             "--out", tmp_path / "d.png", option, value])
@@ -285,7 +271,7 @@ def test_complete_bad_frame_in_a_worker_reads_as_without_workers(folder, tmp_pat
     errors = {}
     for key, extra in {"plain": [], "workers": ["--batch-size", 3, "--workers", 2]}.items():
         out = tmp_path / key
-        code, stdout, errors[key] = _run(["complete", "--input-dir", data, "--out-dir", out, "--quiet", *extra])
+        code, stdout, errors[key] = run(["complete", "--input-dir", data, "--out-dir", out, "--quiet", *extra])
         assert code == 2 and stdout == ""
         assert not out.exists()  # every frame is checked first: not even the two before the bad one are written
     err = errors["plain"]
@@ -300,7 +286,7 @@ def test_evaluate_bad_frame_in_a_worker_reads_as_without_workers(folder, tmp_pat
     data = _broken_copy(folder, tmp_path / "data", 4, "unreadable image")
     errors = []
     for extra in ([], ["--batch-size", 2, "--workers", 2]):
-        code, stdout, stderr = _run(["evaluate", "--layout", "val_selection", "--data", data,
+        code, stdout, stderr = run(["evaluate", "--layout", "val_selection", "--data", data,
                                      "--out-dir", tmp_path / "out", "--quiet", *extra])
         assert code == 2 and stdout == ""
         errors.append(stderr)

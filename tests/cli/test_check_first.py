@@ -122,8 +122,8 @@ def test_out_under_proc_is_refused_before_any_computation(tmp_path, no_model):
     code, _, err = run(["complete", "--image", image, "--sparse", sparse, "--intrinsics", intrinsics, "--out",
                         "/proc/crfdepth_test.png", *FAST])
     assert code == 2
-    assert err.startswith("crfdepth complete: error: --out: cannot write /proc/crfdepth_test.png: its folder /proc "
-                          "is not writable (creating a file there fails: ")
+    assert err.startswith("crfdepth complete: error: --out: cannot create /proc/crfdepth_test.png: the folder /proc "
+                          "does not accept new files (")
     assert ".tmp" not in err and err.count("\n") == 1
     assert not os.path.exists("/proc/crfdepth_test.png")
 

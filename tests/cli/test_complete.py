@@ -329,7 +329,7 @@ def test_complete_bad_output(main, synth, tmp_path, capsys, case):
     before = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
     assert main(_one(synth, out, "--mode", "pixel")) == 2
     err = capsys.readouterr().err
-    expected = {"missing folder": "output folder does not exist", "not png": "ending in .png",
+    expected = {"missing folder": f"--out: the folder of {out} does not exist", "not png": "ending in .png",
                 "out is the input": "refusing to overwrite", "out is a folder": "got a folder"}[case]
     assert expected in err and "--out" in err
     assert {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()} == before
