@@ -41,9 +41,8 @@ from typing import Literal
 import kornia
 import torch
 import torch.nn.functional as F
-from kornia.geometry.camera import project_points
+from kornia.geometry.camera import project_points, unproject_points
 from kornia.geometry.conversions import normalize_pixel_coordinates
-from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
 
 from crfdepth.checks import (
@@ -149,7 +148,10 @@ def _warp(source: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, T: torch.T
           ) -> tuple[torch.Tensor, torch.Tensor]:
     """The warp of :func:`warp_to_target` on checked (B, C, H, W), (B, 1, H, W), (B, 3, 3), (B, 4, 4)."""
     height, width = depth.shape[-2:]
-    points = depth_to_3d_v2(depth[:, 0], K)  # (B, H, W, 3) target camera, z = depth
+    # kornia's depth_to_3d_v2 does the same but mishandles a batch of K before kornia 0.8.1.
+    rows, cols = (torch.arange(n, device=depth.device, dtype=depth.dtype) for n in (height, width))
+    pixels = torch.stack(torch.meshgrid(cols, rows, indexing="xy"), dim=-1)  # (H, W, 2) as (u, v)
+    points = unproject_points(pixels, depth.permute(0, 2, 3, 1), K[:, None, None])  # (B, H, W, 3) z = depth
     points = transform_points(T[:, None], points)  # (B, H, W, 3) source camera
     z = points[..., 2:]
     in_front = z > MIN_SOURCE_DEPTH_M
@@ -173,7 +175,7 @@ def warp_to_target(source_image: torch.Tensor, target_depth: torch.Tensor, K: to
     """The source image resampled into the target camera through the target's depth.
 
     Each target pixel ``p`` is lifted to ``X = D_t(p) K^-1 [p, 1]`` (kornia's
-    ``depth_to_3d_v2``), moved into the source camera (``T_source_target X``) and projected
+    ``unproject_points``), moved into the source camera (``T_source_target X``) and projected
     with K; the source image is sampled there bilinearly (pixel centres at integer
     coordinates, ``grid_sample(align_corners=True)``). Differentiable in the image, the
     depth, K and the pose.
