@@ -35,6 +35,8 @@ Modules, one job each:
 - :mod:`~crfdepth.data.synthetic.camera`: intrinsics and the RGB + depth render;
 - :mod:`~crfdepth.data.synthetic.lidar_sim`: the spinning LiDAR and its mount;
 - :mod:`~crfdepth.data.synthetic.scene`: :func:`make_scene` and :class:`SyntheticScene`;
+- :mod:`~crfdepth.data.synthetic.sequence`: :func:`make_sequence`, the street along a
+  camera path with true poses and moving cars (:class:`SyntheticSequence`);
 - :mod:`~crfdepth.data.synthetic.dataset`: :class:`SyntheticScenes`, a torch Dataset.
 """
 
@@ -42,6 +44,12 @@ from crfdepth.data.synthetic.camera import KITTI_CROP_WIDTH, KITTI_FOCAL_PX, cam
 from crfdepth.data.synthetic.dataset import SyntheticScenes
 from crfdepth.data.synthetic.lidar_sim import LIDAR_IN_CAMERA_M, MIN_RANGE_M, lidar_elevations
 from crfdepth.data.synthetic.scene import EVAL_MAX_DEPTH_M, SyntheticScene, make_scene
+from crfdepth.data.synthetic.sequence import (
+    SyntheticFrame,
+    SyntheticSequence,
+    ego_pose,
+    make_sequence,
+)
 from crfdepth.data.synthetic.world import CAMERA_HEIGHT_M
 
 __all__ = [
@@ -51,9 +59,13 @@ __all__ = [
     "KITTI_FOCAL_PX",
     "LIDAR_IN_CAMERA_M",
     "MIN_RANGE_M",
+    "SyntheticFrame",
     "SyntheticScene",
     "SyntheticScenes",
+    "SyntheticSequence",
     "camera_intrinsics",
+    "ego_pose",
     "lidar_elevations",
     "make_scene",
+    "make_sequence",
 ]

@@ -13,7 +13,14 @@ import math
 import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int
-from crfdepth.data.synthetic.raycast import camera_windows, cast_rays, intersect, surface_normals
+from crfdepth.data.synthetic.raycast import (
+    boxes_in_frame,
+    camera_windows,
+    cast_rays,
+    intersect,
+    rotate_rays,
+    surface_normals,
+)
 from crfdepth.data.synthetic.texture import textured_albedo, value_noise
 from crfdepth.data.synthetic.world import PLANE, TINY, World
 
@@ -52,18 +59,42 @@ _ZENITH = np.array([0.38, 0.56, 0.86], dtype=np.float32)[:, None]
 _CLOUD = np.array([0.95, 0.95, 0.96], dtype=np.float32)[:, None]
 
 
-def render_camera(world: World, K, height, width, rng, noise_std):
-    """Ray-cast the camera: (H, W, 3) float32 image in [0, 1], (H, W) float32 z-depth."""
+def _pose_parts(pose):
+    """(R, o, level) of a (4, 4) world<-frame pose; None: identity (R None)."""
+    if pose is None:
+        return None, np.zeros(3), True
+    pose = np.asarray(pose, dtype=np.float64)
+    R, o = pose[:3, :3], pose[:3, 3]
+    level = bool(abs(R[1, 1] - 1.0) < 1e-12)  # a turn about the vertical (y) axis only
+    return R, o, level
+
+
+def render_camera(world: World, K, height, width, rng, noise_std, pose=None,
+                  return_index: bool = False):
+    """Ray-cast the camera: (H, W, 3) float32 image in [0, 1], (H, W) float32 z-depth.
+
+    ``pose``: (4, 4) world<-camera transform (default: the camera at the world's origin,
+    looking along z). The world's boxes stay axis-aligned: the camera's rays are moved and
+    turned instead. ``return_index``: also return the (H, W) int64 index of the primitive
+    each pixel sees (-1: sky).
+    """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     dx = ((np.arange(width) - cx) / fx)[None, :]
     dy = ((np.arange(height) - cy) / fy)[:, None]
     dx = np.where(np.abs(dx) < TINY, TINY, dx)
     dy = np.where(np.abs(dy) < TINY, TINY, dy)
     dz = np.ones((1, 1))
-    d = (dx, dy, dz)
-    inv = (1.0 / dx, 1.0 / dy, dz)
-    windows = camera_windows(world, K, height, width)
-    t, idx = cast_rays(world, (height, width), (0.0, 0.0, 0.0), d, inv, windows)
+    R, o, level = _pose_parts(pose)
+    if R is None:
+        d = (dx, dy, dz)
+        inv = (1.0 / dx, 1.0 / dy, dz)
+        windows = camera_windows(world, K, height, width)
+    else:
+        d = rotate_rays(R, (dx, dy, dz))
+        inv = tuple(1.0 / c for c in d)
+        lo, hi = boxes_in_frame(world.lo, world.hi, R, o)
+        windows = camera_windows(world, K, height, width, lo, hi, level)
+    t, idx = cast_rays(world, (height, width), tuple(o), d, inv, windows)
 
     hit = idx >= 0
     depth = np.where(hit, t, 0.0).astype(np.float32)  # camera rays have d_z = 1: t = z
@@ -75,13 +106,17 @@ def render_camera(world: World, K, height, width, rng, noise_std):
     flat, ih = flat[order], ih[order]
     th = t.ravel()[flat]
     rows, cols = np.divmod(flat, width)
-    p = np.empty((3, len(flat)), dtype=np.float32)
-    p[0] = dx[0, cols] * th
-    p[1] = dy[rows, 0] * th
-    p[2] = th
+    p = np.empty((3, len(flat)), dtype=np.float32)  # hit points, world frame
+    if R is None:
+        p[0] = dx[0, cols] * th
+        p[1] = dy[rows, 0] * th
+        p[2] = th
+    else:
+        for k in range(3):
+            p[k] = o[k] + np.broadcast_to(d[k], (height, width)).ravel()[flat] * th
     n = surface_normals(world, ih, p)
     col, n = textured_albedo(world, ih, p, n)
-    lit = _sunlit(world, K, height, width, flat, p, n)
+    lit = _sunlit(world, K, height, width, flat, p, n, pose)
 
     sun = world.sun.astype(np.float32)
     ndotl = np.maximum(sun[0] * n[0] + sun[1] * n[1] + sun[2] * n[2], 0.0) * lit
@@ -98,7 +133,10 @@ def render_camera(world: World, K, height, width, rng, noise_std):
     if noise_std > 0:
         image += rng.standard_normal(image.shape, dtype=np.float32) * np.float32(noise_std)
     np.clip(image, 0.0, 1.0, out=image)
-    return np.ascontiguousarray(image.transpose(1, 2, 0)), depth
+    image = np.ascontiguousarray(image.transpose(1, 2, 0))
+    if return_index:
+        return image, depth, idx
+    return image, depth
 
 
 def _soften(img: np.ndarray) -> np.ndarray:
@@ -123,8 +161,11 @@ def _sky(world, dx, dy):
     return img + (_CLOUD - img) * c
 
 
-def _sunlit(world: World, K, height, width, flat, p, n) -> np.ndarray:
-    """(M,) 1 where hit point p (3, M) at pixel ``flat`` sees the sun, 0 where shadowed."""
+def _sunlit(world: World, K, height, width, flat, p, n, pose=None) -> np.ndarray:
+    """(M,) 1 where hit point p (3, M) at pixel ``flat`` sees the sun, 0 where shadowed.
+
+    ``p`` and ``n`` are in the world frame; ``pose`` is the camera's (see :func:`render_camera`).
+    """
     L = world.sun
     lit = np.ones(height * width, dtype=np.float32)
     facing = np.zeros(height * width, dtype=bool)
@@ -143,7 +184,10 @@ def _sunlit(world: World, K, height, width, flat, p, n) -> np.ndarray:
     hi = np.maximum(world.hi, np.maximum(moved_lo, moved_hi))
     inv = tuple(1.0 / (c if abs(c) > TINY else TINY) for c in L)
     lit2 = lit.reshape(height, width)
-    for i, rs, cs in camera_windows(world, K, height, width, lo, hi):
+    R, o, level = _pose_parts(pose)
+    if R is not None:
+        lo, hi = boxes_in_frame(lo, hi, R, o)
+    for i, rs, cs in camera_windows(world, K, height, width, lo, hi, level):
         if world.kind[i] == PLANE:
             continue
         f = facing[rs, cs]

@@ -15,7 +15,12 @@ import math
 import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int
-from crfdepth.data.synthetic.raycast import cast_rays, surface_normals
+from crfdepth.data.synthetic.raycast import (
+    boxes_in_frame,
+    cast_rays,
+    rotate_rays,
+    surface_normals,
+)
 from crfdepth.data.synthetic.world import PLANE, ROAD, TINY, World, road_markings
 
 __all__ = ["LIDAR_IN_CAMERA_M", "MIN_RANGE_M", "lidar_elevations", "lidar_to_camera", "scan_lidar"]
@@ -64,18 +69,29 @@ def lidar_to_camera() -> np.ndarray:
     return T
 
 
-def _lidar_windows(world: World, origin, az0: float, step: float, n_az: int, beams: int):
-    """Column windows (azimuth intervals) of the scan grid that can see each primitive."""
+def _lidar_windows(world: World, origin, az0: float, step: float, n_az: int, beams: int,
+                   R=None):
+    """Column windows (azimuth intervals) of the scan grid that can see each primitive.
+
+    ``origin``: the LiDAR's position (world frame); ``R``: the camera-axes frame of the
+    LiDAR in the world (None: the world's axes), a turn about the vertical only.
+    """
     full = (slice(0, beams), slice(0, n_az))
     out = []
+    if R is not None:
+        lo_l, hi_l = boxes_in_frame(world.lo, world.hi, R, origin)
     for i in range(len(world.kind)):
         lo, hi = world.lo[i], world.hi[i]
         if world.kind[i] == PLANE or (lo[0] - 0.1 <= origin[0] <= hi[0] + 0.1
                                        and lo[2] - 0.1 <= origin[2] <= hi[2] + 0.1):
             out.append((i,) + full)
             continue
-        xs = np.array([lo[0], hi[0], lo[0], hi[0]]) - origin[0]
-        zs = np.array([lo[2], lo[2], hi[2], hi[2]]) - origin[2]
+        if R is None:
+            xs = np.array([lo[0], hi[0], lo[0], hi[0]]) - origin[0]
+            zs = np.array([lo[2], lo[2], hi[2], hi[2]]) - origin[2]
+        else:  # the corners of the box around the turned footprint, which contains it
+            xs = np.array([lo_l[i, 0], hi_l[i, 0], lo_l[i, 0], hi_l[i, 0]])
+            zs = np.array([lo_l[i, 2], lo_l[i, 2], hi_l[i, 2], hi_l[i, 2]])
         ang = np.arctan2(-xs, zs)  # LiDAR azimuth: atan2(y_lidar, x_lidar)
         ref = ang[0]
         rel = np.mod(ang - ref + np.pi, 2 * np.pi) - np.pi
@@ -95,10 +111,20 @@ def _lidar_windows(world: World, origin, az0: float, step: float, n_az: int, bea
     return out
 
 
-def scan_lidar(world: World, rng, beams, step_deg, max_range, noise_std, dropout):
-    """Simulate one 360-degree scan: points (N, 4) float32 in the LiDAR frame, rings (N,)."""
+def scan_lidar(world: World, rng, beams, step_deg, max_range, noise_std, dropout, pose=None,
+               beam_offsets_deg=None, return_index: bool = False):
+    """Simulate one 360-degree scan: points (N, 4) float32 in the LiDAR frame, rings (N,).
+
+    ``pose``: (4, 4) world<-camera transform of the camera the LiDAR is mounted on
+    (default: the camera at the world's origin), a turn about the vertical only; the scan
+    is instantaneous (no motion during the sweep). ``beam_offsets_deg``: (beams,) per-beam
+    elevation errors (default: drawn from ``rng``, 0.02 degrees standard deviation).
+    ``return_index``: also return the (N,) primitive index of each point.
+    """
     elev = np.radians(lidar_elevations(beams))
-    elev = elev + np.radians(rng.normal(0.0, 0.02, beams))  # per-beam calibration error
+    if beam_offsets_deg is None:
+        beam_offsets_deg = rng.normal(0.0, 0.02, beams)
+    elev = elev + np.radians(beam_offsets_deg)  # per-beam calibration error
     n_az = max(1, int(round(360.0 / step_deg)))
     step = 2 * math.pi / n_az
     az0 = rng.uniform(-math.pi, -math.pi + step)
@@ -107,10 +133,17 @@ def scan_lidar(world: World, rng, beams, step_deg, max_range, noise_std, dropout
     ca, sa = np.cos(az)[None, :], np.sin(az)[None, :]
     # Unit directions in the LiDAR frame (x fwd, y left, z up) and in the camera frame.
     lx, ly, lz = ce * ca, ce * sa, se
-    d = tuple(np.where(np.abs(c) < TINY, TINY, c) for c in (-ly, -lz, lx))
+    if pose is None:
+        R = None
+        d = tuple(np.where(np.abs(c) < TINY, TINY, c) for c in (-ly, -lz, lx))
+        origin = LIDAR_IN_CAMERA_M
+    else:
+        pose = np.asarray(pose, dtype=np.float64)
+        R = pose[:3, :3]
+        d = rotate_rays(R, (-ly, -lz, lx))
+        origin = tuple(pose[:3, 3] + R @ np.asarray(LIDAR_IN_CAMERA_M))
     inv = tuple(1.0 / c for c in d)
-    origin = LIDAR_IN_CAMERA_M
-    windows = _lidar_windows(world, origin, az0, step, n_az, beams)
+    windows = _lidar_windows(world, origin, az0, step, n_az, beams, R)
     r, idx = cast_rays(world, (beams, n_az), origin, d, inv, windows)
 
     ok = (idx >= 0) & (r <= max_range) & (r >= MIN_RANGE_M)
@@ -120,7 +153,9 @@ def scan_lidar(world: World, rng, beams, step_deg, max_range, noise_std, dropout
     true_range = r[bb, jj]
     dl = np.stack([lx[bb, jj], ly[bb, jj], lz[bb, 0]])  # (3, N) unit directions
     # Intensity: material reflectance times the cosine of the incidence angle.
-    dc = np.stack([-dl[1], -dl[2], dl[0]])
+    dc = np.stack([-dl[1], -dl[2], dl[0]])  # camera axes
+    if R is not None:
+        dc = R @ dc  # world axes
     p = np.asarray(origin)[:, None] + dc * true_range
     n = surface_normals(world, ih, p)
     refl = _REFLECTANCE[world.mat[ih]]
@@ -134,5 +169,7 @@ def scan_lidar(world: World, rng, beams, step_deg, max_range, noise_std, dropout
     pts = np.empty((len(ih), 4), dtype=np.float32)
     pts[:, :3] = (dl * measured).T
     pts[:, 3] = np.clip(intensity, 0.0, 1.0)
+    if return_index:
+        return pts, bb.astype(np.int64), ih
     return pts, bb.astype(np.int64)
 

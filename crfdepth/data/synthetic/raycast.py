@@ -15,7 +15,8 @@ import numpy as np
 
 from crfdepth.data.synthetic.world import BOX, CYLINDER, PLANE, SPHERE, TINY, World
 
-__all__ = ["camera_windows", "cast_rays", "intersect", "surface_normals"]
+__all__ = ["boxes_in_frame", "camera_windows", "cast_rays", "intersect", "rotate_rays",
+           "surface_normals"]
 
 _NEAR = 0.05  # camera near plane, metres
 _EPS = 1e-6
@@ -118,15 +119,51 @@ def surface_normals(world: World, idx: np.ndarray, p: np.ndarray) -> np.ndarray:
     return n
 
 
-def camera_windows(world: World, K: np.ndarray, height: int, width: int, lo=None, hi=None):
-    """Pixel windows that can see each primitive's box (lo, hi) from a camera at 0."""
+def boxes_in_frame(lo: np.ndarray, hi: np.ndarray, R: np.ndarray, o: np.ndarray):
+    """Axis-aligned bounds, in a frame at ``o`` with axes ``R`` (columns, world coordinates),
+    of the world boxes (lo, hi) (n, 3): ``R^T (corner - o)`` over the 8 corners.
+
+    A conservative box for the windows of a moved (and turned) camera or LiDAR.
+    """
+    corners = np.stack([np.where(np.array(b, dtype=bool), hi, lo)
+                        for b in np.ndindex(2, 2, 2)], axis=1)  # (n, 8, 3)
+    local = (corners - np.asarray(o, dtype=np.float64)) @ np.asarray(R, dtype=np.float64)
+    return local.min(axis=1), local.max(axis=1)
+
+
+def rotate_rays(R: np.ndarray, d):
+    """World directions ``R @ d`` of a ray bundle ``d`` (3-tuple of broadcastable arrays).
+
+    Terms with a zero coefficient are skipped, so a turn about the vertical keeps a pinhole
+    camera's separable (1, W) / (H, 1) components. Components of magnitude below TINY are
+    replaced by TINY (their inverse is taken).
+    """
+    out = []
+    for k in range(3):
+        c = np.zeros((1, 1))
+        for j in range(3):
+            if R[k, j] != 0.0:
+                c = c + R[k, j] * d[j]
+        out.append(np.where(np.abs(c) < TINY, TINY, c))
+    return tuple(out)
+
+
+def camera_windows(world: World, K: np.ndarray, height: int, width: int, lo=None, hi=None,
+                   level: bool = True):
+    """Pixel windows that can see each primitive's box (lo, hi) from a camera at 0.
+
+    ``lo``, ``hi`` are in the camera frame (default: the world's boxes, camera at the world's
+    origin). ``level``: the camera's x axis is horizontal and its y axis vertical (a turn
+    about the vertical only), so the ground is seen below the horizon row ``cy`` only;
+    otherwise the ground plane's window is the whole image.
+    """
     lo = world.lo if lo is None else lo
     hi = world.hi if hi is None else hi
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     out = []
     for i in range(len(world.kind)):
         if world.kind[i] == PLANE:
-            r0 = max(0, min(height, int(math.floor(cy))))
+            r0 = max(0, min(height, int(math.floor(cy)))) if level else 0
             out.append((i, slice(r0, height), slice(0, width)))
             continue
         z0 = max(lo[i, 2], _NEAR)
