@@ -8,8 +8,8 @@ camera and drops, per return:
 - **outside**: behind the camera or outside the image;
 - **moved** (rule b): a return of another scan ``s != index`` through which the frame's own
   scan sees: compared in the LiDAR's range image of scan ``index`` (azimuth x elevation
-  bins), every return of scan ``index`` around its direction lies well beyond it, so the
-  space was empty at the frame's time (a moving object was there at time ``s``). Returns of
+  bins), the beams of scan ``index`` just above and below its direction both reach well
+  beyond it, so the space was empty at the frame's time (a moving object was there at time ``s``). Returns of
   the frame's own scan pass trivially;
 - **occluded** (rule a): a return behind the surface the camera sees. The remaining returns
   are rendered as splats whose pixel radius is ``f * surfel_m / z`` (a surface element of
@@ -298,11 +298,14 @@ def camera_view_targets(scans, poses, T_cam_lidar, K, image_size, index: int, *,
             range noise (a few centimetres), ``band_rel`` the depth change across a splat on
             a slanted surface (``surfel_m / h`` on a ground seen from a height ``h``) and
             pose error that grows with range.
-        free_rel, free_m: rule (b): a return of another scan is moved when every return of
-            the own scan around its direction lies beyond ``r (1 + free_rel) + free_m``
-            (``r`` its range from the frame's LiDAR).
-        azimuth_bin_deg, elevation_bin_deg: bins of the own scan's range image (rule b),
-            about the LiDAR's azimuth step and beam spacing; the test looks at +-1 bin.
+        free_rel, free_m: rule (b): a return of another scan is moved when the own scan's
+            nearest beams above and below its direction (nearest return over +-1 azimuth
+            bin) both lie beyond ``r (1 + free_rel) + free_m`` (``r`` its range from the
+            frame's LiDAR).
+        azimuth_bin_deg, elevation_bin_deg: bins of the own scan's range image (rule b):
+            about the LiDAR's azimuth step, and finer than its beam spacing.
+        beam_gap_deg: rule (b) looks for the bracketing beams at most this far above and
+            below the query's direction (degrees); without both, the return stays.
 
     Returns:
         :class:`Targets`.
