@@ -117,7 +117,7 @@ def test_targets_on_a_synthetic_drive(synthetic_drive, sequence, tmp_path, capsy
     assert rows[0]["first_scan"] == _stem(0) and rows[0]["last_scan"] == _stem(3)
     assert rows[3]["first_scan"] == _stem(0) and rows[3]["last_scan"] == _stem(6)
 
-    within = []
+    within, ratios = [], []
     for i, s in enumerate(stems):
         depth = read_depth_png(base / "proj_depth" / "groundtruth" / "image_02" / f"{s}.png")
         support = cv2.imread(str(base / "proj_depth" / "support" / "image_02" / f"{s}.png"), cv2.IMREAD_UNCHANGED)
@@ -125,14 +125,17 @@ def test_targets_on_a_synthetic_drive(synthetic_drive, sequence, tmp_path, capsy
         single = sequence[i].sparse > 0
         assert support.dtype == np.uint8 and support.max() <= 7
         assert np.all(support[has] >= 1) and np.all(support[~has] == 0)
-        # the accumulation covers far more of the image than the frame's own scan
-        assert has.mean() > 2.0 * single.mean(), (i, has.mean(), single.mean())
+        # the accumulation covers far more of the image than the frame's own scan. Measured: 2.0-3.1x (the
+        # last frame 2.02x: it has only the scans behind it, which see less of what lies ahead)
+        assert has.mean() > (1.8 if i == N_FRAMES - 1 else 2.0) * single.mean(), (i, has.mean(), single.mean())
+        ratios.append(has.mean() / single.mean())
         assert abs(float(rows[i]["density"]) - has.mean()) < 1e-5
         assert abs(float(rows[i]["scan_density"]) - single.mean()) < 0.01
         truth = sequence[i].depth[has]
         ok = np.isfinite(truth) & (truth > 0)
         within.append(np.mean(np.abs(depth[has][ok] - truth[ok]) <= 0.03 * truth[ok]))
-    # measured: 0.985-0.990 within 3% of the true depth on every frame
+    assert np.mean(ratios) > 2.5, ratios  # measured: 2.71x on average
+    # measured: 0.990-0.992 within 3% of the true depth on every frame (the single scan: 0.984-0.990)
     assert min(within) >= 0.95, within
     # poses.txt: the true camera poses back (relative to the first frame, which is the identity)
     written = read_kitti_poses(base / "poses.txt")
@@ -140,9 +143,9 @@ def test_targets_on_a_synthetic_drive(synthetic_drive, sequence, tmp_path, capsy
     np.testing.assert_allclose(written, true, atol=1e-6)
     # the summary line
     assert stdout.startswith(f"wrote targets of {N_FRAMES} frame(s) of {DRIVE} (image_02, k=3, poses: poses file ")
-    assert "x) in" not in stdout and "mean density" in stdout
+    assert "mean density" in stdout and "for the single scan" in stdout
     ratio = float(stdout.split("(")[-1].split("x)")[0])
-    assert ratio > 2.0
+    assert abs(ratio - np.mean(ratios)) < 0.05
 
 
 def test_frames_selects_a_range_and_quiet_prints_nothing(synthetic_drive, tmp_path, capsys):
