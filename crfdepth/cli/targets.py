@@ -54,6 +54,7 @@ from tqdm import tqdm
 
 from crfdepth import odometry
 from crfdepth.cli.common import (
+    BAD_INPUT,
     check_output_folders,
     int_at_least,
     output_folders,
@@ -403,6 +404,10 @@ def run(args: argparse.Namespace) -> int:
                 })
                 written += 1
                 progress.update(1)
+        except BAD_INPUT as exc:  # after the checks: a file changed or vanished during the run
+            where = _stem(chosen[written], width) if written < len(chosen) else "the end"
+            raise type(exc)(f"{exc} [stopped at frame {where}; {written} of {len(chosen)} frame(s) written to "
+                            f"{out}]") from None
         except KeyboardInterrupt:
             raise KeyboardInterrupt(f"after {written} of {len(chosen)} frame(s) written to {out}") from None
         finally:

@@ -369,3 +369,39 @@ def test_five_real_frames_with_odometry(kitti_root, tmp_path, capsys):
         assert float(r["density"]) >= 2.0 * float(r["scan_density"]), r
     assert len(read_kitti_poses(out / drive.name / "poses.txt")) == 15
     assert "LiDAR odometry (KISS-ICP) over frames 0000000005-0000000019" in stdout
+
+
+def test_refuses_oxts_poses_without_oxts(synthetic_drive, tmp_path, capsys):
+    _refused(["targets", "--drive", synthetic_drive, "--poses", "oxts", "--out-dir", tmp_path / "out"], capsys,
+             tmp_path / "out", f"crfdepth targets: error: --poses oxts: expected the drive's oxts/data folder, got no "
+                               f"{synthetic_drive / 'oxts' / 'data'}")
+
+
+def test_help_lists_the_options(capsys):
+    code, stdout, _ = run(["targets", "--help"], capsys)
+    assert code == 0
+    for flag in ("--drive", "--camera", "--frames", "--window", "--poses", "--out-dir", "--vis", "--quiet"):
+        assert flag in stdout
+
+
+def test_a_failure_during_the_run_says_how_far_it_got(synthetic_drive, tmp_path, capsys, monkeypatch):
+    """A file that breaks after the checks (here: the writer fails on the 3rd frame) stops the run with the
+    count of frames written; the index lists them."""
+    real, calls = targets_cli.write_depth_png, []
+
+    def failing(path, depth):
+        if len(calls) == 2:
+            raise PermissionError(f"depth png: cannot write {path}")
+        calls.append(1)
+        return real(path, depth)
+
+    monkeypatch.setattr(targets_cli, "write_depth_png", failing)
+    out = tmp_path / "out"
+    code, _, err = run(["targets", "--drive", synthetic_drive, "--poses", poses_file(synthetic_drive), "-k", 1,
+                        "--out-dir", out], capsys)
+    target = out / DRIVE / "proj_depth" / "groundtruth" / "image_02" / "0000000002.png"
+    assert code == 2
+    assert first_line(err) == (f"crfdepth targets: error: depth png: cannot write {target} [stopped at frame "
+                               f"0000000002; 2 of {N_FRAMES} frame(s) written to {out / DRIVE}]")
+    rows = list(csv.DictReader((out / DRIVE / "index_image_02.csv").open()))
+    assert [r["frame"] for r in rows] == [_stem(0), _stem(1)]
