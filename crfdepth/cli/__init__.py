@@ -36,6 +36,7 @@ _COMMANDS = (
     "crfdepth.cli.project",
     "crfdepth.cli.complete",
     "crfdepth.cli.evaluate",
+    "crfdepth.cli.targets",
 )
 # The exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
 EXIT_INTERRUPTED = 130
