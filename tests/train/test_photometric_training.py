@@ -5,11 +5,13 @@ drive: camera-view targets by ``crfdepth targets`` from the true poses, neighbou
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
 import pytest
 import torch
+import yaml
 
 from crfdepth.data import BottomCenterCrop, build_dataset, collate_samples
 from crfdepth.data.synthetic import make_sequence
@@ -110,3 +112,19 @@ def test_data_module_splits_a_drive_in_blocks(drive):
     assert batch.neighbours.shape == (1, 2, 3, 96, 320) and batch.poses.shape == (1, 2, 4, 4)
     # flipped: the mirrored poses still move 1 m along z per frame
     assert abs(float(batch.poses[0, 0, 2, 3]) - 1.0) < 1e-5 and abs(float(batch.poses[0, 1, 2, 3]) + 1.0) < 1e-5
+
+
+def test_the_sequence_config_parses(configs, capsys, monkeypatch):
+    from train.__main__ import main
+
+    monkeypatch.setattr(sys, "argv", ["python -m train"])
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", "--config", str(configs / "kitti_sequence.yaml"), "--print_config"])
+    assert exit_info.value.code in (0, None)
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["model"]["crf"] == {"mode": "pixel", "variable": "log", "gate": True}
+    assert printed["model"]["photometric_weight"] == 4.0 and printed["model"]["loss"] == "l1"
+    data = printed["data"]
+    assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 51]
+    assert data["val_options"]["frames"] == [52, 77] and data["train_options"]["beams"] == [16, 32, 64]
+    assert printed["checkpoint"]["monitor"] == "val/rmse"
