@@ -24,12 +24,12 @@ over the valid pixels, of ``min_s e_s(p)``. A pixel is valid where
    camera, a standing car and textureless regions, whose error no depth can lower;
 3. the optional ``mask`` holds (e.g. leave out the sky or the car's bonnet).
 
-How it plugs into the trainer (``train/module.py``; not done yet, its batches do not
-carry neighbours): a sequence data module yields, per frame, the image, the sparse
+How it plugs into the trainer (``train/module.py``): the ``sequence`` layout
+(:class:`crfdepth.data.sequences.SequenceFrames`) yields, per frame, the image, the sparse
 LiDAR, K, and the neighbours' images ``(B, S, 3, H, W)`` with the poses
-``T_s<-t`` ``(B, S, 4, 4)``; the step adds
-``photometric_weight * photometric_loss(image, neighbours, out.depth, K, poses, allow_empty=True)``
-to the depth loss (``photometric_weight`` = 0, the default, leaves training as it is).
+``T_s<-t`` ``(B, S, 4, 4)``; ``CRFDepthModule(photometric_weight=w)`` adds
+``w * photometric_loss(image, neighbours, out.depth, K, poses, allow_empty=True, reduction="frame")``
+to each image's depth loss (``w`` = 0, the default, leaves training as it is).
 """
 
 from __future__ import annotations

@@ -14,8 +14,9 @@ config gave none). All hyperparameters are plain Python values, so
 
 Logged (``self.log``; TensorBoard by default):
 
-- ``train/loss`` (the objective), ``train/depth_loss`` (L2 in m^2 or L1 in m) and, with
-  ``nll_weight > 0``, ``train/nll``; per step and per epoch.
+- ``train/loss`` (the objective), ``train/depth_loss`` (L2 in m^2 or L1 in m), with
+  ``nll_weight > 0`` ``train/nll``, and with ``photometric_weight > 0``
+  ``train/photometric`` (the unweighted photometric error); per step and per epoch.
 - ``val/rmse`` ``val/mae`` (mm), ``val/irmse`` ``val/imae`` (1/km), ``val/rel``,
   ``val/delta1`` and ``val/loss`` (the training objective): computed per image, averaged
   over all validation images of the epoch (across DDP processes too).
@@ -38,6 +39,7 @@ from crfdepth.data.sample import Batch
 from crfdepth.errors import InputError
 from crfdepth.metrics import METRICS, format_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.photometric import photometric_loss
 from train.metrics import DepthMetrics
 
 log = logging.getLogger(__name__)
@@ -98,6 +100,7 @@ class CRFDepthModule(pl.LightningModule):
     Objective per batch (mean over the images that have target pixels)::
 
         loss = depth_loss(x, t) + nll_weight * NLL(t | x.detach(), std)
+               + photometric_weight * photometric_loss(I_t, I_s, x, K, T_s<-t)
 
     ``depth_loss`` is the per-image mean over target pixels (``t > 0``) of
     ``(x - t)^2`` (``"l2"``, m^2) or ``|x - t|`` (``"l1"``, m). The NLL term sees the
@@ -119,6 +122,13 @@ class CRFDepthModule(pl.LightningModule):
             gate_threshold, gate_softness, irls_scale).
         head_lr: Adam learning rate of the small learned head (``crf: {head: true}``), whose
             weights are ordinary network weights rather than logs of scalars.
+        photometric_weight: weight of the photometric self-supervision (>= 0; 0 = off):
+            :func:`crfdepth.photometric.photometric_loss` of the predicted depth, per image
+            (``reduction="frame"``, ``allow_empty=True``: a fully masked frame adds 0), with
+            the batch's ``neighbours`` and ``poses``, which only the ``sequence`` layout
+            gives (:class:`crfdepth.data.sequences.SequenceFrames`; docs/design.md section 13).
+            With a weight > 0, data without neighbours is refused at setup (a data module
+            of another layout) or at the first such batch.
 
     Batches are :class:`~crfdepth.data.sample.Batch` objects; Lightning moves them to the
     device through ``Batch.to`` (its default ``transfer_batch_to_device``).
@@ -136,12 +146,16 @@ class CRFDepthModule(pl.LightningModule):
         lr: float = 0.05,
         freeze: list[str] | None = None,
         head_lr: float = 2e-3,
+        photometric_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if loss not in ("l2", "l1"):
             raise InputError(f"loss: expected 'l2' or 'l1', got {loss!r}")
         if not isinstance(nll_weight, (int, float)) or nll_weight < 0:
             raise InputError(f"nll_weight: expected a number >= 0, got {nll_weight!r}")
+        if isinstance(photometric_weight, bool) or not isinstance(photometric_weight, (int, float)) \
+                or not photometric_weight >= 0:
+            raise InputError(f"photometric_weight: expected a number >= 0, got {photometric_weight!r}")
         for name, value in (("lr", lr), ("head_lr", head_lr)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
                 raise InputError(f"{name}: expected a learning rate > 0, got {value!r}")
@@ -154,6 +168,7 @@ class CRFDepthModule(pl.LightningModule):
         self.hparams["crf"] = copy.deepcopy(self.model.config)
         self.loss_kind = loss
         self.nll_weight = float(nll_weight)
+        self.photometric_weight = float(photometric_weight)
         self.lr = float(lr)
         self.head_lr = float(head_lr)
         frozen = set(freeze or ())
@@ -174,6 +189,24 @@ class CRFDepthModule(pl.LightningModule):
         self.val_metrics = DepthMetrics(extra=("loss",))
 
     # -- steps ----------------------------------------------------------------------------
+    def _data_layout(self) -> str | None:
+        """The layout of the attached data module (``CRFDataModule.layout``), if any."""
+        trainer = self._trainer
+        datamodule = getattr(trainer, "datamodule", None) if trainer is not None else None
+        return getattr(datamodule, "layout", None)
+
+    def _no_neighbours(self, layout: str | None) -> InputError:
+        got = f"layout {layout!r}" if layout is not None else "batches without neighbouring frames"
+        return InputError(f"photometric_weight: expected data with neighbouring frames and poses (data.layout "
+                          f"'sequence') for photometric_weight={self.photometric_weight:g}, got {got}; use the "
+                          f"sequence layout or set photometric_weight: 0")
+
+    def setup(self, stage: str) -> None:
+        if self.photometric_weight > 0:
+            layout = self._data_layout()
+            if layout is not None and layout != "sequence":
+                raise self._no_neighbours(layout)
+
     def forward(self, batch: Batch, return_std: bool = False):
         """The CRF on a :class:`~crfdepth.data.sample.Batch`: a ``CRFOutput``."""
         return self.model(batch.image, batch.sparse, batch.K, return_std=return_std)
@@ -187,6 +220,12 @@ class CRFDepthModule(pl.LightningModule):
         if want_std:
             parts["nll"] = gaussian_nll(out.depth.detach(), out.std, batch.target)
             loss = loss + self.nll_weight * parts["nll"]
+        if self.photometric_weight > 0:
+            if batch.neighbours is None or batch.poses is None:
+                raise self._no_neighbours(self._data_layout())
+            parts["photometric"] = photometric_loss(batch.image, batch.neighbours, out.depth, batch.K, batch.poses,
+                                                    allow_empty=True, reduction="frame")
+            loss = loss + self.photometric_weight * parts["photometric"]
         return loss, parts, out
 
     def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:

@@ -9,8 +9,8 @@ from torch.utils.data import Dataset
 
 from crfdepth.errors import InputError
 
-Layout = Literal["depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic"]
-LAYOUTS = ("depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic")
+Layout = Literal["depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence"]
+LAYOUTS = ("depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence")
 
 
 def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> Dataset:
@@ -38,6 +38,10 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
         return kitti.KittiDepthCompletion(root, **options)
     if layout == "val_selection":
         return kitti.KittiValSelection(root, **options)
+    if layout == "sequence":
+        from crfdepth.data.sequences import SequenceFrames
+
+        return SequenceFrames(root, **options)
     if layout == "test_selection":
         return kitti.KittiTestCompletion(root, **options)
     return kitti.KittiRawScans(root, layout=layout, **options)

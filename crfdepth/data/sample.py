@@ -35,6 +35,12 @@ class Sample:
             ``2011_09_26_drive_0001_sync_velodyne_raw_0000000005_image_02`` (the
             ``velodyne_raw`` file name in ``val_selection_cropped``).
         has_target: False when the frame has no ground truth at all (test split).
+        neighbours: optional (S, 3, H, W) float32 RGB of S neighbouring frames of the same
+            camera (same size and ``K`` as ``image``), for the photometric term
+            (:mod:`crfdepth.photometric`); None (the default) for single frames.
+        poses: optional (S, 4, 4) float32 ``T_cam(s)<-cam(t)``: points of this frame's
+            camera into neighbour ``s``'s camera, metres; given exactly when
+            ``neighbours`` is (:class:`crfdepth.data.sequences.SequenceFrames`).
 
     A sample is immutable: transforms return a new one (``dataclasses.replace``) and never
     modify the tensors they receive. ``__post_init__`` checks shapes and dtypes and raises
@@ -47,6 +53,8 @@ class Sample:
     K: torch.Tensor
     name: str
     has_target: bool = True
+    neighbours: torch.Tensor | None = None
+    poses: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         image = self.image
@@ -66,6 +74,19 @@ class Sample:
             value = getattr(self, field_name)
             if not value.is_floating_point():
                 raise InputError(f"Sample.{field_name}: expected a floating-point tensor, got {value.dtype}")
+        if (self.neighbours is None) != (self.poses is None):
+            raise InputError(f"Sample.poses: expected poses exactly when neighbours are given, got neighbours "
+                             f"{_describe(self.neighbours)} and poses {_describe(self.poses)} for {self.name!r}")
+        if self.neighbours is not None:
+            n = self.neighbours
+            if (not isinstance(n, torch.Tensor) or n.ndim != 4 or tuple(n.shape[1:]) != (3, *hw)
+                    or not n.is_floating_point()):
+                raise InputError(f"Sample.neighbours: expected a floating-point (S, 3, {hw[0]}, {hw[1]}) tensor "
+                                 f"(the size of image), got {_describe(n)} for {self.name!r}")
+            p = self.poses
+            if not isinstance(p, torch.Tensor) or tuple(p.shape) != (n.shape[0], 4, 4) or not p.is_floating_point():
+                raise InputError(f"Sample.poses: expected a floating-point ({n.shape[0]}, 4, 4) tensor (one "
+                                 f"T_cam(s)<-cam(t) per neighbour), got {_describe(p)} for {self.name!r}")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -84,6 +105,8 @@ class Batch:
         K: (B, 3, 3) float32 intrinsics of each image, pixels.
         has_target: (B,) bool, False for frames without any ground truth.
         names: the B sample names, in batch order.
+        neighbours: (B, S, 3, H, W) float32 neighbouring frames, or None (samples without).
+        poses: (B, S, 4, 4) float32 ``T_cam(s)<-cam(t)``, or None (with ``neighbours``).
     """
 
     image: torch.Tensor
@@ -92,6 +115,8 @@ class Batch:
     K: torch.Tensor
     has_target: torch.Tensor
     names: list[str] = field(default_factory=list)
+    neighbours: torch.Tensor | None = None
+    poses: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -112,6 +137,8 @@ class Batch:
         return Batch(
             image=move(self.image), sparse=move(self.sparse), target=move(self.target),
             K=move(self.K), has_target=move(self.has_target), names=list(self.names),
+            neighbours=None if self.neighbours is None else move(self.neighbours),
+            poses=None if self.poses is None else move(self.poses),
         )
 
     def pin_memory(self) -> "Batch":
@@ -120,6 +147,8 @@ class Batch:
             image=self.image.pin_memory(), sparse=self.sparse.pin_memory(),
             target=self.target.pin_memory(), K=self.K.pin_memory(),
             has_target=self.has_target.pin_memory(), names=list(self.names),
+            neighbours=None if self.neighbours is None else self.neighbours.pin_memory(),
+            poses=None if self.poses is None else self.poses.pin_memory(),
         )
 
 
@@ -133,8 +162,12 @@ def collate_samples(samples: list[Sample]) -> Batch:
     Returns:
         A :class:`Batch` with tensors of leading size ``len(samples)``; ``K`` is float32.
 
+    ``neighbours`` and ``poses`` are stacked when every sample has them (all with the same
+    count S), and None when none has.
+
     Raises:
-        InputError: empty list, or samples of different sizes (names and sizes given).
+        InputError: empty list, samples of different sizes (names and sizes given), or
+            samples with and without neighbours, or with different counts of them.
     """
     if len(samples) == 0:
         raise InputError("collate_samples: expected at least one Sample, got an empty list")
@@ -145,6 +178,15 @@ def collate_samples(samples: list[Sample]) -> Batch:
                 f"collate_samples: all samples must have the same (H, W); {first.name!r} is "
                 f"{first.size} but {s.name!r} is {s.size} (crop them first, e.g. BottomCenterCrop)"
             )
+    with_neighbours = [s.neighbours is not None for s in samples]
+    neighbours = poses = None
+    if any(with_neighbours):
+        counts = [(s.name, 0 if s.neighbours is None else int(s.neighbours.shape[0])) for s in samples]
+        if len({c for _, c in counts}) > 1:
+            shown = ", ".join(f"{n!r}: {c}" for n, c in counts[:4])
+            raise InputError(f"collate_samples: expected the same number of neighbours in every sample, got {shown}")
+        neighbours = torch.stack([s.neighbours for s in samples])
+        poses = torch.stack([s.poses.to(torch.float32) for s in samples])
     return Batch(
         image=torch.stack([s.image for s in samples]),
         sparse=torch.stack([s.sparse for s in samples]),
@@ -152,6 +194,8 @@ def collate_samples(samples: list[Sample]) -> Batch:
         K=torch.stack([s.K.to(torch.float32) for s in samples]),
         has_target=torch.tensor([bool(s.has_target) for s in samples], dtype=torch.bool),
         names=[s.name for s in samples],
+        neighbours=neighbours,
+        poses=poses,
     )
 
 

@@ -60,6 +60,7 @@ def crop_sample(sample: Sample, top: int, left: int, height: int, width: int) ->
         sparse=sample.sparse[:, rows, cols].contiguous(),
         target=sample.target[:, rows, cols].contiguous(),
         K=K,
+        neighbours=None if sample.neighbours is None else sample.neighbours[:, :, rows, cols].contiguous(),
     )
 
 
@@ -108,7 +109,8 @@ class BottomCenterCrop:
 class HorizontalFlip:
     """Mirror the frame left-right with probability ``p``; ``K`` follows.
 
-    Flips ``image``, ``sparse`` and ``target`` along the width and sets
+    Flips ``image``, ``sparse``, ``target`` (and ``neighbours``, whose ``poses`` become
+    those of the mirrored cameras, ``M T M`` with ``M = diag(-1, 1, 1, 1)``) along the width and sets
     ``cx' = W - 1 - cx`` (pixel ``u`` goes to ``W - 1 - u``); ``fx``, ``fy``, ``cy`` are
     unchanged, so the flipped frame is what a mirrored pinhole camera would see. Flipping
     twice returns the original sample exactly.
@@ -135,12 +137,19 @@ class HorizontalFlip:
         _, w = sample.size
         K = sample.K.clone()
         K[0, 2] = (w - 1) - K[0, 2]
+        neighbours, poses = sample.neighbours, sample.poses
+        if neighbours is not None:
+            # the mirrored cameras: x -> -x in every camera frame, T' = M T M with M = diag(-1, 1, 1, 1)
+            mirror = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=poses.dtype))
+            neighbours, poses = neighbours.flip(-1), mirror @ poses @ mirror
         return dataclasses.replace(
             sample,
             image=sample.image.flip(-1),
             sparse=sample.sparse.flip(-1),
             target=sample.target.flip(-1),
             K=K,
+            neighbours=neighbours,
+            poses=poses,
         )
 
     def __repr__(self) -> str:

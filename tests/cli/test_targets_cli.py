@@ -18,46 +18,13 @@ from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.files import LOCK_NAME
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.odometry import read_kitti_poses
+from tests.sequence_drive import DRIVE, poses_file, write_drive
+from tests.sequence_drive import matrix_text as _matrix
+from tests.sequence_drive import stem as _stem
 
 N_FRAMES = 7
-DRIVE = "2011_01_01_drive_0001_sync"
 COLUMNS = ["frame", "first_scan", "last_scan", "points", "target_pixels", "density", "scan_density",
            "own_share", "occluded", "moved"]
-
-
-def _stem(i: int) -> str:
-    return f"{i:010d}"
-
-
-def _matrix(a) -> str:
-    return " ".join(f"{v:.12e}" for v in np.asarray(a, dtype=np.float64).ravel())
-
-
-def write_drive(root: Path, seq, frames=None) -> Path:
-    """``root/<day>/<drive>_sync`` with the sequence's scans (float32 N x 4, intensity 0) and images, the
-    day's calibration (P_rect_02 = [K | 0], R_rect_00 = I, velo_to_cam = T_cam_lidar) and ``poses.txt``
-    (the true camera poses, KITTI odometry format) beside the day folder."""
-    day = root / "2011_01_01"
-    drive = day / DRIVE
-    (drive / "velodyne_points" / "data").mkdir(parents=True)
-    (drive / "image_02" / "data").mkdir(parents=True)
-    frame = seq[0]
-    height, width = frame.image.shape[:2]
-    P = np.hstack([frame.K, np.zeros((3, 1))])
-    (day / "calib_cam_to_cam.txt").write_text(
-        f"S_rect_02: {width} {height}\nP_rect_02: {_matrix(P)}\nR_rect_00: {_matrix(np.eye(3))}\n")
-    T = frame.T_cam_lidar
-    (day / "calib_velo_to_cam.txt").write_text(f"R: {_matrix(T[:3, :3])}\nT: {_matrix(T[:3, 3])}\n")
-    for i in (range(len(seq)) if frames is None else frames):
-        f = seq[i]
-        points = np.zeros((len(f.points), 4), np.float32)
-        points[:, :3] = f.points[:, :3]
-        points.tofile(drive / "velodyne_points" / "data" / f"{_stem(i)}.bin")
-        rgb = np.round(np.clip(f.image, 0, 1) * 255).astype(np.uint8)
-        cv2.imwrite(str(drive / "image_02" / "data" / f"{_stem(i)}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    lines = [_matrix(f.T_w_cam[:3, :]) for f in seq]
-    (root / "poses.txt").write_text("\n".join(lines) + "\n")
-    return drive
 
 
 @pytest.fixture(scope="module")
@@ -85,10 +52,6 @@ def first_line(err: str) -> str:
 
 def files(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) if folder.exists() else []
-
-
-def poses_file(drive: Path) -> Path:
-    return drive.parent.parent / "poses.txt"
 
 
 def copy_drive(drive: Path, tmp_path: Path) -> Path:

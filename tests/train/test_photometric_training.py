@@ -1,0 +1,130 @@
+"""The photometric term of the trainer (``CRFDepthModule(photometric_weight=...)``) on a tiny synthetic
+drive: camera-view targets by ``crfdepth targets`` from the true poses, neighbours and poses from the
+``sequence`` layout; one training step, the weight-0 identity, gradients, data without neighbours."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import lightning.pytorch as pl
+import pytest
+import torch
+import yaml
+
+from crfdepth.data import BottomCenterCrop, build_dataset, collate_samples
+from crfdepth.data.synthetic import make_sequence
+from crfdepth.errors import InputError
+from train.data import CRFDataModule
+from train.module import CRFDepthModule, depth_loss
+from tests.sequence_drive import make_targets, write_drive
+
+#: the shipped structure (configs/kitti_weights.yaml)
+SHIPPED = {"mode": "pixel", "variable": "log", "gate": True}
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("photo")
+    seq = make_sequence(5, 1, height=176, width=608, movers=1)
+    drive = write_drive(root / "raw", seq)
+    return root / "raw", make_targets(drive, root / "targets", k=2)
+
+
+@pytest.fixture(scope="module")
+def batch(drive):
+    raw, targets = drive
+    ds = build_dataset("sequence", raw, targets_root=targets, transform=BottomCenterCrop(128, 448))
+    return collate_samples([ds[0], ds[1]])
+
+
+def step(module: CRFDepthModule, batch) -> tuple[torch.Tensor, dict[str, float]]:
+    """``training_step`` with ``self.log`` recorded (no trainer attached)."""
+    logged: dict[str, float] = {}
+    module.log = lambda name, value, **kw: logged.__setitem__(name, float(torch.as_tensor(value).detach()))  # type: ignore[method-assign]
+    return module.training_step(batch, 0), logged
+
+
+def test_one_training_step_with_the_photometric_term(batch):
+    module = CRFDepthModule(crf=SHIPPED, loss="l1", photometric_weight=4.0)
+    loss, logged = step(module, batch)
+    assert math.isfinite(float(loss))
+    # measured at the start: depth L1 0.125 m, photometric 0.033 per frame (weight 4: 0.13, comparable)
+    assert 0.01 < logged["train/photometric"] < 0.1, logged
+    assert 0.02 < logged["train/depth_loss"] < 0.5, logged
+    assert abs(float(loss) - (logged["train/depth_loss"] + 4.0 * logged["train/photometric"])) < 1e-5
+    assert abs(logged["train/loss"] - float(loss)) < 1e-6
+    loss.backward()
+    trained = {n: p for n, p in module.model.named_parameters() if p.requires_grad}
+    assert len(trained) >= 10
+    no_grad = [n for n, p in trained.items() if p.grad is None or not float(p.grad.abs().sum()) > 0]
+    assert no_grad == []
+
+
+def test_the_photometric_term_alone_reaches_every_depth_weight(batch):
+    module = CRFDepthModule(crf=SHIPPED, loss="l1", photometric_weight=1.0)
+    _, parts, _ = module._objective(batch)
+    parts["photometric"].sum().backward()
+    trained = {n: p for n, p in module.model.named_parameters() if p.requires_grad}
+    no_grad = [n for n, p in trained.items() if p.grad is None or not float(p.grad.abs().sum()) > 0]
+    assert no_grad == []
+
+
+def test_weight_zero_is_the_depth_loss_alone(batch):
+    module = CRFDepthModule(crf=SHIPPED, loss="l1")
+    loss, logged = step(module, batch)
+    out = module(batch)
+    assert "train/photometric" not in logged
+    assert abs(float(loss) - float(depth_loss(out.depth, batch.target, "l1").mean())) < 1e-6
+    assert abs(float(loss) - logged["train/depth_loss"]) < 1e-7
+
+
+def test_data_without_neighbours_is_refused():
+    module = CRFDepthModule(crf=SHIPPED, photometric_weight=1.0)
+    plain = collate_samples([build_dataset("synthetic", count=1, seed=3, height=64, width=192)[0]])
+    with pytest.raises(InputError) as info:
+        module._objective(plain)
+    assert str(info.value) == (
+        "photometric_weight: expected data with neighbouring frames and poses (data.layout 'sequence') for "
+        "photometric_weight=1, got batches without neighbouring frames; use the sequence layout or set "
+        "photometric_weight: 0")
+    data = CRFDataModule(layout="synthetic", train_options={"count": 1, "height": 32, "width": 64},
+                         val_options={"count": 1, "height": 32, "width": 64, "seed": 1000})
+    trainer = pl.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, accelerator="cpu", num_sanity_val_steps=0)
+    with pytest.raises(InputError, match=r"^photometric_weight: expected data with neighbouring frames and poses "
+                                         r"\(data.layout 'sequence'\) for photometric_weight=1, got layout 'synthetic';"):
+        trainer.fit(module, datamodule=data)
+    for bad in (-1.0, float("nan"), True, "1"):
+        with pytest.raises(InputError, match=r"^photometric_weight: expected a number >= 0, got"):
+            CRFDepthModule(photometric_weight=bad)
+
+
+def test_data_module_splits_a_drive_in_blocks(drive):
+    raw, targets = drive
+    options = {"targets_root": str(targets), "transform": None}
+    data = CRFDataModule(layout="sequence", root=str(raw), train_options={**options, "frames": [0, 2]},
+                         val_options={**options, "frames": [2, 4]}, flip=1.0, crop=[96, 320])
+    data.setup("fit")
+    assert len(data.train_set) == 1 and len(data.val_set) == 1  # each block of 3 loses its two ends
+    batch = next(iter(data.train_dataloader()))
+    assert batch.neighbours.shape == (1, 2, 3, 96, 320) and batch.poses.shape == (1, 2, 4, 4)
+    # flipped: the mirrored poses still move 1 m along z per frame
+    assert abs(float(batch.poses[0, 0, 2, 3]) - 1.0) < 1e-5 and abs(float(batch.poses[0, 1, 2, 3]) + 1.0) < 1e-5
+
+
+def test_the_sequence_config_parses(configs, capsys, monkeypatch):
+    from train.__main__ import main
+
+    monkeypatch.setattr(sys, "argv", ["python -m train"])
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", "--config", str(configs / "kitti_sequence.yaml"), "--print_config"])
+    assert exit_info.value.code in (0, None)
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["model"]["crf"] == {"mode": "pixel", "variable": "log", "gate": True}
+    assert printed["model"]["photometric_weight"] == 4.0 and printed["model"]["loss"] == "l1"
+    data = printed["data"]
+    assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 51]
+    assert data["val_options"]["frames"] == [52, 77] and data["train_options"]["beams"] == [16, 32, 64]
+    assert printed["checkpoint"]["monitor"] == "val/rmse"
