@@ -114,6 +114,7 @@ _DATASET_OPTIONS = {
     "--holdout-fraction": ("holdout_fraction", ("raw", "object")),
     "--keep-every-ring": ("keep_every_ring", ("raw", "object")),
     "--seed": ("seed", ("raw", "object", "synthetic")),
+    "--targets-root": ("targets_root", ("sequence",)),
 }
 
 
@@ -145,6 +146,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                       help="dataset folder (not needed for --layout synthetic)")
     data.add_argument("--split", choices=("train", "val"), default=None,
                       help="depth_completion: split (default: the dataset's, train)")
+    data.add_argument("--targets-root", metavar="DIR", default=None,
+                      help="sequence (required): the --out-dir of 'crfdepth targets', whose camera-view targets "
+                           "are the ground truth; --data is the raw root holding <date>/<drive>/")
     data.add_argument("--holdout", choices=("fraction", "rings"), default=None,
                       help="raw / object: how LiDAR points are held out as targets (default: fraction)")
     data.add_argument("--holdout-fraction", type=_fraction, default=None, metavar="F",
@@ -193,6 +197,9 @@ def _open_dataset(args: argparse.Namespace, options: dict[str, Any]):
         raise InputError("--layout test_selection: the KITTI test frames have no ground truth, so there is "
                          "nothing to evaluate; for a benchmark submission run 'crfdepth complete "
                          "--input-dir DIR --out-dir OUT'")
+    if args.layout == "sequence" and "targets_root" not in options:
+        raise InputError("--targets-root: required with --layout sequence (the --out-dir of 'crfdepth targets', "
+                         "whose camera-view targets are scored)")
     if args.layout == "synthetic":
         if args.data is not None:
             logger.warning("--data %s is not used by --layout synthetic; ignored", args.data)

@@ -225,3 +225,25 @@ def test_collate_refuses_mixed_samples(drive_and_targets):
         dataclasses.replace(s, poses=None)
     moved = collate_samples([s]).to(torch.float64)
     assert moved.neighbours.dtype == torch.float64 and moved.poses.shape == (1, 2, 4, 4)
+
+
+@pytest.mark.slow
+def test_evaluate_scores_a_checkpoint_against_the_camera_view_targets(tmp_path, capsys):
+    """crfdepth evaluate --layout sequence: the targets of crfdepth targets are the ground truth (at the
+    KITTI size, which the layout's benchmark crop needs)."""
+    import json
+
+    from crfdepth.cli import main
+
+    drive = write_drive(tmp_path / "raw", make_sequence(4, 0, movers=0))
+    targets = make_targets(drive, tmp_path / "targets", k=1)
+    argv = ["evaluate", "--layout", "sequence", "--data", str(drive.parent.parent), "--out-dir", str(tmp_path / "ev"),
+            "--quiet"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.splitlines()[0] == (
+        "crfdepth evaluate: error: --targets-root: required with --layout sequence (the --out-dir of 'crfdepth "
+        "targets', whose camera-view targets are scored)")
+    assert main([*argv, "--targets-root", str(targets)]) == 0
+    summary = json.loads(next((tmp_path / "ev").glob("*.json")).read_text())
+    assert summary["frames"] == 2  # frames 1 and 2: the ends lack a neighbour
+    assert 0 < summary["metrics"]["rmse"] < 5000  # mm: the synthetic street completed against its targets
