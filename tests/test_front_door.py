@@ -172,3 +172,23 @@ def test_model_benchmark_prints_progress_on_stderr(capsys):
     assert [(r["mode"], r["superpixels"], r["std_s"] is None) for r in rows] == [
         ("pixel", None, True), ("superpixel", 150, False)]  # std timed only where std_repeats asked
     assert all(r["total_s"] > 0 for r in rows)
+
+
+def test_log_messages_are_one_line_like_the_errors(tmp_path):
+    """A logged warning of a command (here: a greyscale --image) reads ``crfdepth complete: warning: ...``,
+    not ``WARNING crfdepth.cli.complete: ...``; checked in a fresh process, where main sets up logging."""
+    import sys
+
+    import cv2
+
+    example = Path(__file__).resolve().parents[1] / "docs" / "example"
+    grey = cv2.cvtColor(cv2.imread(str(example / "image.png")), cv2.COLOR_BGR2GRAY)
+    image = tmp_path / "grey.png"
+    cv2.imwrite(str(image), np.dstack([grey] * 3))
+    proc = subprocess.run([sys.executable, "-m", "crfdepth", "complete", "--image", str(image), "--points",
+                           str(example / "scan.pcd"), "--calib", str(example / "rig.yaml"), "--out",
+                           str(tmp_path / "d.png"), "--quiet", "--weights", "paper", "--mode", "pixel"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines()[0] == f"crfdepth complete: warning: --image {image} is greyscale; the colour " \
+                                          f"potential sees intensity only"

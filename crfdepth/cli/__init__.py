@@ -94,6 +94,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _LineFormatter(logging.Formatter):
+    """Log records as the command's one-line messages: ``crfdepth complete: warning: ...`` (like
+    its errors and :func:`warnings_as_lines`), without the logger's name."""
+
+    def __init__(self, prefix: str) -> None:
+        super().__init__()
+        self.prefix = prefix
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"{self.prefix}: {record.levelname.lower()}: {record.getMessage()}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``crfdepth`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status.
 
@@ -104,8 +116,9 @@ def main(argv: list[str] | None = None) -> int:
         parser = build_parser()
         args = parser.parse_args(argv)
         command = args.command
-        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                            format="%(levelname)s %(name)s: %(message)s")
+        handler = logging.StreamHandler()  # stderr; a no-op where the root logger is already set up
+        handler.setFormatter(_LineFormatter(f"crfdepth{' ' + command if command else ''}"))
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
         if not getattr(args, "func", None):
             parser.print_help()
             return 2
