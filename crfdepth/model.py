@@ -21,13 +21,12 @@ from typing import Callable, Literal, Mapping, Sequence
 
 import torch
 from kornia.geometry.camera import unproject_points
-from torch import nn
 
 from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
-from crfdepth.graph import SuperpixelGraph, build_superpixel_graphs
+from crfdepth.graph import build_superpixel_graphs
 from crfdepth.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
@@ -221,9 +220,12 @@ class CRFDepth(ConstrainedWeights):
         depth, occlusion gate). Stored tensors are loaded with every key checked (a
         missing or unexpected one is an error naming the file).
         """
-        from crfdepth.weights import _pretrained  # crfdepth.weights imports this module
+        return CRFDepth.pretrained_loader(cls, name, overrides)
 
-        return _pretrained(cls, name, overrides)
+    pretrained_loader: Callable[..., "CRFDepth"] | None = None
+    """``(cls, name, overrides) -> model``: the shipped-weights loader, which :mod:`crfdepth.weights`
+    sets when it is imported (``import crfdepth`` does, so before any submodule), so that this
+    module does not import the package that builds it (no import cycle)."""
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
         """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""

@@ -1,7 +1,8 @@
 """Pictures for people: a depth or std map with a colour bar in metres under it (docs/design.md sections 1 and 5).
 
 - :func:`depth_picture`: TURBO on inverse depth (near = warm), see :func:`crfdepth.visualize.colorize_depth`;
-- :func:`std_picture`: VIRIDIS on a log scale by default (:func:`crfdepth.visualize.colorize_std`).
+- :func:`std_picture`: VIRIDIS on a log scale by default (:func:`crfdepth.visualize.colorize_std`);
+- :func:`targets_picture`: camera-view targets on their image, dropped returns by reason (section 14).
 
 ``vis_range=(min_m, max_m)`` gives the same colours for the same metres in every frame of a
 sequence; without it the range is the map's 2nd to 98th percentile. The bar is drawn with
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
+from crfdepth.targets import REASON_COLOURS, Targets
 from crfdepth.visualize import (
     Scale,
     _BLACK,
@@ -31,7 +33,7 @@ from crfdepth.visualize import (
     std_range,
 )
 
-__all__ = ["depth_picture", "std_picture"]
+__all__ = ["depth_picture", "std_picture", "targets_picture"]
 
 
 def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
@@ -205,3 +207,45 @@ def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.nd
         cv2.line(panel, (x, _BAR_BOTTOM), (x, _BAR_BOTTOM + _TICK_LENGTH - 1), _INK, 1)
         cv2.putText(panel, label, (left, _LABEL_BASELINE), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
     return out
+
+
+def targets_picture(image, targets: Targets, vis_range: tuple[float, float] | None = None) -> np.ndarray:
+    """The image with the targets coloured by depth and the dropped returns by reason.
+
+    Targets are painted like :func:`crfdepth.visualize.colorize_depth` (near = warm) on the
+    image darkened to half; pixels without a target where a dropped return lands are
+    painted with :data:`REASON_COLOURS` (occluded: magenta, moved: white). A legend strip
+    under the picture names the colours and the density.
+
+    Args:
+        image: (H, W, 3) RGB image of the frame, uint8 or floats in [0, 1].
+        targets: its :class:`Targets`.
+        vis_range: ``(min_m, max_m)`` of the depth colours (default: the targets' range).
+
+    Returns:
+        (H + 24, W, 3) uint8 RGB.
+
+    Raises:
+        InputError: ``image`` is not an (H, W, 3) image of the targets' size, or a bad
+            ``vis_range``.
+    """
+    rgb = np.asarray(image)
+    shape = targets.depth.shape
+    if rgb.shape != (*shape, 3) or not (rgb.dtype == np.uint8 or np.issubdtype(rgb.dtype, np.floating)):
+        raise InputError(f"image: expected a {shape[0]}x{shape[1]} (HxW) RGB image (uint8, or floats in [0, 1]) like "
+                         f"the targets, got shape {rgb.shape} {rgb.dtype}")
+    if rgb.dtype != np.uint8:
+        rgb = np.round(np.clip(np.nan_to_num(rgb), 0.0, 1.0) * 255.0).astype(np.uint8)
+    out = (rgb // 2).copy()
+    has = targets.depth > 0
+    if has.any():
+        colours = colorize_depth(targets.depth, vis_range=vis_range)
+        out[has] = colours[has]
+    for code, colour in REASON_COLOURS.items():
+        out[targets.reason == code] = colour
+    strip = np.full((24, shape[1], 3), 255, dtype=np.uint8)
+    counts = targets.counts()
+    text = (f"targets {100 * targets.density:.1f}% (scans {targets.window[0]}-{targets.window[-1]})  "
+            f"occluded {counts['occluded']} (magenta)  moved {counts['moved']} (white)")
+    cv2.putText(strip, text, (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([out, strip], axis=0)

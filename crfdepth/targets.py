@@ -20,7 +20,7 @@ The target of a pixel is the nearest kept return of the frame's own scan where i
 (rule c: the own scan has priority where it is consistent), else the nearest kept return of
 the other scans. :class:`Targets` carries the depth, a per-pixel support count (how many
 scans have a kept return within the band of the target) and the reason code of every
-dropped return; :func:`targets_picture` paints them.
+dropped return; :func:`crfdepth.pictures.targets_picture` paints them.
 
 Pure numpy (and OpenCV for the min filters); no torch, no Lightning.
 """
@@ -35,8 +35,8 @@ import numpy as np
 
 from crfdepth.checks import check_intrinsics, check_number, check_rigid
 from crfdepth.errors import InputError
+from crfdepth.free_space import seen_through
 from crfdepth.projection import _check_image_size
-from crfdepth.visualize import colorize_depth
 
 __all__ = [
     "KEPT",
@@ -48,7 +48,6 @@ __all__ = [
     "Targets",
     "accumulate",
     "camera_view_targets",
-    "targets_picture",
 ]
 
 # Reason codes of a return (Targets.point_reason) and of a pixel (Targets.reason).
@@ -184,64 +183,6 @@ def _accumulate(scans, P, T_cam_lidar, index, window):
     return points, owners
 
 
-# --------------------------------------------------------------------------- rule (b): movers
-
-
-def _range_image(xyz: np.ndarray, az_step: float, el_step: float):
-    """Nearest range per (elevation, azimuth) bin of a scan in its own LiDAR frame, with the
-    bins' geometry. Empty bins hold +inf."""
-    r = np.linalg.norm(xyz, axis=1)
-    ok = r > 1e-6
-    xyz, r = xyz[ok], r[ok]
-    az = np.arctan2(xyz[:, 1], xyz[:, 0])
-    el = np.arcsin(np.clip(xyz[:, 2] / r, -1.0, 1.0))
-    n_az = max(1, math.ceil(2.0 * math.pi / az_step))
-    el0 = float(el.min()) - el_step
-    n_el = math.floor((float(el.max()) - el0) / el_step) + 2
-    ia = np.floor((az + math.pi) / az_step).astype(np.int64) % n_az
-    ie = np.floor((el - el0) / el_step).astype(np.int64)
-    image = np.full((n_el, n_az), np.inf)
-    np.minimum.at(image, (ie, ia), r)
-    return image, el0, n_el, n_az
-
-
-def _seen_through(query: np.ndarray, own_scan: np.ndarray, *, az_step: float, el_step: float,
-                  beam_gap: float, free_rel: float, free_m: float) -> np.ndarray:
-    """(M,) bool: the own scan sees through each query point (both in the own LiDAR frame).
-
-    In the own scan's range image (nearest range per bin, then the nearest over +-1
-    azimuth bin), the query's direction is bracketed by the nearest beams above and below
-    it (the nearest non-empty elevation rows, each within ``beam_gap`` radians). The query
-    is seen through when both exist and both lie beyond ``r (1 + free_rel) + free_m``.
-    Directions without a return (sky, out of range, dropouts) are no evidence either way.
-    Asking both bracketing beams keeps a ground or wall point between two beams (the beam
-    below hits the ground nearer) and a point just beside a static edge.
-    """
-    image, el0, n_el, n_az = _range_image(own_scan, az_step, el_step)
-    padded = np.pad(image, ((0, 0), (1, 1)), mode="wrap")
-    nearest = np.minimum(np.minimum(padded[:, :-2], padded[:, 1:-1]), padded[:, 2:])
-    rows = np.arange(n_el)[:, None]
-    present = np.isfinite(nearest)
-    below = np.maximum.accumulate(np.where(present, rows, -n_el - 1), axis=0)
-    above = np.minimum.accumulate(np.where(present, rows, 2 * n_el + 1)[::-1], axis=0)[::-1]
-    r = np.linalg.norm(query, axis=1)
-    az = np.arctan2(query[:, 1], query[:, 0])
-    el = np.arcsin(np.clip(query[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0))
-    ia = np.floor((az + math.pi) / az_step).astype(np.int64) % n_az
-    ie = np.floor((el - el0) / el_step).astype(np.int64)
-    inside = (ie >= 0) & (ie < n_el)
-    ie, ia, r_in = ie[inside], ia[inside], r[inside]
-    gap = math.floor(beam_gap / el_step)
-    lo, hi = below[ie, ia], above[ie, ia]
-    found = (ie - lo <= gap) & (hi - ie <= gap)
-    limit = r_in * (1.0 + free_rel) + free_m
-    lo_r = nearest[np.clip(lo, 0, n_el - 1), ia]
-    hi_r = nearest[np.clip(hi, 0, n_el - 1), ia]
-    beyond = np.zeros(len(query), dtype=bool)
-    beyond[inside] = found & (lo_r > limit) & (hi_r > limit)
-    return beyond
-
-
 # --------------------------------------------------------------------------- rule (a): visibility
 
 
@@ -353,7 +294,7 @@ def camera_view_targets(scans, poses, T_cam_lidar, K, image_size, index: int, *,
         to_lidar = np.linalg.inv(T_cam_lidar)
         query = cam[others] @ to_lidar[:3, :3].T + to_lidar[:3, 3]
         own_scan = points[window.index(index)] @ to_lidar[:3, :3].T + to_lidar[:3, 3]
-        moved = _seen_through(query, own_scan, az_step=az_step, el_step=el_step, beam_gap=beam_gap,
+        moved = seen_through(query, own_scan, az_step=az_step, el_step=el_step, beam_gap=beam_gap,
                               free_rel=free_rel, free_m=free_m)
         idx = np.flatnonzero(others)
         reason[idx[moved]] = MOVED
@@ -401,48 +342,3 @@ def camera_view_targets(scans, poses, T_cam_lidar, K, image_size, index: int, *,
         window=tuple(window),
         index=index,
     )
-
-
-# --------------------------------------------------------------------------- picture
-
-
-def targets_picture(image, targets: Targets, vis_range: tuple[float, float] | None = None) -> np.ndarray:
-    """The image with the targets coloured by depth and the dropped returns by reason.
-
-    Targets are painted like :func:`crfdepth.visualize.colorize_depth` (near = warm) on the
-    image darkened to half; pixels without a target where a dropped return lands are
-    painted with :data:`REASON_COLOURS` (occluded: magenta, moved: white). A legend strip
-    under the picture names the colours and the density.
-
-    Args:
-        image: (H, W, 3) RGB image of the frame, uint8 or floats in [0, 1].
-        targets: its :class:`Targets`.
-        vis_range: ``(min_m, max_m)`` of the depth colours (default: the targets' range).
-
-    Returns:
-        (H + 24, W, 3) uint8 RGB.
-
-    Raises:
-        InputError: ``image`` is not an (H, W, 3) image of the targets' size, or a bad
-            ``vis_range``.
-    """
-    rgb = np.asarray(image)
-    shape = targets.depth.shape
-    if rgb.shape != (*shape, 3) or not (rgb.dtype == np.uint8 or np.issubdtype(rgb.dtype, np.floating)):
-        raise InputError(f"image: expected a {shape[0]}x{shape[1]} (HxW) RGB image (uint8, or floats in [0, 1]) like "
-                         f"the targets, got shape {rgb.shape} {rgb.dtype}")
-    if rgb.dtype != np.uint8:
-        rgb = np.round(np.clip(np.nan_to_num(rgb), 0.0, 1.0) * 255.0).astype(np.uint8)
-    out = (rgb // 2).copy()
-    has = targets.depth > 0
-    if has.any():
-        colours = colorize_depth(targets.depth, vis_range=vis_range)
-        out[has] = colours[has]
-    for code, colour in REASON_COLOURS.items():
-        out[targets.reason == code] = colour
-    strip = np.full((24, shape[1], 3), 255, dtype=np.uint8)
-    counts = targets.counts()
-    text = (f"targets {100 * targets.density:.1f}% (scans {targets.window[0]}-{targets.window[-1]})  "
-            f"occluded {counts['occluded']} (magenta)  moved {counts['moved']} (white)")
-    cv2.putText(strip, text, (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.concatenate([out, strip], axis=0)

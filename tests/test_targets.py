@@ -9,6 +9,7 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
+from crfdepth.pictures import targets_picture
 from crfdepth.projection import project_to_depth
 from crfdepth.targets import (
     KEPT,
@@ -18,7 +19,6 @@ from crfdepth.targets import (
     REASON_COLOURS,
     accumulate,
     camera_view_targets,
-    targets_picture,
 )
 
 # ----------------------------------------------------------------------------- two planes

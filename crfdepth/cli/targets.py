@@ -25,7 +25,7 @@ Written under ``--out-dir OUT`` in KITTI's depth-completion layout:
   ``--poses``;
 - ``OUT/<drive>/index_image_0X.csv``: one row per frame (see :data:`INDEX_COLUMNS`);
 - with ``--vis [DIR]``: ``DIR/<drive>_image_0X_<frame>.png``, the targets coloured by depth and
-  the dropped returns by reason (:func:`crfdepth.targets.targets_picture`).
+  the dropped returns by reason (:func:`crfdepth.pictures.targets_picture`).
 
 Everything is checked before anything is written (the drive's files, frame numbers, the
 calibration, every scan used, the poses, the odometry, the output folder). Frame numbers must
@@ -64,12 +64,12 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import read_velodyne, write_depth_png
+from crfdepth.pictures import targets_picture
 from crfdepth.targets import (
     MOVED,
     OCCLUDED,
     OUTSIDE,
     camera_view_targets,
-    targets_picture,
 )
 
 logger = logging.getLogger(__name__)

@@ -65,9 +65,8 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import torch
 
-# CRFDepth.from_pretrained (crfdepth.model) imports crfdepth.weights.files, and importing that
-# submodule runs this file first, possibly while crfdepth.model is still executing. So the class
-# is looked up when a function runs (``_model.CRFDepth``), not imported by name here.
+# crfdepth.model does not import this package (CRFDepth.from_pretrained calls the loader this
+# module registers at its end), so the model is imported here like any dependency.
 import crfdepth.model as _model
 from crfdepth.errors import InputError
 from crfdepth.weights.files import (
@@ -320,3 +319,8 @@ def _check_state(file: Path, state: dict[str, torch.Tensor], expected: dict[str,
 
 def _some(keys: list[str], n: int = 5) -> str:
     return ", ".join(keys[:n]) + (" ..." if len(keys) > n else "")
+
+
+# CRFDepth.from_pretrained loads through this package without importing it (crfdepth.model
+# imports nothing of crfdepth.weights: no import cycle).
+_model.CRFDepth.pretrained_loader = staticmethod(_pretrained)
