@@ -36,6 +36,14 @@ random offset ``o`` (rings recovered from the scan order,
 :func:`crfdepth.projection.recover_rings`); ``keep_fraction`` ``[low, high]`` then keeps a
 uniformly random share in that range of the remaining points
 (:func:`crfdepth.projection.fraction_mask`). The target is never thinned.
+
+Clean inputs (``target_input``): with probability ``p`` an item's input is not its scan but a
+random share (``target_input_fraction``, default 10-40%) of its camera-view target pixels, and
+those pixels leave its target. Such an input has no see-through returns and does not lie on
+laser rings: the case of a LiDAR mounted next to the camera, an input cleaned upstream, or
+KITTI's annotated maps subsampled. Without it, every input the weights see carries a LiDAR's
+see-through returns at depth edges, and the weights learn to distrust the far side of every
+edge, which is wrong for a clean input (docs/design.md section 3c).
 """
 
 from __future__ import annotations
@@ -125,6 +133,10 @@ class SequenceFrames(Dataset):
             None = every ring.
         keep_fraction: ``[low, high]`` with ``0 < low <= high <= 1``: keep a random share
             in that range of the (ring-selected) points; None = all.
+        target_input: probability that an item's input is a random share of its
+            camera-view target instead of its scan (the module docstring); 0 (default): never.
+        target_input_fraction: ``[low, high]``, ``0 < low <= high < 1``: the share of target
+            pixels given as input in such an item (default ``[0.1, 0.4]``).
         seed: None: the augmentation draws from torch's global RNG (new draws every epoch,
             reseeded per ``DataLoader`` worker); an integer: fixed draws per frame name.
         transform: applied to every sample; default ``BottomCenterCrop(352, 1216)``.
@@ -146,6 +158,8 @@ class SequenceFrames(Dataset):
         camera: int = 2,
         beams: list[int] | None = None,
         keep_fraction: list[float] | tuple[float, float] | None = None,
+        target_input: float = 0.0,
+        target_input_fraction: list[float] | tuple[float, float] = (0.1, 0.4),
         seed: int | None = None,
         transform: Transform | None = BottomCenterCrop(),
     ) -> None:
@@ -169,6 +183,14 @@ class SequenceFrames(Dataset):
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in keep_fraction)
                 or not 0.0 < float(keep_fraction[0]) <= float(keep_fraction[1]) <= 1.0):
             raise InputError(f"keep_fraction: expected [low, high] with 0 < low <= high <= 1, got {keep_fraction!r}")
+        if isinstance(target_input, bool) or not isinstance(target_input, (int, float)) \
+                or not 0.0 <= float(target_input) <= 1.0:
+            raise InputError(f"target_input: expected a probability in [0, 1], got {target_input!r}")
+        if (not isinstance(target_input_fraction, (list, tuple)) or len(target_input_fraction) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in target_input_fraction)
+                or not 0.0 < float(target_input_fraction[0]) <= float(target_input_fraction[1]) < 1.0):
+            raise InputError(f"target_input_fraction: expected [low, high] with 0 < low <= high < 1, "
+                             f"got {target_input_fraction!r}")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
             raise InputError(f"seed: expected a non-negative integer or None, got {seed!r}")
         if targets_root is None:
@@ -181,6 +203,8 @@ class SequenceFrames(Dataset):
         self.camera = int(camera)
         self.beams = None if beams is None else tuple(int(b) for b in beams)
         self.keep_fraction = None if keep_fraction is None else (float(keep_fraction[0]), float(keep_fraction[1]))
+        self.target_input = float(target_input)
+        self.target_input_fraction = (float(target_input_fraction[0]), float(target_input_fraction[1]))
         self.seed = seed
         self.transform = transform
         self._calibrations: dict[Path, Calibration] = {}
@@ -276,15 +300,17 @@ class SequenceFrames(Dataset):
         """Sample names in dataset order."""
         return [f.name for f in self._frames]
 
-    def input_mask(self, points: np.ndarray, name: str) -> np.ndarray:
+    def _rng(self, name: str) -> np.random.Generator:
+        if self.seed is None:
+            return np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
+        return np.random.default_rng(frame_seed(self.seed, name))
+
+    def input_mask(self, points: np.ndarray, name: str, rng: np.random.Generator | None = None) -> np.ndarray:
         """(N,) bool: the points of one scan kept as input by the density augmentation."""
         keep = np.ones(len(points), dtype=bool)
         if self.beams is None and self.keep_fraction is None:
             return keep
-        if self.seed is None:
-            rng = np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
-        else:
-            rng = np.random.default_rng(frame_seed(self.seed, name))
+        rng = self._rng(name) if rng is None else rng
         if self.beams is not None:
             k = FULL_BEAMS // int(rng.choice(self.beams))
             if k > 1:
@@ -302,9 +328,18 @@ class SequenceFrames(Dataset):
         f = self._frames[index]
         rgb = read_rgb(f.image)
         calib = self._calibration(f.day)
-        points = read_velodyne(f.velodyne)
-        sparse = projection.project_velodyne(points[self.input_mask(points, f.name)], calib, rgb.shape[:2])
         target = read_depth_png(f.target)
+        rng = self._rng(f.name) if self.target_input > 0 or self.beams or self.keep_fraction else None
+        if self.target_input > 0 and rng.random() < self.target_input:
+            pixels = np.flatnonzero(target > 0)
+            chosen = pixels[projection.fraction_mask(pixels, float(rng.uniform(*self.target_input_fraction)), seed=rng)]
+            sparse = np.zeros_like(target)
+            sparse.flat[chosen] = target.flat[chosen]
+            target = target.copy()
+            target.flat[chosen] = 0.0
+        else:
+            points = read_velodyne(f.velodyne)
+            sparse = projection.project_velodyne(points[self.input_mask(points, f.name, rng)], calib, rgb.shape[:2])
         sample = load_sample(rgb=rgb, sparse=sparse, target=target, K=calib.K, name=f.name,
                              files={"image": f.image, "sparse": f.velodyne, "target": f.target})
         neighbours = []

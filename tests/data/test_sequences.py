@@ -153,6 +153,22 @@ def test_density_augmentation(drive_and_targets):
     assert len(counts) > 1
 
 
+def test_clean_input_from_the_camera_view_target(drive_and_targets):
+    whole = dataset(drive_and_targets, seed=0)[0].target
+    item = dataset(drive_and_targets, target_input=1.0, target_input_fraction=[0.25, 0.25], seed=0)[0]
+    n = int((whole > 0).sum())
+    given, left = item.sparse > 0, item.target > 0
+    # a quarter of the target pixels become the input, with their target depths; the rest stay the target
+    assert abs(int(given.sum()) - 0.25 * n) <= 1, (int(given.sum()), n)
+    assert not bool((given & left).any())
+    assert torch.equal(given | left, whole > 0)
+    assert torch.equal(item.sparse[given], whole[given]) and torch.equal(item.target[left], whole[left])
+    # probability 0.5: both kinds of input occur over the frames' draws
+    mixed = dataset(drive_and_targets, target_input=0.5, seed=0)
+    kinds = {bool(((mixed[i].sparse > 0) & (mixed[i].target > 0)).any()) for i in range(len(mixed))}
+    assert kinds == {True, False}
+
+
 # --------------------------------------------------------------------------- bad input
 
 
@@ -207,6 +223,9 @@ def test_frames_block_and_ends(drive_and_targets):
         ({"beams": [24]}, r"^beams: expected a list of ring counts dividing 64 \(e.g. \[16, 32, 64\]\), got \[24\]$"),
         ({"keep_fraction": [0.8, 0.2]}, r"^keep_fraction: expected \[low, high\] with 0 < low <= high <= 1, got"),
         ({"frames": [3, 1]}, r"^frames: expected \[first, last\] frame numbers with 0 <= first <= last, got"),
+        ({"target_input": 1.5}, r"^target_input: expected a probability in \[0, 1\], got 1.5$"),
+        ({"target_input_fraction": [0.2, 1.0]}, r"^target_input_fraction: expected \[low, high\] with 0 < low <= "
+                                                r"high < 1, got \[0.2, 1.0\]$"),
     ):
         with pytest.raises(InputError, match=message):
             dataset(drive_and_targets, **options)
