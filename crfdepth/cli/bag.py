@@ -65,7 +65,6 @@ from tqdm import tqdm
 from crfdepth.api import points_to_sparse
 from crfdepth.cli.common import (
     BAD_INPUT,
-    skipped_frames,
     build_model,
     check_output_folders,
     check_writable_dir,
@@ -73,6 +72,7 @@ from crfdepth.cli.common import (
     flag_names,
     output_folders,
     positive_number,
+    skipped_frames,
     write_frame,
     write_skipped,
 )

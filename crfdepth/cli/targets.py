@@ -1,4 +1,7 @@
-"""``crfdepth targets``: camera-view depth targets from a KITTI raw drive (docs/design.md section 14).
+"""``crfdepth targets``: camera-view depth targets from a KITTI raw drive or a ROS bag (docs/design.md section 14).
+
+``--bag`` (:mod:`crfdepth.cli.targets_bag`) writes the bag's frames as a KITTI raw drive
+``OUT/<date>/<bag name>_sync`` and then runs the drive code path below on it, into ``OUT``.
 
 For each frame of a drive folder (``<day>/<drive>_sync`` with ``velodyne_points/data/*.bin``
 and ``image_0X/data/*.png``; the calibration is the day folder's ``calib_cam_to_cam.txt`` and
@@ -113,8 +116,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     """Register the ``targets`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
         "targets",
-        help="camera-view depth targets from a KITTI raw drive (registered scans, what the camera sees)",
-        description="Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive into each frame's camera, keep only "
+        help="camera-view depth targets from a KITTI raw drive or a ROS bag (registered scans, what the camera sees)",
+        description="Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive or a ROS bag (--bag: its frames are "
+                    "first written as a KITTI raw drive OUT/<date>/<bag name>_sync) into each frame's camera, keep only "
                     "the returns the camera sees (returns of moving objects and occluded returns dropped, the "
                     "frame's own scan first), and write KITTI depth PNGs (proj_depth/groundtruth), a per-pixel "
                     "count of the scans that agree (proj_depth/support), the poses used and an index CSV.",

@@ -53,8 +53,19 @@ import cv2
 import numpy as np
 
 from crfdepth import odometry
-from crfdepth.cli.bag import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
-from crfdepth.cli.common import BAD_INPUT, check_output_folders, output_folders, positive_number
+from crfdepth.cli.bag import (
+    DEFAULT_MAX_DT_S,
+    Plan,
+    decode_frame,
+    paired_frames,
+    plan_frames,
+)
+from crfdepth.cli.common import (
+    BAD_INPUT,
+    check_output_folders,
+    output_folders,
+    positive_number,
+)
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration
 from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording
