@@ -316,3 +316,23 @@ def test_tf_odometry_with_a_jump_is_reported_by_frame(sequence, tmp_path, capsys
                            "failures, got ")
     assert "frame 0000000003: " in line and "(a jump)" in line
     assert not out.exists()
+
+
+def test_a_poses_file_has_one_line_per_paired_frame(recording, sequence, tmp_path, capsys):
+    from tests.sequence_drive import matrix_text
+
+    poses = tmp_path / "poses.txt"
+    poses.write_text("\n".join(matrix_text(f.T_w_cam[:3, :]) for f in sequence) + "\n")
+    out = tmp_path / "out"
+    code, _, err = run(["targets", "--bag", recording, "--poses", poses, "--frames", "2:3", "-k", 1, "--out-dir", out,
+                        "--quiet"], capsys)
+    assert code == 0, err
+    true = sequence.camera_poses()[1:5]
+    np.testing.assert_allclose(read_kitti_poses(out / "rig_sync" / "poses.txt"), np.linalg.inv(true[0]) @ true,
+                               atol=1e-6)
+    short = tmp_path / "short.txt"
+    short.write_text("\n".join(poses.read_text().splitlines()[:4]) + "\n")
+    out2 = tmp_path / "out2"
+    _refused(["targets", "--bag", recording, "--poses", short, "--out-dir", out2], capsys, out2,
+             f"crfdepth targets: error: --poses {short}: expected {N_FRAMES} poses (one per paired frame of the bag, "
+             f"in time order), got 4")
