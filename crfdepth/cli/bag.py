@@ -65,7 +65,6 @@ from tqdm import tqdm
 from crfdepth.api import points_to_sparse
 from crfdepth.cli.common import (
     BAD_INPUT,
-    skipped_frames,
     build_model,
     check_output_folders,
     check_writable_dir,
@@ -73,6 +72,7 @@ from crfdepth.cli.common import (
     flag_names,
     output_folders,
     positive_number,
+    skipped_frames,
     write_frame,
     write_skipped,
 )
@@ -90,9 +90,10 @@ from crfdepth.io.ros.bag import (
     pair_nearest,
 )
 from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
+from crfdepth.io.ros.tf import TransformTree
 from crfdepth.projection import count_in_image
 
-__all__ = ["DEFAULT_MAX_DT_S", "add_arguments", "run_bag"]
+__all__ = ["DEFAULT_MAX_DT_S", "Plan", "add_arguments", "decode_frame", "paired_frames", "plan_frames", "run_bag"]
 
 # A 10 Hz LiDAR (the common rate) sweeps in 0.1 s: within half a sweep, every image of a
 # continuous recording has a cloud, and a cloud is never paired across a whole sweep.
@@ -167,7 +168,7 @@ def _check_out_bag(args: argparse.Namespace) -> Path | None:
 
 
 @dataclass
-class _Plan:
+class Plan:
     """What pass 1 found: streams, pairing and each paired frame's calibration."""
 
     images: Stream
@@ -175,6 +176,7 @@ class _Plan:
     pairing: Pairing
     calibrations: dict[int, RigCalibration] = field(default_factory=dict)  # image index -> calibration
     duplicates: int = 0
+    tree: TransformTree | None = None  # /tf_static + /tf (None with --calib)
 
 
 def _check_each_layout(decode, key, sizes: list | None = None):
@@ -241,7 +243,7 @@ def _no_pairs(args, images: Stream, clouds: Stream, pairing: Pairing, max_dt: fl
         f"{clouds.stamps_ns.max() / 1e9:.3f} s): do the two sensors stamp with different clocks?")
 
 
-def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
+def plan_frames(bag: Recording, args: argparse.Namespace, max_dt: float) -> Plan:
     bag.check_topic(args.image_topic, "--image-topic", IMAGE_TYPES, "camera image")
     bag.check_topic(args.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
     calibration = None
@@ -261,8 +263,8 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
     pairing = pair_nearest(images.stamps_ns, clouds.stamps_ns, round(max_dt * 1e9))
     if pairing.paired == 0:
         raise _no_pairs(args, images, clouds, pairing, max_dt)
-    plan = _Plan(images, clouds, pairing, duplicates=_drop_duplicates(images, pairing))
-    tree = bag.transforms() if calibration is None else None
+    plan = Plan(images, clouds, pairing, duplicates=_drop_duplicates(images, pairing))
+    tree = plan.tree = bag.transforms() if calibration is None else None
     for i in np.flatnonzero(pairing.cloud >= 0):
         if calibration is not None:
             if calibration.image_size not in (None, sizes[i]):
@@ -295,7 +297,7 @@ def _plan(bag: Recording, args: argparse.Namespace, max_dt: float) -> _Plan:
 # --------------------------------------------------------------------------- pass 2
 
 
-def _frames(bag: Recording, args, plan: _Plan, skip=frozenset()):
+def paired_frames(bag: Recording, args, plan: Plan, skip=frozenset()):
     """``(image index, image message, cloud message, cloud index)`` of every paired frame not in ``skip``, in
     image order, holding only the clouds that a waiting image still needs."""
     cloud_of = plan.pairing.cloud.copy()
@@ -342,7 +344,7 @@ def _check_index(out_dir: str, overwrite: bool) -> None:
                          f"--overwrite to replace it (and the PNGs of the same names), or choose another folder")
 
 
-def _check_pairs(bag: Recording, args, plan: _Plan) -> list[tuple[int, type[BaseException], str]]:
+def _check_pairs(bag: Recording, args, plan: Plan) -> list[tuple[int, type[BaseException], str]]:
     """Pass 1b: every paired frame decoded and checked as :func:`_one` will (image, cloud, projection with its
     calibration: :func:`crfdepth.api.points_to_sparse`), nothing kept: ``(image index, error type, message)``
     of each bad frame."""
@@ -350,9 +352,9 @@ def _check_pairs(bag: Recording, args, plan: _Plan) -> list[tuple[int, type[Base
     progress = tqdm(total=plan.pairing.paired, unit="frame", desc="check",
                     disable=args.quiet or not sys.stderr.isatty())
     try:
-        for i, image_msg, cloud_msg, c in _frames(bag, args, plan):
+        for i, image_msg, cloud_msg, c in paired_frames(bag, args, plan):
             try:
-                rgb, xyz, flags = _decode(args, plan, i, image_msg, cloud_msg, c)
+                rgb, xyz, flags = decode_frame(args, plan, i, image_msg, cloud_msg, c)
                 try:
                     points_to_sparse(xyz, plan.calibrations[i], rgb.shape[:2], trust_transform=args.trust_transform)
                 except InputError as exc:
@@ -380,7 +382,7 @@ def run_bag(args: argparse.Namespace) -> int:
     _check_index(args.out_dir, args.overwrite)
     start = time.perf_counter()
     with Recording(args.bag, f"--bag {args.bag}") as bag:
-        plan = _plan(bag, args, max_dt)
+        plan = plan_frames(bag, args, max_dt)
         model = build_model(args)
         bad = _check_pairs(bag, args, plan)
         total = plan.pairing.paired
@@ -399,7 +401,7 @@ def run_bag(args: argparse.Namespace) -> int:
     return 0
 
 
-def _complete_pairs(bag: Recording, args, plan: _Plan, model, skip, out_dir: Path, std_dir, vis_dir, out_bag,
+def _complete_pairs(bag: Recording, args, plan: Plan, model, skip, out_dir: Path, std_dir, vis_dir, out_bag,
                     BagWriter) -> list[dict]:
     """Pass 2: complete, write and index the paired frames not in ``skip``; ``index.csv`` written atomically at
     the end and, listing the frames written so far, when the run stops early (an error, Ctrl-C)."""
@@ -411,7 +413,7 @@ def _complete_pairs(bag: Recording, args, plan: _Plan, model, skip, out_dir: Pat
     rows = []
     progress = tqdm(total=todo, unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
     try:
-        for i, image_msg, cloud_msg, c in _frames(bag, args, plan, skip):
+        for i, image_msg, cloud_msg, c in paired_frames(bag, args, plan, skip):
             _one(args, model, plan, i, image_msg, cloud_msg, c, out_dir, std_dir, vis_dir, writer, topics,
                  with_std, rows)
             progress.update(1)
@@ -436,7 +438,7 @@ def _complete_pairs(bag: Recording, args, plan: _Plan, model, skip, out_dir: Pat
     return rows
 
 
-def _decode(args, plan: _Plan, i: int, image_msg, cloud_msg, c: int):
+def decode_frame(args, plan: Plan, i: int, image_msg, cloud_msg, c: int):
     """A paired frame's RGB image, finite (N, 3) points and the names of its parts for error messages."""
     stamp = int(plan.images.stamps_ns[i])
     where_image = f"--image-topic {args.image_topic} (image at {stamp} ns)"
@@ -451,11 +453,11 @@ def _decode(args, plan: _Plan, i: int, image_msg, cloud_msg, c: int):
     return rgb, xyz, flags
 
 
-def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir: Path, std_dir, vis_dir, writer,
+def _one(args, model, plan: Plan, i: int, image_msg, cloud_msg, c: int, out_dir: Path, std_dir, vis_dir, writer,
          topics, with_std: bool, rows: list[dict]) -> None:
     """Complete, write and index (append to ``rows`` before writing) one paired frame."""
     stamp = int(plan.images.stamps_ns[i])
-    rgb, xyz, flags = _decode(args, plan, i, image_msg, cloud_msg, c)
+    rgb, xyz, flags = decode_frame(args, plan, i, image_msg, cloud_msg, c)
     calibration = plan.calibrations[i]
     depth, std = complete_frame(args, model, rgb, flags, with_std, points=xyz, calibration=calibration)
     name = f"{stamp}.png"
@@ -474,7 +476,7 @@ def _one(args, model, plan: _Plan, i: int, image_msg, cloud_msg, c: int, out_dir
         writer.write(topics["camera_info"], log_ns, writer.camera_info(calibration.K, depth.shape, stamp, frame_id))
 
 
-def _summary(args, plan: _Plan, written: int, out_dir: Path, std_dir, out_bag, max_dt: float, seconds: float) -> None:
+def _summary(args, plan: Plan, written: int, out_dir: Path, std_dir, out_bag, max_dt: float, seconds: float) -> None:
     unpaired = int(np.sum(plan.pairing.cloud < 0)) - plan.duplicates
     lines = [f"wrote {written} depth PNG(s) and index.csv to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
              + (f", bag {out_bag}" if out_bag else "") + f" in {seconds:.1f} s"]

@@ -1,4 +1,7 @@
-"""``crfdepth targets``: camera-view depth targets from a KITTI raw drive (docs/design.md section 14).
+"""``crfdepth targets``: camera-view depth targets from a KITTI raw drive or a ROS bag (docs/design.md section 14).
+
+``--bag`` (:mod:`crfdepth.cli.targets_bag`) writes the bag's frames as a KITTI raw drive
+``OUT/<date>/<bag name>_sync`` and then runs the drive code path below on it, into ``OUT``.
 
 For each frame of a drive folder (``<day>/<drive>_sync`` with ``velodyne_points/data/*.bin``
 and ``image_0X/data/*.png``; the calibration is the day folder's ``calib_cam_to_cam.txt`` and
@@ -53,6 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from crfdepth import odometry
+from crfdepth.cli import targets_bag
 from crfdepth.cli.common import (
     BAD_INPUT,
     check_output_folders,
@@ -74,7 +78,7 @@ from crfdepth.targets import (
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["INDEX_COLUMNS", "add_parser", "parse_frames", "run"]
+__all__ = ["INDEX_COLUMNS", "add_parser", "parse_frames", "run", "select_frames"]
 
 # Columns of OUT/<drive>/index_image_0X.csv, one row per frame written.
 INDEX_COLUMNS = (
@@ -112,15 +116,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     """Register the ``targets`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
         "targets",
-        help="camera-view depth targets from a KITTI raw drive (registered scans, what the camera sees)",
-        description="Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive into each frame's camera, keep only "
+        help="camera-view depth targets from a KITTI raw drive or a ROS bag (registered scans, what the camera sees)",
+        description="Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive or a ROS bag (--bag: its frames are "
+                    "first written as a KITTI raw drive OUT/<date>/<bag name>_sync) into each frame's camera, keep only "
                     "the returns the camera sees (returns of moving objects and occluded returns dropped, the "
                     "frame's own scan first), and write KITTI depth PNGs (proj_depth/groundtruth), a per-pixel "
                     "count of the scans that agree (proj_depth/support), the poses used and an index CSV.",
     )
-    parser.add_argument("--drive", metavar="DIR", required=True,
+    parser.add_argument("--drive", metavar="DIR",
                         help="KITTI raw drive folder (<day>/<drive>_sync with velodyne_points/data/*.bin and "
-                             "image_0X/data/*.png); the calibration is read from the day folder above it")
+                             "image_0X/data/*.png); the calibration is read from the day folder above it. Give "
+                             "--drive or --bag")
     parser.add_argument("--camera", type=int, choices=(2, 3), default=2, help="colour camera (default: 2, left)")
     parser.add_argument("--frames", type=parse_frames, default=None, metavar="A:B",
                         help="only frames A to B (both included; the windows still use the scans around them); "
@@ -128,19 +134,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("-k", "--window", type=int_at_least(0), default=5, metavar="K",
                         help="scans on each side of a frame to accumulate (default 5; 0: the frame's own scan, "
                              "cleaned of what the camera cannot see)")
-    parser.add_argument("--poses", default="auto", metavar="auto|odometry|oxts|FILE",
-                        help="auto (default): the drive's oxts/data (GPS/IMU) when present, else LiDAR odometry; "
-                             "odometry: KISS-ICP over the scans the run uses (pip install \"crfdepth[odometry]\"), "
-                             "a failed step is an error naming the frame; oxts; or a KITTI odometry poses.txt "
-                             "(camera-0 poses, one line per frame of the drive)")
+    parser.add_argument("--poses", default="auto", metavar="auto|tf|odometry|oxts|FILE",
+                        help="auto (default): the drive's oxts/data (GPS/IMU) when present, a bag's odometry on /tf "
+                             "when present, else LiDAR odometry; odometry: KISS-ICP over the scans the run uses "
+                             "(pip install \"crfdepth[odometry]\"), a failed step is an error naming the frame; oxts "
+                             "(a drive); tf (a bag: the transform from the top of the LiDAR frame's tf tree, e.g. "
+                             "odom or map, to the LiDAR); or a KITTI odometry poses.txt (camera-0 poses, one line "
+                             "per frame of the drive, or per paired frame of the bag)")
     parser.add_argument("--out-dir", metavar="OUT", required=True,
                         help="output folder (created if missing): OUT/<drive>/proj_depth/{groundtruth,support}/"
-                             "image_0X/<frame>.png, OUT/<drive>/poses.txt, OUT/<drive>/index_image_0X.csv")
+                             "image_0X/<frame>.png, OUT/<drive>/poses.txt, OUT/<drive>/index_image_0X.csv; with "
+                             "--bag also the frames as a KITTI raw drive OUT/<date>/<bag name>_sync, so that "
+                             "layout \"sequence\" reads OUT as both root and targets_root")
     parser.add_argument("--vis", nargs="?", const="", default=None, metavar="DIR",
                         help="also write a picture per frame, <drive>_image_0X_<frame>.png, into DIR (created if "
                              "missing; without DIR: <out-dir>_vis): the targets coloured by depth, dropped returns "
                              "by reason (occluded: magenta, moved: white)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    targets_bag.add_arguments(parser)
     parser.set_defaults(func=run, out_std_dir=None)
     return parser
 
@@ -191,10 +202,9 @@ def _drive_frames(args) -> tuple[Path, list[int], dict[int, Path], dict[int, Pat
     return drive, frames, scans, images, width
 
 
-def _select(args, frames: list[int], width: int) -> tuple[list[int], list[int]]:
+def select_frames(args, frames: list[int], width: int, flag: str) -> tuple[list[int], list[int]]:
     """The frames to write and the scans the run uses (the selected frames +- k, within the run of
-    consecutive frame numbers holding them), both as frame numbers."""
-    flag = f"--drive {args.drive}"
+    consecutive frame numbers holding them), both as frame numbers; ``flag`` names the input."""
     if len(frames) < 2:
         raise InputError(f"{flag}: expected at least 2 frames (accumulation needs neighbouring scans), got 1 "
                          f"(frame {_stem(frames[0], width)})")
@@ -351,13 +361,19 @@ def _inside(path: Path, folder: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """Write the targets of a drive as ``args`` asks; returns 0 (see the module docstring)."""
+    if (args.drive is None) == (args.bag is None):
+        raise InputError(f"--drive / --bag: expected one of them (a KITTI raw drive folder or a ROS bag), got "
+                         f"{'neither' if args.drive is None else 'both'}")
+    if args.bag is not None:
+        return targets_bag.run_bag(args)
+    targets_bag.check_drive_flags(args)
     start = time.perf_counter()
     drive, frames, scan_files, image_files, width = _drive_frames(args)
     for flag, value in (("--out-dir", args.out_dir), ("--vis", args.vis or None)):
         if value is not None and _inside(Path(value), drive):
             raise InputError(f"{flag}: {value} is inside the input drive {drive}; refusing to write there")
     outputs = check_output_folders(args, [drive], f"the input drive {drive}")
-    chosen, used = _select(args, frames, width)
+    chosen, used = select_frames(args, frames, width, f"--drive {args.drive}")
     calib = load_any_calibration(drive.parent, args.camera)
     scans = _read_scans(used, scan_files, width)
     sizes = {f: _image_size(image_files[f]) for f in chosen}

@@ -274,6 +274,20 @@ class TransformTree:
         up, down = self._chain(target, source)
         return any(child in self._dynamic for child in up + down)
 
+    def root(self, frame: str) -> str:
+        """The top of ``frame``'s tree (the frame itself when it has no parent or is unknown)."""
+        return self._ancestors(_frame(frame, "frame"))[-1]
+
+    def dynamic_span(self, target: str, source: str) -> tuple[int, int] | None:
+        """``(first, last)`` stamps (ns) that every ``/tf`` edge on the chain from ``source`` to ``target``
+        has samples around (outside it a lookup holds the first or last sample); None when the chain is
+        static."""
+        up, down = self._chain(target, source)
+        spans = [self._dynamic[child].arrays()[0] for child in up + down if child in self._dynamic]
+        if not spans:
+            return None
+        return max(int(s[0]) for s in spans), min(int(s[-1]) for s in spans)
+
     # -- internals ---------------------------------------------------------------------
 
     def _ancestors(self, frame: str) -> list[str]:
