@@ -284,14 +284,15 @@ def _poses(args, drive: Path, frames: list[int], used: list[int], scans: list[np
             why = "the drive has no oxts/data, and " if args.poses == "auto" else ""
             raise InputError(f"--poses {args.poses}: {why}LiDAR odometry needs the kiss-icp package, not installed; "
                              f"{odometry.EXTRA_HINT}, or give --poses FILE")
-        odo = odometry.lidar_odometry(scans, check=False)
+        odo, note = odometry.lidar_odometry_with_fallback(scans)
         if odo.failures:
             listed = "; ".join(f"frame {_stem(used[k], width)}: {why}" for k, why in odo.failures[:5])
             more = f"; and {len(odo.failures) - 5} more" if len(odo.failures) > 5 else ""
             raise InputError(f"--poses {args.poses}: expected LiDAR odometry without failures, got "
                              f"{len(odo.failures)} failed step(s) ({listed}{more}); nothing written; choose "
                              f"--frames that avoid them or give --poses FILE")
-        return odo.poses, f"LiDAR odometry (KISS-ICP) over frames {_stem(used[0], width)}-{_stem(used[-1], width)}"
+        frames_used = f"over frames {_stem(used[0], width)}-{_stem(used[-1], width)}"
+        return odo.poses, f"LiDAR odometry (KISS-ICP{'; ' + note if note else ''}) {frames_used}"
     if mode == "oxts":
         if not oxts.is_dir():
             raise InputError(f"--poses oxts: expected the drive's oxts/data folder, got no {oxts}")
