@@ -2,7 +2,10 @@
 
 - :func:`lidar_odometry`: scan-to-map registration with KISS-ICP (Vizzo et al. 2023, the
   optional extra ``pip install "crfdepth[odometry]"``), with a check of every step that
-  reports failures by frame instead of accumulating them.
+  reports failures by frame instead of accumulating them: speed, jumps, points, fitness, and
+  the registration itself (:func:`step_alignment`: the scan's structure, ground removed,
+  must fit the previous scan best at the estimate); :func:`lidar_odometry_with_fallback`
+  retries without the ground when the registration slid (a perfectly flat ground).
 - :func:`read_kitti_poses`: KITTI odometry ``poses.txt`` (camera-0 poses, 12 numbers a line).
 - :func:`read_oxts`: KITTI raw ``oxts/data/*.txt`` (GPS/IMU), the devkit's Mercator
   conversion; :func:`read_imu_to_velo` reads the day's ``calib_imu_to_velo.txt``.
@@ -34,11 +37,11 @@ __all__ = [
     "ground_plane",
     "lidar_odometry",
     "lidar_odometry_with_fallback",
-    "scan_structure",
-    "step_alignment",
     "read_imu_to_velo",
     "read_kitti_poses",
     "read_oxts",
+    "scan_structure",
+    "step_alignment",
 ]
 
 EXTRA_HINT = 'pip install "crfdepth[odometry]"'
@@ -147,8 +150,8 @@ def check_poses(
     fitness=None,
     min_fitness: float = 0.5,
     alignment=None,
-    max_alignment_m: float = None,
-    max_alignment_deg: float = None,
+    max_alignment_m: float | None = None,
+    max_alignment_deg: float | None = None,
 ) -> list[tuple[int, str]]:
     """Failures of a pose sequence by frame (an empty list: every step is plausible).
 
@@ -589,7 +592,8 @@ def lidar_odometry_with_fallback(scans: Sequence, **kwargs) -> tuple[Odometry, s
     predicts the first step by the median step of a first pass without the ground
     (``initial_motion``). The retry is kept only when every step of it passes the checks;
     otherwise the first run is returned with its failures. Measured: the synthetic street at
-    10 m/s passes after the retry (step error at most 7 cm); KITTI drive 2011_09_26_drive_0060
+    10 m/s passes after the retry (20 frames: step error at most 11 cm, median 2.4 cm; at 4 m/s
+    the retry slides too, 0.3-0.4 m per step, and the failures are reported); KITTI drive 2011_09_26_drive_0060
     passes the first run (no retry: its poses are those of :func:`lidar_odometry`).
 
     Args:
@@ -603,10 +607,11 @@ def lidar_odometry_with_fallback(scans: Sequence, **kwargs) -> tuple[Odometry, s
     for name in ("check", "min_z", "initial_motion"):
         if name in kwargs:
             raise InputError(f"{name}: expected to be left to lidar_odometry_with_fallback, got {kwargs[name]!r}")
+    scans = list(scans)
     odo = lidar_odometry(scans, check=False, **kwargs)
     if not any(ALIGN_HINT_KEY in why for _, why in odo.failures):
         return odo, ""
-    first = _scan_array(list(scans)[0], 0)
+    first = _scan_array(scans[0], 0)
     plane = ground_plane(first)
     if plane is None:
         return odo, ""

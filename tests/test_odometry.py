@@ -165,8 +165,8 @@ def test_the_fallback_drops_the_ground_and_follows_the_true_poses(drive):
     assert odo.failures == ()
     assert note.startswith("the full scans' registration slid, so points below z = -1.3")
     te, re = _step_errors(drive.lidar_poses(), odo.poses)
-    # measured (12 frames at 10 m/s): at most 7.4 cm per step, median 1.3 cm
-    assert te.max() < 0.12 and np.median(te) < 0.04 and re.max() < 0.1
+    # measured (20 frames at 10 m/s): at most 11 cm per step, median 2.4 cm
+    assert te.max() < 0.2 and np.median(te) < 0.05 and re.max() < 0.1
     with pytest.raises(InputError, match=r"^min_z: expected to be left to lidar_odometry_with_fallback, got -1.5$"):
         lidar_odometry_with_fallback([f.points for f in drive], min_z=-1.5)
 

@@ -11,7 +11,9 @@ which keeps only the returns the camera sees (movers and occluded returns droppe
 frame's own scan first).
 
 Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR
-odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked: a failed
+odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked, the
+registration too (:func:`crfdepth.odometry.step_alignment`); when the registration slid it is
+retried without the ground (:func:`crfdepth.odometry.lidar_odometry_with_fallback`); a failed
 step is an error naming the frame, never accumulated), ``oxts``, or a KITTI odometry
 ``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
 
