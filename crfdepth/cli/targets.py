@@ -11,7 +11,9 @@ which keeps only the returns the camera sees (movers and occluded returns droppe
 frame's own scan first).
 
 Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR
-odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked: a failed
+odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked, the
+registration too (:func:`crfdepth.odometry.step_alignment`); when the registration slid it is
+retried without the ground (:func:`crfdepth.odometry.lidar_odometry_with_fallback`); a failed
 step is an error naming the frame, never accumulated), ``oxts``, or a KITTI odometry
 ``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
 
@@ -284,14 +286,15 @@ def _poses(args, drive: Path, frames: list[int], used: list[int], scans: list[np
             why = "the drive has no oxts/data, and " if args.poses == "auto" else ""
             raise InputError(f"--poses {args.poses}: {why}LiDAR odometry needs the kiss-icp package, not installed; "
                              f"{odometry.EXTRA_HINT}, or give --poses FILE")
-        odo = odometry.lidar_odometry(scans, check=False)
+        odo, note = odometry.lidar_odometry_with_fallback(scans)
         if odo.failures:
             listed = "; ".join(f"frame {_stem(used[k], width)}: {why}" for k, why in odo.failures[:5])
             more = f"; and {len(odo.failures) - 5} more" if len(odo.failures) > 5 else ""
             raise InputError(f"--poses {args.poses}: expected LiDAR odometry without failures, got "
                              f"{len(odo.failures)} failed step(s) ({listed}{more}); nothing written; choose "
                              f"--frames that avoid them or give --poses FILE")
-        return odo.poses, f"LiDAR odometry (KISS-ICP) over frames {_stem(used[0], width)}-{_stem(used[-1], width)}"
+        frames_used = f"over frames {_stem(used[0], width)}-{_stem(used[-1], width)}"
+        return odo.poses, f"LiDAR odometry (KISS-ICP{'; ' + note if note else ''}) {frames_used}"
     if mode == "oxts":
         if not oxts.is_dir():
             raise InputError(f"--poses oxts: expected the drive's oxts/data folder, got no {oxts}")

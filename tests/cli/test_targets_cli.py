@@ -5,6 +5,7 @@ of KITTI drive 0060 with LiDAR odometry (marked kitti)."""
 from __future__ import annotations
 
 import csv
+import re
 import shutil
 from pathlib import Path
 
@@ -307,6 +308,39 @@ def test_ctrl_c_reports_the_frames_written(synthetic_drive, tmp_path, capsys, mo
     assert not (out / LOCK_NAME).exists()
 
 
+def test_odometry_on_the_flat_street_drops_the_ground(synthetic_drive, sequence, tmp_path, capsys):
+    """All points slide on the flat street (about 1 m short per 1 m step); the registration check
+    fails every step, the retry without the ground passes, and the poses follow the true ones."""
+    pytest.importorskip("kiss_icp")
+    out = tmp_path / "out"
+    code, stdout, err = run(["targets", "--drive", synthetic_drive, "--poses", "odometry", "-k", 1, "--out-dir", out],
+                            capsys)
+    assert code == 0, err
+    assert "poses: LiDAR odometry (KISS-ICP; the full scans' registration slid, so points below z = -1.3" in stdout
+    est = read_kitti_poses(out / DRIVE / "poses.txt", sequence.T_cam_lidar)
+    # measured: at most 0.3 m from the true poses after 0.6 s at 10 m/s (6 m)
+    assert np.abs(est[:, :3, 3] - sequence.lidar_poses()[:, :3, 3]).max() < 0.5
+
+
+def test_refuses_odometry_that_slides(tmp_path, capsys):
+    """At 4 m/s KISS-ICP slides with and without the ground (0.3-0.4 m short per step, no speed or
+    jump check fires): the registration check names the frames, nothing is written."""
+    pytest.importorskip("kiss_icp")
+    drive = write_drive(tmp_path / "raw", make_sequence(6, 0, speed=4.0, height=88, width=304))
+    out = tmp_path / "out"
+    code, _, err = run(["targets", "--drive", drive, "--poses", "odometry", "--out-dir", out], capsys)
+    assert code == 2
+    line = first_line(err)
+    # measured: frames 2, 3 and 5 fail, +0.36 to +0.42 m along x
+    assert re.match(r"crfdepth targets: error: --poses odometry: expected LiDAR odometry without failures, got [1-5] "
+                    r"failed step\(s\) \(frame 000000000[1-5]: the registration slid: the scan's structure fits the "
+                    r"previous scan best \+0\.[3-9]\d m along x from the estimate \(limit 0\.3 m, 0\.5 deg; mean "
+                    r"distance 0\.\d+ m at the estimate, 0\.\d+ m at the best\)", line), line
+    assert "m along x from the estimate (limit 0.3 m, 0.5 deg; mean distance " in line
+    assert line.endswith("nothing written; choose --frames that avoid them or give --poses FILE")
+    assert not out.exists()
+
+
 # --------------------------------------------------------------------------- the real drive
 
 REAL_DRIVE = "sequences/2011_09_26/2011_09_26_drive_0060_sync"
@@ -331,7 +365,7 @@ def test_five_real_frames_with_odometry(kitti_root, tmp_path, capsys):
         # measured: see the README (density about 3x the single scan's)
         assert float(r["density"]) >= 2.0 * float(r["scan_density"]), r
     assert len(read_kitti_poses(out / drive.name / "poses.txt")) == 15
-    assert "LiDAR odometry (KISS-ICP) over frames 0000000005-0000000019" in stdout
+    assert "LiDAR odometry (KISS-ICP) over frames 0000000005-0000000019" in stdout  # no retry: the check passed
 
 
 def test_refuses_oxts_poses_without_oxts(synthetic_drive, tmp_path, capsys):
