@@ -222,9 +222,14 @@ class CRFDepthModule(pl.LightningModule):
             loss = loss + self.nll_weight * parts["nll"]
         if self.photometric_weight > 0:
             if batch.neighbours is None or batch.poses is None:
-                raise self._no_neighbours(self._data_layout())
-            parts["photometric"] = photometric_loss(batch.image, batch.neighbours, out.depth, batch.K, batch.poses,
-                                                    allow_empty=True, reduction="frame")
+                # an extra_train source without neighbours (e.g. synthetic scenes) beside a sequence
+                # layout: no photometric term for that batch; any other layout is a configuration error
+                if self._data_layout() != "sequence":
+                    raise self._no_neighbours(self._data_layout())
+                parts["photometric"] = torch.zeros_like(loss)
+            else:
+                parts["photometric"] = photometric_loss(batch.image, batch.neighbours, out.depth, batch.K,
+                                                        batch.poses, allow_empty=True, reduction="frame")
             loss = loss + self.photometric_weight * parts["photometric"]
         return loss, parts, out
 

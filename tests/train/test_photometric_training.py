@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import lightning.pytorch as pl
 import pytest
@@ -101,6 +102,19 @@ def test_data_without_neighbours_is_refused():
             CRFDepthModule(photometric_weight=bad)
 
 
+def test_a_source_without_neighbours_beside_a_sequence_layout_gets_no_photometric_term():
+    # extra_train sources (e.g. synthetic scenes) mixed into a sequence layout have no neighbours:
+    # their batches train on the depth loss alone instead of stopping the run
+    module = CRFDepthModule(crf=SHIPPED, loss="l1", photometric_weight=4.0)
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(layout="sequence"))
+    plain = collate_samples([build_dataset("synthetic", count=1, seed=3, height=64, width=192)[0]])
+    loss, parts, out = module._objective(plain)
+    assert float(parts["photometric"].abs().sum()) == 0.0
+    assert abs(float(loss.mean()) - float(depth_loss(out.depth, plain.target, "l1").mean())) < 1e-6
+    loss.mean().backward()
+    assert any(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in module.model.parameters())
+
+
 def test_data_module_splits_a_drive_in_blocks(drive):
     raw, targets = drive
     options = {"targets_root": str(targets), "transform": None}
@@ -125,6 +139,6 @@ def test_the_sequence_config_parses(configs, capsys, monkeypatch):
     assert printed["model"]["crf"] == {"mode": "pixel", "variable": "log", "gate": True}
     assert printed["model"]["photometric_weight"] == 4.0 and printed["model"]["loss"] == "l1"
     data = printed["data"]
-    assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 51]
+    assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 46]
     assert data["val_options"]["frames"] == [52, 77] and data["train_options"]["beams"] == [16, 32, 64]
     assert printed["checkpoint"]["monitor"] == "val/rmse"
