@@ -1,6 +1,6 @@
 """Photometric self-supervision: warp neighbouring frames into the target with a depth map.
 
-A pure, differentiable loss of a depth map (docs/design.md sections 3c and 13; Godard et
+A pure, differentiable loss of a depth map (docs/design.md section 13; Godard et
 al. 2019, "Digging into self-supervised monocular depth estimation"; Ma et al. 2019 for
 depth completion). It does not know the model: depth in, loss out, so
 :class:`crfdepth.model.CRFDepth`, :class:`crfdepth.layer.CRFRefine` or any other network

@@ -1,5 +1,5 @@
 """Camera-view targets: registered LiDAR scans accumulated into one camera frame, keeping
-only the returns the camera sees (docs/design.md sections 3c and 14).
+only the returns the camera sees (docs/design.md section 14).
 
 :func:`camera_view_targets` accumulates the scans ``index - k .. index + k`` of a recording
 (each in its own LiDAR frame, with a world<-LiDAR pose per scan) into frame ``index``'s

@@ -2,7 +2,7 @@
 
 :class:`SequenceFrames` (layout ``"sequence"`` of :func:`crfdepth.data.build_dataset`) reads
 the frames of KITTI raw drives together with the camera-view targets that
-``crfdepth targets`` wrote for them (docs/design.md sections 3c, 13 and 14), and gives each
+``crfdepth targets`` wrote for them (docs/design.md sections 13, 14 and 15), and gives each
 frame's neighbours (images and relative camera poses) for the photometric term
 (:func:`crfdepth.photometric.photometric_loss`, ``CRFDepthModule(photometric_weight=...)``).
 
@@ -30,7 +30,7 @@ inside ``frames`` (the block) and has a pose: the first and last ``max |offset|`
 each block are dropped (listed in :attr:`SequenceFrames.dropped`), so every sample has the
 same S neighbours and no training frame looks at a frame of another block.
 
-Input-density augmentation (docs/design.md section 3c): ``beams`` (e.g. ``[16, 32, 64]``)
+Input-density augmentation (docs/design.md section 15): ``beams`` (e.g. ``[16, 32, 64]``)
 keeps, per item, the rings ``r % k == o`` of the 64-ring scan with ``k = 64 / beams`` and a
 random offset ``o`` (rings recovered from the scan order,
 :func:`crfdepth.projection.recover_rings`); ``keep_fraction`` ``[low, high]`` then keeps a
@@ -43,7 +43,7 @@ those pixels leave its target. Such an input has no see-through returns and does
 laser rings: the case of a LiDAR mounted next to the camera, an input cleaned upstream, or
 KITTI's annotated maps subsampled. Without it, every input the weights see carries a LiDAR's
 see-through returns at depth edges, and the weights learn to distrust the far side of every
-edge, which is wrong for a clean input (docs/design.md section 3c).
+edge, which is wrong for a clean input (docs/design.md section 15).
 """
 
 from __future__ import annotations
