@@ -14,6 +14,9 @@ Train / validation split, per layout:
 - ``depth_completion``: ``train_options: {split: train}`` and ``val_options: {split: val}``
   (the defaults for this layout), or validate on another layout with ``val_layout`` /
   ``val_root`` (e.g. ``val_selection``).
+- ``sequence``: blocks of frames (``train_options: {frames: [0, 46]}``, ``val_options:
+  {frames: [52, 77]}``) or, for a folder of several drives or bags, whole drives by name
+  (``val_names_contain``, as below).
 - ``raw`` / ``object`` (LiDAR held out of each scan as the target): one folder, split by
   frame name: ``val_names_contain`` (a substring or a list; e.g. a drive name, so whole
   drives are held out) or ``val_fraction`` (the last fraction of the frames in name order,
@@ -39,6 +42,9 @@ from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 
 log = logging.getLogger(__name__)
+
+#: Layouts whose one folder can be split by frame name (``val_names_contain`` / ``val_fraction``).
+NAME_SPLIT_LAYOUTS = ("raw", "object", "sequence")
 
 #: Default validation options of the synthetic layout: scenes from seed 1000 on.
 SYNTHETIC_VAL_SEED = 1000
@@ -120,10 +126,10 @@ class CRFDataModule(pl.LightningDataModule):
             ``val_root``.
         val_layout: layout of the validation data; None = ``layout``.
         val_root: folder of the validation data; None = ``root``.
-        val_names_contain: raw/object split: validation frames are those whose name
-            contains this string (or any string of a list), e.g. ``drive_0001``; the
-            others are the training frames.
-        val_fraction: raw/object split: the last ``val_fraction`` of the frames (in name
+        val_names_contain: raw/object/sequence split: validation frames are those whose
+            name contains this string (or any string of a list), e.g. ``drive_0001`` or a
+            bag's name; the others are the training frames.
+        val_fraction: raw/object/sequence split: the last ``val_fraction`` of the frames (in name
             order, at least one) are the validation frames. At most one of
             ``val_names_contain`` and ``val_fraction``.
         flip: probability of the horizontal-flip augmentation of training frames
@@ -250,21 +256,27 @@ class CRFDataModule(pl.LightningDataModule):
         train = self._build(self.layout, self.root, train_options, "train")
         val = self._build(self.val_layout, self.val_root, self._resolved_val_options(), "val")
         if self._split_by_name():
-            if self.layout not in ("raw", "object") or self.val_layout != self.layout or self.val_root != self.root:
+            if (self.layout not in NAME_SPLIT_LAYOUTS or self.val_layout != self.layout
+                    or self.val_root != self.root):
                 raise InputError("val_names_contain / val_fraction: the split by frame name applies to one "
-                                 f"raw or object folder (layout {self.layout!r}, val_layout {self.val_layout!r})")
-            names = dataset_names(train)
+                                 f"raw, object or sequence folder (layout {self.layout!r}, val_layout "
+                                 f"{self.val_layout!r})")
+            # each side's indices from its own names: a sequence's val_options may pick other frames
+            train_names, val_names = dataset_names(train), dataset_names(val)
             if self.val_names_contain is not None:
-                is_val = [any(s in n for s in self.val_names_contain) for n in names]
+                def is_val(name: str) -> bool:
+                    return any(s in name for s in self.val_names_contain)
                 what = f"val_names_contain={self.val_names_contain!r}"
             else:
-                n_val = max(1, math.ceil(float(self.val_fraction) * len(names)))
-                is_val = [i >= len(names) - n_val for i in range(len(names))]
+                ordered = sorted(set(train_names) | set(val_names))
+                held = set(ordered[len(ordered) - max(1, math.ceil(float(self.val_fraction) * len(ordered))):])
+                def is_val(name: str) -> bool:
+                    return name in held
                 what = f"val_fraction={self.val_fraction}"
-            train_idx = [i for i, v in enumerate(is_val) if not v]
-            val_idx = [i for i, v in enumerate(is_val) if v]
+            train_idx = [i for i, n in enumerate(train_names) if not is_val(n)]
+            val_idx = [i for i, n in enumerate(val_names) if is_val(n)]
             if not val_idx or not train_idx:
-                raise InputError(f"{what}: the split of the {len(names)} frames under {self.root} leaves "
+                raise InputError(f"{what}: the split of the {len(train_names)} frames under {self.root} leaves "
                                  f"{len(train_idx)} training and {len(val_idx)} validation frames; both need one")
             train, val = Subset(train, train_idx), Subset(val, val_idx)
         if self.extra_train:

@@ -338,3 +338,18 @@ def test_a_poses_file_has_one_line_per_paired_frame(recording, sequence, tmp_pat
     _refused(["targets", "--bag", recording, "--poses", short, "--out-dir", out2], capsys, out2,
              f"crfdepth targets: error: --poses {short}: expected {N_FRAMES} poses (one per paired frame of the bag, "
              f"in time order), got 4")
+
+
+def test_several_bags_into_one_output_folder(recording, sequence, tmp_path, capsys):
+    # a folder of recordings of one rig, one run per bag into the same OUT: the sequence layout
+    # reads every drive (configs/kitti_sequence.yaml, "From ROS bags")
+    second = write_bag(tmp_path / "van.bag", sequence, stamp_of=lambda k: START_NS + 3_600_000_000_000
+                       + k * PERIOD_NS)
+    out = tmp_path / "out"
+    for bag in (recording, second):
+        code, _, err = run(["targets", "--bag", bag, "-k", K_WINDOW, "--out-dir", out, "--quiet"], capsys)
+        assert code == 0, err
+    assert sorted(p.name for p in (out / DATE).iterdir() if p.is_dir()) == ["rig_sync", "van_sync"]
+    data = SequenceFrames(out, targets_root=out, transform=None)
+    assert len(data) == 2 * (N_FRAMES - 2)
+    assert {name.split("_sync_")[0] for name in data.names} == {"rig", "van"}

@@ -5,6 +5,7 @@ drive: camera-view targets by ``crfdepth targets`` from the true poses, neighbou
 from __future__ import annotations
 
 import math
+import shutil
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -17,7 +18,7 @@ import yaml
 from crfdepth.data import BottomCenterCrop, build_dataset, collate_samples
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
-from train.data import CRFDataModule
+from train.data import CRFDataModule, dataset_names
 from train.module import CRFDepthModule, depth_loss
 from tests.sequence_drive import make_targets, write_drive
 
@@ -128,6 +129,27 @@ def test_data_module_splits_a_drive_in_blocks(drive):
     assert abs(float(batch.poses[0, 0, 2, 3]) - 1.0) < 1e-5 and abs(float(batch.poses[0, 1, 2, 3]) + 1.0) < 1e-5
 
 
+def test_data_module_holds_out_a_whole_drive_by_name(drive, tmp_path):
+    # a folder of several drives (e.g. one per bag, configs/bag_sequence.yaml): val_names_contain
+    # holds out whole drives; val_options may differ from train_options (no augmentation)
+    raw, targets = drive
+    second = "2011_01_01_drive_0002_sync"
+    shutil.copytree(raw, tmp_path / "raw")
+    shutil.copytree(targets, tmp_path / "targets")
+    shutil.copytree(raw / "2011_01_01" / "2011_01_01_drive_0001_sync", tmp_path / "raw" / "2011_01_01" / second)
+    shutil.copytree(targets / "2011_01_01_drive_0001_sync", tmp_path / "targets" / second)
+    options = {"targets_root": str(tmp_path / "targets"), "transform": None}
+    data = CRFDataModule(layout="sequence", root=str(tmp_path / "raw"), val_names_contain="drive_0002",
+                         train_options={**options, "beams": [16, 64]}, val_options=options)
+    data.setup("fit")
+    train, val = dataset_names(data.train_set), dataset_names(data.val_set)
+    assert len(train) == 3 and all("drive_0001" in n for n in train)  # 5 frames less the two ends
+    assert len(val) == 3 and all("drive_0002" in n for n in val)
+    with pytest.raises(InputError, match=r"^val_names_contain=\['drive_0009'\]: the split of the 6 frames"):
+        CRFDataModule(layout="sequence", root=str(tmp_path / "raw"), val_names_contain="drive_0009",
+                      train_options=options).setup("fit")
+
+
 def test_the_sequence_config_parses(configs, capsys, monkeypatch):
     from train.__main__ import main
 
@@ -142,3 +164,23 @@ def test_the_sequence_config_parses(configs, capsys, monkeypatch):
     assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 46]
     assert data["val_options"]["frames"] == [52, 77] and data["train_options"]["beams"] == [16, 32, 64]
     assert printed["checkpoint"]["monitor"] == "val/rmse"
+
+
+def test_the_bag_config_parses_and_splits_whole_bags(configs, capsys, monkeypatch, drive, tmp_path):
+    from train.__main__ import main
+
+    monkeypatch.setattr(sys, "argv", ["python -m train"])
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", "--config", str(configs / "bag_sequence.yaml"), "--print_config"])
+    assert exit_info.value.code in (0, None)
+    data = yaml.safe_load(capsys.readouterr().out)["data"]
+    assert data["layout"] == "sequence" and data["root"] == "seq" and data["train_options"]["targets_root"] == "seq"
+    assert "beams" not in data["train_options"] and data["val_options"] == {"targets_root": "seq", "offsets": [-1, 1]}
+    # the placeholder name holds nothing out: a clear error, not a run without validation
+    raw, targets = drive
+    for key in ("train_options", "val_options"):
+        data[key]["targets_root"] = str(targets)
+    module = CRFDataModule(**{**data, "root": str(raw), "num_workers": 0})
+    with pytest.raises(InputError, match=r"^val_names_contain=\['name_of_a_held_out_bag'\]: the split of the 3 "
+                                         r"frames .* leaves 3 training and 0 validation frames; both need one"):
+        module.setup("fit")
