@@ -70,3 +70,14 @@ def run(argv: list) -> tuple[int, str, str]:
         except SystemExit as exc:
             code = exc.code
     return code, out.getvalue(), err.getvalue()
+
+
+def run_main(argv: list, capsys) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``crfdepth`` with ``argv`` in this process, every command registered,
+    argparse's SystemExit caught; the output read through pytest's ``capsys``."""
+    try:
+        code = cli.main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err

@@ -18,6 +18,7 @@ from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.calibration import read_raw_calibration
 from crfdepth.io.kitti import read_depth_png, read_velodyne
 from crfdepth.odometry import read_kitti_poses
+from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
 from tests.sequence_drive import stem as _stem
 
@@ -86,15 +87,6 @@ def from_drive(tmp_path_factory, sequence) -> Path:
     assert main(["targets", "--drive", str(drive), "--poses", str(poses_file(drive)), "-k", str(K_WINDOW),
                  "--out-dir", str(out), "--quiet"]) == 0
     return out / DRIVE
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def files(folder: Path) -> list[str]:

@@ -13,12 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
-from crfdepth.cli import main
 from crfdepth.cli import targets as targets_cli
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.files import LOCK_NAME
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.odometry import read_kitti_poses
+from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
 from tests.sequence_drive import matrix_text as _matrix
 from tests.sequence_drive import stem as _stem
@@ -36,15 +36,6 @@ def sequence():
 @pytest.fixture(scope="module")
 def synthetic_drive(tmp_path_factory, sequence) -> Path:
     return write_drive(tmp_path_factory.mktemp("raw"), sequence)
-
-
-def run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def first_line(err: str) -> str:

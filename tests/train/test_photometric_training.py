@@ -18,9 +18,9 @@ import yaml
 from crfdepth.data import BottomCenterCrop, build_dataset, collate_samples
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
+from tests.sequence_drive import make_targets, write_drive
 from train.data import CRFDataModule, dataset_names
 from train.module import CRFDepthModule, depth_loss
-from tests.sequence_drive import make_targets, write_drive
 
 #: the shipped structure (configs/kitti_weights.yaml)
 SHIPPED = {"mode": "pixel", "variable": "log", "gate": True}
