@@ -32,9 +32,9 @@ are disjoint.
 
 Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 
-- ``nn``: nearest-LiDAR fill (:func:`crfdepth.fill.nearest_fill`);
+- ``nn``: nearest-LiDAR fill (:func:`crfdepth.fill.nearest.nearest_fill`);
 - ``ipbasic``: IP-Basic (Ku et al. 2018), fast configuration, as written here in torch
-  (:func:`crfdepth.classical.ip_basic_fill`); the classical baseline to beat;
+  (:func:`crfdepth.fill.ip_basic.ip_basic_fill`); the classical baseline to beat;
 - ``inpaint``: OpenCV ``cv2.inpaint`` (Telea, radius 5) of the sparse map as float32
   metres (OpenCV 5 takes 1-channel float32), clipped to the input's depth range (Telea
   overshoots below 0 near the image border otherwise);
@@ -74,7 +74,7 @@ Metrics: :func:`crfdepth.metrics.depth_metrics` per image over target pixels, av
 over images (RMSE/MAE mm, iRMSE/iMAE 1/km, REL, delta < 1.25), docs/design.md section 7.
 
 Uncertainty (docs/design.md section 5), for ``paper``, ``hand-set`` and ``learned``, of three
-maps: ``std``, the model's predictive std (:mod:`crfdepth.predictive`); ``posterior``, the
+maps: ``std``, the model's predictive std (:mod:`crfdepth.uncertainty.predictive`); ``posterior``, the
 posterior-only std ``s sqrt(diag(A^-1))`` (``learned`` only: ``uncertainty="posterior"``
 with ``--posterior-samples`` samples, its scale ``s`` calibrated in closed form on the fit's
 frames); ``count``, the paper's count map (a score, not a std). Per image, then averaged
@@ -119,9 +119,9 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from crfdepth.classical import ip_basic_fill
+from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.data.factory import build_dataset
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.metrics import SPARSIFY_STEPS, ause, average_metrics, depth_metrics, reliability, uncertainty_metrics
 from crfdepth.model import CRFDepth
 

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from crfdepth.data.synthetic import make_scene
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.layer import CRFRefine
 from crfdepth.metrics import average_metrics, depth_metrics
 

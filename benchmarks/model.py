@@ -29,7 +29,7 @@ of outside load on a shared machine spreads over all of them. Per configuration:
   everything between stages included); ``total_min_s`` / ``total_max_s`` show the spread.
 - ``std_s``: the std's cost, wall clock of ``forward(..., return_std=True)`` minus that of
   the forward without it run just before in the same round; median over rounds.
-  The std is the model's default, the predictive std of :mod:`crfdepth.predictive`
+  The std is the model's default, the predictive std of :mod:`crfdepth.uncertainty.predictive`
   (docs/design.md section 5), timed like the forward in every configuration; the sampled
   posterior-only std (``uncertainty="posterior"``, about 40 solves) is not timed here.
 - ``std_over_solve``: ``std_s`` over the ``solve`` stage; ``std_over_total``: ``std_s``

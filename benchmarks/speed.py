@@ -14,7 +14,7 @@ Configurations (each without and with the std, ``return_std=True``):
 - ``pixel``: ``CRFDepth(mode="pixel")``, the constructor's potentials on the pixel grid;
 - ``superpixel``: ``CRFDepth()``, 5500 SLIC segments at 1216 x 352 (scaled with the area) and the pixel refinement;
 - ``no-refine``: ``CRFDepth(refine=False)``, the paper's piecewise-constant painting;
-- ``ip-basic``: :func:`crfdepth.classical.ip_basic_fill`, the classical fill of the accuracy benchmark.
+- ``ip-basic``: :func:`crfdepth.fill.ip_basic.ip_basic_fill`, the classical fill of the accuracy benchmark.
 
 Per configuration and frame: the model's per-stage times (``CRFOutput.timings``: on CUDA
 each stage is synchronised), the total (median over ``--repeats`` forwards, run
@@ -54,7 +54,7 @@ from pathlib import Path
 
 import torch
 
-from crfdepth.classical import ip_basic_fill
+from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
@@ -219,7 +219,7 @@ def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
     """Iterations and time of each pixel-grid solve of the default and the superpixel model on
     ``frame`` (captured from a forward), with the Jacobi and multigrid preconditioners and "auto"."""
     import crfdepth.model as model_module
-    from crfdepth.linalg.autograd import solve_grid_laplacian_trusted
+    from crfdepth.linalg.adjoint import solve_grid_laplacian_trusted
 
     captured, original = [], model_module.grid_crf
 

@@ -34,7 +34,7 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.memory import (check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory,
                               out_of_memory)
-from crfdepth.projection import ground_normal, ground_tilt_deg, project_points
+from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, project_points
 
 __all__ = ["check_frame", "complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
@@ -167,14 +167,14 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
     """Project a point cloud into an (H, W) float32 sparse depth map (metres, 0 = no point).
 
     NaN rows are dropped with a warning (:func:`prepare_points`); KITTI calibrations use
-    the exact KITTI projection (:func:`crfdepth.projection.project_points`).
+    the exact KITTI projection (:func:`crfdepth.geometry.projection.project_points`).
 
     A 360-degree scan lands points in the image even with an inverted ``T_cam_lidar``
     (counts do not tell: on the docs/example rig the inverse lands 1.2x *more* points).
-    What tells is the ground: the LiDAR's ground plane (:func:`crfdepth.projection.ground_normal`,
+    What tells is the ground: the LiDAR's ground plane (:func:`crfdepth.geometry.projection.ground_normal`,
     the plane below the sensor with the most returns whose normal is within 30 degrees of
     the LiDAR's +z) must appear level under the camera. The rotation of ``T_cam_lidar``
-    maps its up-normal into the camera (:func:`crfdepth.projection.ground_tilt_deg`: the
+    maps its up-normal into the camera (:func:`crfdepth.geometry.projection.ground_tilt_deg`: the
     angle to the camera's up, -y); the inverse transform's rotation is the transpose, which
     sends up to another camera axis (with the usual axes, LiDAR x forward / z up and camera z
     forward / y down: to camera x, a ground standing as a wall beside the camera). The

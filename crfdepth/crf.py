@@ -8,7 +8,7 @@ refinement, and the :class:`~crfdepth.layer.CRFRefine` layer) minimises a quadra
 with unary terms ``k`` (weight ``u_k >= 0`` pulling towards target ``t_k``: LiDAR, a prior
 depth, a network's depth) and pairwise weights ``w_ij >= 0``. Its minimiser solves
 ``A x = b`` with ``A = diag(d) + L(w)``, ``d = sum_k u_k``, ``b = sum_k u_k t_k``
-(:func:`crfdepth.potentials.unary_system`; docs/design.md sections 3 and 4).
+(:func:`crfdepth.potentials.energy.unary_system`; docs/design.md sections 3 and 4).
 
 :func:`grid_crf` / :func:`graph_crf` solve it with the implicit-gradient CG of
 :mod:`crfdepth.linalg` (gradients reach ``d``, ``b`` and ``w``); :func:`grid_crf_std` /
@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import torch
 
-from crfdepth.linalg.autograd import SolveInfo, _Settings, solve_grid_laplacian_trusted, solve_laplacian_trusted
-from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+from crfdepth.linalg.adjoint import SolveInfo, _Settings, solve_grid_laplacian_trusted, solve_laplacian_trusted
+from crfdepth.uncertainty.posterior import grid_posterior_variance, posterior_variance
 
 __all__ = ["graph_crf", "graph_crf_std", "grid_crf", "grid_crf_std"]
 
@@ -51,7 +51,7 @@ def grid_crf(d: torch.Tensor, b: torch.Tensor, weight_h: torch.Tensor, weight_v:
 def grid_crf_std(d: torch.Tensor, weight_h: torch.Tensor, weight_v: torch.Tensor, std_scale: torch.Tensor, *,
                  samples: int, seed: int | None = 0, rtol: float = 1e-4) -> torch.Tensor:
     """(B, H, W) ``std_scale * sqrt(diag(A^-1))`` of the system of :func:`grid_crf`
-    (:func:`crfdepth.uncertainty.grid_posterior_variance`; gradient only to ``std_scale``)."""
+    (:func:`crfdepth.uncertainty.posterior.grid_posterior_variance`; gradient only to ``std_scale``)."""
     var = grid_posterior_variance(d.detach(), weight_h.detach(), weight_v.detach(), samples=samples, seed=seed,
                                   rtol=rtol)
     return std_scale * var.sqrt()
@@ -77,7 +77,7 @@ def graph_crf(d: torch.Tensor, b: torch.Tensor, edge_index: torch.Tensor, edge_w
 def graph_crf_std(d: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor, ptr: torch.Tensor,
                   std_scale: torch.Tensor, *, samples: int, seed: int | None = 0, rtol: float = 1e-4) -> torch.Tensor:
     """(N,) ``std_scale * sqrt(diag(A^-1))`` of the system of :func:`graph_crf`
-    (:func:`crfdepth.uncertainty.posterior_variance`: exact up to 1,000 nodes per graph)."""
+    (:func:`crfdepth.uncertainty.posterior.posterior_variance`: exact up to 1,000 nodes per graph)."""
     var = posterior_variance(d.detach(), edge_index, edge_weight.detach(), ptr=ptr, samples=samples, seed=seed,
                              rtol=rtol)
     return std_scale * var.sqrt()

@@ -44,10 +44,10 @@ from torch import nn
 from crfdepth.checks import check_map, check_scalar_tensor, describe
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
-from crfdepth.graph import boundary_pairs
+from crfdepth.superpixels.graph import boundary_pairs
 from crfdepth.linalg import SolveInfo, solver_settings
-from crfdepth.potentials import unary_system
-from crfdepth.superpixels import batch_segments, slic_batch
+from crfdepth.potentials.energy import unary_system
+from crfdepth.superpixels.segments import batch_segments, slic_batch
 
 __all__ = ["CRFRefine", "RefineOutput", "crf_refine"]
 
@@ -172,13 +172,13 @@ def crf_refine(
         prior_weight: ``eps > 0``, added to the confidence everywhere so that ``A`` is
             positive definite; small against ``c`` and ``s``.
         labels: optional (B, H, W) int64 segment index per pixel (e.g. SLIC superpixels of
-            each frame, :func:`crfdepth.superpixels.slic_segments`): solve on the segment graph
+            each frame, :func:`crfdepth.superpixels.segments.slic_segments`): solve on the segment graph
             and paint back (piecewise-constant output). Labels need not be consecutive.
         return_std: also return ``std_scale * sqrt(diag(A^-1))`` (extra solves, no
             gradient except to ``std_scale``).
         std_scale: ``sigma > 0``, metres per unit of ``sqrt(diag(A^-1))``.
         std_samples, seed: samples and seed of the variance estimate
-            (:func:`crfdepth.uncertainty.grid_posterior_variance`; superpixel graphs of up
+            (:func:`crfdepth.uncertainty.posterior.grid_posterior_variance`; superpixel graphs of up
             to 1,000 segments are exact).
         rtol, max_iter, on_nonconvergence: settings of the CG solve
             (:func:`crfdepth.linalg.solve_grid_laplacian`).
@@ -263,7 +263,7 @@ class CRFRefine(nn.Module):
         std_scale: initial ``sigma`` > 0.
         superpixels: None (pixel grid, default) or the number of SLIC segments per frame;
             then ``forward`` needs ``image`` (B, 3, H, W) RGB in [0, 1] (segmented with
-            :func:`crfdepth.superpixels.slic_segments`, no gradient) or precomputed ``labels``,
+            :func:`crfdepth.superpixels.segments.slic_segments`, no gradient) or precomputed ``labels``,
             and the output is piecewise constant on the segments.
         init_scale: standard deviation of the initial projection weights (small, so that
             edges start close to ``s``: a smooth prior that the training sharpens).

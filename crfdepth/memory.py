@@ -3,7 +3,7 @@
 Every configuration's peak memory grows linearly with the pixels of the batch: the
 per-pixel maps of the fills, potentials, solves and std, the SLIC and graph buffers, and
 chunked loops elsewhere (the LiDAR normals' neighbour gathers, the posterior std's sample
-solves under their own budget, :data:`crfdepth.uncertainty.MEMORY_BUDGET_BYTES`). The
+solves under their own budget, :data:`crfdepth.uncertainty.posterior.MEMORY_BUDGET_BYTES`). The
 bytes per pixel below are the measured peaks of one float32 forward by ``benchmarks/speed.py``
 (growth of the resident set on the CPU; the table of docs/design.md section 10), rounded
 up; at 4000 x 3000 the measured peaks are about half of them, and the CUDA allocator's
@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.uncertainty import MEMORY_BUDGET_BYTES
+from crfdepth.uncertainty.posterior import MEMORY_BUDGET_BYTES
 
 __all__ = ["BYTES_PER_PIXEL", "OVERHEAD_BYTES", "MemoryRefusal", "available_memory", "check_frame_size", "cli_advice",
            "check_image_file", "check_memory", "check_model_memory", "device_memory", "estimate_bytes", "is_out_of_memory",

@@ -25,22 +25,22 @@ from kornia.geometry.camera import unproject_points
 from crfdepth.checks import check_frames, check_number
 from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
-from crfdepth.evidence import PRIORS, lidar_evidence, node_lidar
-from crfdepth.graph import build_superpixel_graphs
-from crfdepth.head import PotentialHead
+from crfdepth.potentials.data_term import PRIORS, lidar_evidence, node_lidar
+from crfdepth.superpixels.graph import build_superpixel_graphs
+from crfdepth.potentials.head import PotentialHead
 from crfdepth.linalg import SolveInfo, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput, Stages
-from crfdepth.parameters import ConstrainedWeights
-from crfdepth.normals import aggregate_normals, graph_normals, lidar_normals
-from crfdepth.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
-from crfdepth.predictive import PredictiveStd, check_std_terms, std_features
-from crfdepth.potentials import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
+from crfdepth.potentials.parameters import ConstrainedWeights
+from crfdepth.geometry.normals import aggregate_normals, graph_normals, lidar_normals
+from crfdepth.potentials.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
+from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms, std_features
+from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
                                  distance_affinity, energy, grid_energy_terms, grid_potentials, grid_system,
                                  normal_affinity, std_in_metres, system_terms, to_depth, to_unknown)
-from crfdepth.robust import DEFAULT_IRLS_SCALE, reweight
-from crfdepth.superpixels import slic_batch
-from crfdepth.uncertainty import conditional_variance, grid_conditional_variance
+from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE, reweight
+from crfdepth.superpixels.segments import slic_batch
+from crfdepth.uncertainty.posterior import conditional_variance, grid_conditional_variance
 
 Mode = Literal["superpixel", "pixel"]
 POTENTIALS = ("colour", "normal", "distance")
@@ -62,7 +62,7 @@ class CRFDepth(ConstrainedWeights):
              + eps' sum (x_i - x0_i)^2
 
     with ``w_i = c n_i / (n_i + 1)`` (``c`` the data confidence, ``n_i`` LiDAR pixels in
-    the node), the affinities of :mod:`crfdepth.potentials`, and ``x0`` the nearest-LiDAR
+    the node), the affinities of :mod:`crfdepth.potentials.energy`, and ``x0`` the nearest-LiDAR
     fill. ``eps' = eps * mean(alpha, beta, gamma, delta)`` over the potentials that are
     on: the prior scales with the weights, so multiplying alpha..delta by one factor
     leaves the depth exactly unchanged; only their ratios matter, and the sigmoid
@@ -71,7 +71,7 @@ class CRFDepth(ConstrainedWeights):
     Learnable parameters (``nn.Parameter``, unconstrained underneath): ``alpha, beta,
     gamma, delta`` through a sigmoid; ``sigma_d, sigma_n, sigma_p``, the data confidence
     ``c``, the refinement prior weight and the posterior std's scale ``s`` through ``exp``
-    (:mod:`crfdepth.parameters`); the predictive std's weights (``std_head``). The std's
+    (:mod:`crfdepth.potentials.parameters`); the predictive std's weights (``std_head``). The std's
     parameters get gradients through ``std`` only.
 
     Args:
@@ -100,7 +100,7 @@ class CRFDepth(ConstrainedWeights):
             depart further from the piecewise-constant superpixel depth).
         std_scale: initial ``s`` > 0.
         std_samples: samples of the posterior-variance estimate on large graphs
-            (:mod:`crfdepth.uncertainty`); graphs up to 1,000 nodes are exact.
+            (:mod:`crfdepth.uncertainty.posterior`); graphs up to 1,000 nodes are exact.
         rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
         variable: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper),
             ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly) or
@@ -108,21 +108,21 @@ class CRFDepth(ConstrainedWeights):
             Data, prior and warm start are mapped to it, depth and std are mapped back
             (``std_z = z^2 std_(1/z)``, ``z std_(log z)``); ``CRFOutput.terms`` hold the system in it.
         gate: multiply each return's data weight by the soft occlusion gate of
-            :mod:`crfdepth.occlusion` (see-through returns lose weight); ``gate_window``
+            :mod:`crfdepth.potentials.occlusion` (see-through returns lose weight); ``gate_window``
             (odd pixels), ``gate_threshold`` and ``gate_softness`` (1/m, learnable) set it.
         prior: the fill that is ``x0`` and the warm start, "nearest" or "ip_basic".
         irls: robust reweighting rounds of the pixel-grid data term after the last solve
-            (:mod:`crfdepth.robust`; 0 = none): each scales a return's data weight by a
+            (:mod:`crfdepth.potentials.robust`; 0 = none): each scales a return's data weight by a
             Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
         irls_scale: initial ``sigma`` of that factor, inverse depth in 1/m (learnable).
-        head: add the small learned :class:`~crfdepth.head.PotentialHead` (per-pixel data
+        head: add the small learned :class:`~crfdepth.potentials.head.PotentialHead` (per-pixel data
             and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
         uncertainty: the std of ``return_std`` (docs/design.md section 5): "predictive" (the
             posterior's local part with depth, edge, data-distance and gate signals,
-            :mod:`crfdepth.predictive`; about 0.15 x the forward's time) or "posterior"
+            :mod:`crfdepth.uncertainty.predictive`; about 0.15 x the forward's time) or "posterior"
             (``s sqrt(diag(A^-1))`` alone, sampled: about 40 solves).
         std_terms: initial weights of the predictive std by name
-            (:data:`crfdepth.predictive.STD_TERMS`; None: the hand-set ones), learnable.
+            (:data:`crfdepth.uncertainty.predictive.STD_TERMS`; None: the hand-set ones), learnable.
         memory_limit_gb: refuse a forward whose estimated peak memory
             (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
             allocating; None: the memory the device has available at each forward.
@@ -238,7 +238,7 @@ class CRFDepth(ConstrainedWeights):
         return alpha, beta, gamma, delta, self.eps * mean, mean
 
     def _weights_for_grid(self) -> dict:
-        """The weights :func:`crfdepth.potentials.grid_potentials` needs (None: potential off)."""
+        """The weights :func:`crfdepth.potentials.energy.grid_potentials` needs (None: potential off)."""
         alpha, beta, gamma, delta, _, _ = self._scales()
         return dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, confidence=self.confidence,
                     sigma_d=self.sigma_d, sigma_n=self.sigma_n, sigma_p=self.sigma_p)
@@ -288,7 +288,7 @@ class CRFDepth(ConstrainedWeights):
         return self._forward_superpixel(image, sparse, K, return_std)
 
     def _evidence(self, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-        """``(gate, kept, fill)`` of :func:`crfdepth.evidence.lidar_evidence` (docs/design.md section 3b)."""
+        """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
         gate = (self.gate_threshold, self.gate_softness) if self.gate else None
         return lidar_evidence(sparse, gate, self.gate_window, self.prior)
 
@@ -397,7 +397,7 @@ class CRFDepth(ConstrainedWeights):
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds, features)
 
     def _predictive(self, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
-        """The predictive std (:mod:`crfdepth.predictive`) and its signals, from the conditional
+        """The predictive std (:mod:`crfdepth.uncertainty.predictive`) and its signals, from the conditional
         variance of the last solve in the unknown's units."""
         variance = (std_in_metres(variance.sqrt(), depth, self.variable) / depth.detach()) ** 2  # in (log z)^2
         features = std_features(depth, sparse, kept, gate, variance)

@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from crfdepth.graph import SuperpixelGraph
+from crfdepth.superpixels.graph import SuperpixelGraph
 from crfdepth.linalg import SolveInfo
-from crfdepth.potentials import EnergyTerms
+from crfdepth.potentials.energy import EnergyTerms
 
 __all__ = ["CRFOutput", "Stages"]
 
@@ -23,7 +23,7 @@ class CRFOutput:
     Attributes:
         depth: (B, 1, H, W) dense z-depth in metres, > 0.
         std: (B, 1, H, W) standard deviation in metres (None unless asked): the predictive
-            std of :mod:`crfdepth.predictive`, or the posterior's with ``uncertainty="posterior"``.
+            std of :mod:`crfdepth.uncertainty.predictive`, or the posterior's with ``uncertainty="posterior"``.
         count_uncertainty: (B, 1, H, W) the paper's map from LiDAR counts per node: 1 where
             the node holds no LiDAR point, 0.5 for one point, 0 for several (pixel mode: 1
             without LiDAR, 0 with).
@@ -31,16 +31,16 @@ class CRFOutput:
             (superpixel mode: the super-resolved point cloud before painting).
         node_std: (N,) node standard deviations (None unless asked).
         ptr: (B + 1,) node offsets of the frames in ``node_depth``.
-        graphs: per-frame :class:`~crfdepth.graph.SuperpixelGraph` (superpixel mode) or None.
-        terms: the :class:`~crfdepth.potentials.EnergyTerms` of the last graph solve, for
-            :func:`crfdepth.potentials.energy`.
+        graphs: per-frame :class:`~crfdepth.superpixels.graph.SuperpixelGraph` (superpixel mode) or None.
+        terms: the :class:`~crfdepth.potentials.energy.EnergyTerms` of the last graph solve, for
+            :func:`crfdepth.potentials.energy.energy`.
         info: diagnostics of every solve, in order.
         timings: wall-clock seconds per stage (``fill``, ``slic``, ``graph``, ``normals``,
             ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
             ran). On CUDA, stages are timed without synchronisation (queued work may be
             counted in a later stage).
         std_features: (B, 5, H, W) the signals of the predictive std
-            (:func:`crfdepth.predictive.std_features`; None unless it was computed).
+            (:func:`crfdepth.uncertainty.predictive.std_features`; None unless it was computed).
     """
 
     depth: torch.Tensor

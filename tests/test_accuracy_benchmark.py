@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.predictive import STD_TERMS
+from crfdepth.uncertainty.predictive import STD_TERMS
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 

@@ -1,4 +1,4 @@
-"""Tests for crfdepth.classical: the IP-Basic fill of Ku et al. 2018 (docs/design.md section 3b).
+"""Tests for crfdepth.fill.ip_basic: the IP-Basic fill of Ku et al. 2018 (docs/design.md section 3b).
 
 The steps work on inverted depth (0 = empty); their expected outputs are written out by
 hand. kornia's general morphology is the oracle for the decomposed diamond and cross
@@ -13,8 +13,8 @@ import pytest
 import torch
 from kornia.morphology import dilation
 
-from crfdepth import classical
-from crfdepth.classical import ip_basic_fill
+from crfdepth.fill import ip_basic as classical
+from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.errors import InputError
 
 

@@ -1,4 +1,4 @@
-"""Tests for crfdepth.fill.nearest_fill."""
+"""Tests for crfdepth.fill.nearest.nearest_fill."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 
 
 def test_hand_made_map():

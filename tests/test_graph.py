@@ -1,4 +1,4 @@
-"""Tests for crfdepth.graph: SLIC segments, node features and the paper's 4-neighbour edges."""
+"""Tests for crfdepth.superpixels.graph: SLIC segments, node features and the paper's 4-neighbour edges."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from skimage.graph import rag_mean_color
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
-from crfdepth.superpixels import slic_segments
-from crfdepth.graph import (
+from crfdepth.superpixels.segments import slic_segments
+from crfdepth.superpixels.graph import (
     DIRECTIONS_DEG,
     batch_edge_index,
     build_superpixel_graph,

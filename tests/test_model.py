@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.metrics import average_metrics, depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.potentials import energy
+from crfdepth.potentials.energy import energy
 
 F64 = torch.float64
 

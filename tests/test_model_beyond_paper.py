@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.head import PotentialHead
+from crfdepth.potentials.head import PotentialHead
 from crfdepth.model import CRFDepth
 
 F, CY, H, W = 720.0, -20.0, 60, 96  # every row below the horizon: a road from 14 m to 59 m

@@ -1,4 +1,4 @@
-"""The nearest valid pixel in torch (crfdepth.nearest) against SciPy's exact distance transform."""
+"""The nearest valid pixel in torch (crfdepth.geometry.nearest) against SciPy's exact distance transform."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import torch
 from scipy.ndimage import distance_transform_edt
 
 from crfdepth.data.kitti import KittiValSelection
-from crfdepth.fill import fill_on_device, nearest_fill
-from crfdepth.nearest import nearest_valid
-from crfdepth.predictive import return_distance
+from crfdepth.fill.nearest import fill_on_device, nearest_fill
+from crfdepth.geometry.nearest import nearest_valid
+from crfdepth.uncertainty.predictive import return_distance
 
 
 def _check_against_scipy(valid: torch.Tensor) -> float:

@@ -1,4 +1,4 @@
-"""Tests for crfdepth.occlusion: see-through mask, soft gate, fallback (docs/design.md section 3b)."""
+"""Tests for crfdepth.potentials.occlusion: see-through mask, soft gate, fallback (docs/design.md section 3b)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.occlusion import (
+from crfdepth.potentials.occlusion import (
     DEFAULT_SOFTNESS,
     DEFAULT_THRESHOLD,
     DEFAULT_WINDOW,
@@ -237,7 +237,7 @@ def _scans(kitti_root):
 
     from crfdepth.data.kitti import KittiRawScans
     from crfdepth.io.kitti import read_velodyne
-    from crfdepth.projection import project_to_depth, project_velodyne
+    from crfdepth.geometry.projection import project_to_depth, project_velodyne
 
     for layout, root in (("raw", kitti_root / "raw"), ("object", kitti_root / "object" / "training")):
         ds = KittiRawScans(root, layout=layout, transform=None)

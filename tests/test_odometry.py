@@ -1,4 +1,4 @@
-"""crfdepth.odometry: KISS-ICP LiDAR odometry checked against true poses, the failure check, and
+"""crfdepth.sequences.odometry: KISS-ICP LiDAR odometry checked against true poses, the failure check, and
 the readers of given poses (KITTI poses.txt, KITTI raw oxts)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
-from crfdepth.odometry import (
+from crfdepth.sequences.odometry import (
     _inv,
     _rotation_deg,
     camera_relative_pose,

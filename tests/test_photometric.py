@@ -17,7 +17,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
-from crfdepth.photometric import photometric_error, photometric_loss, warp_to_target
+from crfdepth.sequences.photometric import photometric_error, photometric_loss, warp_to_target
 
 H, W, F = 96, 128, 110.0
 WALL_Z, FG_Z = 10.0, 5.0

@@ -15,7 +15,7 @@ from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.kitti import read_velodyne
-from crfdepth.projection import ground_normal, ground_tilt_deg, keep_every_ring
+from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, keep_every_ring
 
 
 @pytest.fixture(scope="module")

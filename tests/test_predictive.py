@@ -1,4 +1,4 @@
-"""The predictive std (crfdepth/predictive.py, docs/design.md section 5): its signals on
+"""The predictive std (crfdepth/uncertainty/predictive.py, docs/design.md section 5): its signals on
 known scenes, the log-linear model, the Newton fit against a known answer, bad input."""
 
 import math
@@ -12,9 +12,9 @@ from crfdepth.data.synthetic import SyntheticScenes
 from crfdepth.errors import InputError
 from crfdepth.metrics import uncertainty_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.predictive import (DEFAULT_STD_TERMS, OFFSETS, SIGNALS, STD_TERMS, PredictiveStd, fit_std_terms,
+from crfdepth.uncertainty.predictive import (DEFAULT_STD_TERMS, OFFSETS, SIGNALS, STD_TERMS, PredictiveStd, fit_std_terms,
                                  predictive_std, std_features)
-from crfdepth.windows import window_max
+from crfdepth.geometry.windows import window_max
 
 
 @pytest.mark.parametrize("window", [3, 5, 7, 15])

@@ -1,4 +1,4 @@
-"""Tests of crfdepth.projection: synthetic z-buffer cases and the shared KITTI scans."""
+"""Tests of crfdepth.geometry.projection: synthetic z-buffer cases and the shared KITTI scans."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration, load_calibration
 from crfdepth.io.kitti import read_depth_png, read_velodyne
-from crfdepth.projection import (
+from crfdepth.geometry.projection import (
     count_in_image,
     fraction_mask,
     keep_every_ring,

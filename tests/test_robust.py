@@ -1,4 +1,4 @@
-"""Robust reweighting (IRLS) of the pixel-grid data term: crfdepth/robust.py and CRFDepth(irls=...)."""
+"""Robust reweighting (IRLS) of the pixel-grid data term: crfdepth/potentials/robust.py and CRFDepth(irls=...)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
 from crfdepth.linalg.operators import PixelGrid
 from crfdepth.model import CRFDepth
-from crfdepth.robust import leave_one_out, robust_factor
+from crfdepth.potentials.robust import leave_one_out, robust_factor
 from tests.test_model_beyond_paper import _leaky_wall
 
 

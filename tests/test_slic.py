@@ -1,4 +1,4 @@
-"""Tests of crfdepth.slic: the torch SLIC against scikit-image's, on synthetic and real frames."""
+"""Tests of crfdepth.superpixels.slic: the torch SLIC against scikit-image's, on synthetic and real frames."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from skimage.util import regular_grid
 
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
-from crfdepth.slic import _connected_segments, _gaussian_blur, _kmeans, _regular_grid, slic_torch
-from crfdepth.superpixels import _CPU_BACKEND, slic_segments
+from crfdepth.superpixels.slic import _connected_segments, _gaussian_blur, _kmeans, _regular_grid, slic_torch
+from crfdepth.superpixels.segments import _CPU_BACKEND, slic_segments
 
 SLIC = dict(compactness=20.0, sigma=1.0, max_num_iter=5, convert2lab=True)  # slic_segments' defaults
 
@@ -28,7 +28,7 @@ def skimage_slic(image: torch.Tensor, n_segments: int, *, enforce_connectivity: 
 
 def kmeans_labels(image: torch.Tensor, n_segments: int, max_num_iter: int) -> np.ndarray:
     """The torch k-means labels before the connectivity pass, as scikit-image's seed indices."""
-    from crfdepth.slic import _colour_features
+    from crfdepth.superpixels.slic import _colour_features
 
     h, w = image.shape[-2:]
     grid = _regular_grid(h, w, n_segments)

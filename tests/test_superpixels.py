@@ -1,4 +1,4 @@
-"""Tests of crfdepth.superpixels: SLIC segments, batched label layout, painting."""
+"""Tests of crfdepth.superpixels.segments: SLIC segments, batched label layout, painting."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 from skimage.measure import label as connected_components
 
 from crfdepth.errors import InputError
-from crfdepth.superpixels import batch_segments, paint, slic_segments
+from crfdepth.superpixels.segments import batch_segments, paint, slic_segments
 
 
 def test_paint_is_piecewise_constant():
@@ -47,7 +47,7 @@ def test_batch_segments_renumbers_each_frame_consecutively_after_the_previous():
 
 
 def test_slic_batch_equals_each_frame_on_both_backends():
-    from crfdepth.superpixels import slic_batch
+    from crfdepth.superpixels.segments import slic_batch
 
     generator = torch.Generator().manual_seed(2)
     images = torch.rand(2, 3, 40, 64, generator=generator)

@@ -1,4 +1,4 @@
-"""Camera-view targets (crfdepth.targets, docs/design.md section 14): the occlusion test on a
+"""Camera-view targets (crfdepth.sequences.targets, docs/design.md section 14): the occlusion test on a
 hand-made two-plane scene, density and precision on a synthetic sequence with moving cars,
 bad input, and the single-scan window on real frames of a KITTI drive."""
 
@@ -9,9 +9,9 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
-from crfdepth.pictures import targets_picture
-from crfdepth.projection import project_to_depth
-from crfdepth.targets import (
+from crfdepth.pictures.figures import targets_picture
+from crfdepth.geometry.projection import project_to_depth
+from crfdepth.sequences.targets import (
     KEPT,
     MOVED,
     OCCLUDED,

@@ -5,7 +5,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index, solve_laplacian
-from crfdepth.uncertainty import grid_posterior_variance, posterior_variance
+from crfdepth.uncertainty.posterior import grid_posterior_variance, posterior_variance
 
 F64 = torch.float64
 

@@ -1,14 +1,14 @@
-"""crfdepth.visualize and crfdepth.pictures: depth and std colouring, colour bars, LiDAR points on the image, the point-cloud view."""
+"""crfdepth.pictures.colour and crfdepth.pictures.figures: depth and std colouring, colour bars, LiDAR points on the image, the point-cloud view."""
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from crfdepth import pictures
+from crfdepth.pictures import figures as pictures
 from crfdepth.errors import InputError
-from crfdepth.pictures import depth_picture, std_picture
-from crfdepth.visualize import (
+from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.pictures.colour import (
     colorize_depth,
     colorize_std,
     depth_range,

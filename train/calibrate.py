@@ -1,8 +1,8 @@
 """Fitting a trained model's std to real errors (docs/design.md section 5).
 
 :func:`calibrate_std` runs the whole model over a data set and sets the weights of its std:
-for the predictive std (the default), the six weights of :mod:`crfdepth.predictive` by
-:func:`crfdepth.predictive.fit_std_terms`; for ``uncertainty="posterior"``, the scale
+for the predictive std (the default), the six weights of :mod:`crfdepth.uncertainty.predictive` by
+:func:`crfdepth.uncertainty.predictive.fit_std_terms`; for ``uncertainty="posterior"``, the scale
 ``s`` in closed form (:func:`calibrate_std_scale`). It lives with training, not in the
 library's numerical code. ``python -m train.export --calibrate-std`` uses it; it needs no
 Lightning. The depth is never changed.
@@ -16,7 +16,7 @@ from typing import Iterable
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.predictive import fit_std_terms
+from crfdepth.uncertainty.predictive import fit_std_terms
 
 __all__ = ["calibrate_std", "calibrate_std_scale", "fit_predictive_std"]
 
@@ -36,7 +36,7 @@ def calibrate_std(model, frames: Iterable, *, apply: bool = True) -> dict:
         before = model.std_head.terms()
         after = fit_predictive_std(model, frames, apply=apply)
         method = ("Laplace NLL of the predictive std's weights, then 68.3% coverage "
-                  "(crfdepth.predictive.fit_std_terms via train.calibrate.fit_predictive_std)")
+                  "(crfdepth.uncertainty.predictive.fit_std_terms via train.calibrate.fit_predictive_std)")
     used = sum(1 for s in frames if bool((s.target > 0).any()))
     return {"uncertainty": model.uncertainty, "before": before, "after": after, "frames": used, "method": method}
 

@@ -39,7 +39,7 @@ from crfdepth.data.sample import Batch
 from crfdepth.errors import InputError
 from crfdepth.metrics import METRICS, format_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.photometric import photometric_loss
+from crfdepth.sequences.photometric import photometric_loss
 from train.metrics import DepthMetrics
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ class CRFDepthModule(pl.LightningModule):
         head_lr: Adam learning rate of the small learned head (``crf: {head: true}``), whose
             weights are ordinary network weights rather than logs of scalars.
         photometric_weight: weight of the photometric self-supervision (>= 0; 0 = off):
-            :func:`crfdepth.photometric.photometric_loss` of the predicted depth, per image
+            :func:`crfdepth.sequences.photometric.photometric_loss` of the predicted depth, per image
             (``reduction="frame"``, ``allow_empty=True``: a fully masked frame adds 0), with
             the batch's ``neighbours`` and ``poses``, which only the ``sequence`` layout
             gives (:class:`crfdepth.data.sequences.SequenceFrames`; docs/design.md section 13).

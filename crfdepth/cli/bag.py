@@ -91,7 +91,7 @@ from crfdepth.io.ros.bag import (
 )
 from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
 from crfdepth.io.ros.tf import TransformTree
-from crfdepth.projection import count_in_image
+from crfdepth.geometry.projection import count_in_image
 
 __all__ = ["DEFAULT_MAX_DT_S", "Plan", "add_arguments", "decode_frame", "paired_frames", "plan_frames", "run_bag"]
 

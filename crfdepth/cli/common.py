@@ -44,7 +44,7 @@ from crfdepth.io.files import atomic_write_bytes, check_not_locked, lock_folder,
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, cli_advice
 from crfdepth.model import POTENTIALS, CRFDepth
-from crfdepth.pictures import depth_picture, std_picture
+from crfdepth.pictures.figures import depth_picture, std_picture
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, describe, load_model, load_pretrained, own_structure
 
 logger = logging.getLogger(__name__)

@@ -41,9 +41,9 @@ as 0 ("no value"), and the depth above at 65535/256 m by the PNG format. In fold
 each frame is written as ``<velodyne_raw file name>`` (the KITTI submission naming:
 ``<drive>_velodyne_raw_<frame>_image_0X.png`` or ``0000000000.png`` ...).
 
-Pictures (``--vis``): ``<stem>_vis_depth.png`` (:func:`crfdepth.visualize.colorize_depth`,
+Pictures (``--vis``): ``<stem>_vis_depth.png`` (:func:`crfdepth.pictures.colour.colorize_depth`,
 TURBO on inverse depth, near = red) and ``<stem>_vis_std.png``
-(:func:`crfdepth.visualize.colorize_std`, VIRIDIS, yellow = uncertain), with ``<stem>``
+(:func:`crfdepth.pictures.colour.colorize_std`, VIRIDIS, yellow = uncertain), with ``<stem>``
 the stem of ``--out`` (one frame) or the frame name (folder). ``--vis DIR`` writes them
 into DIR; a bare ``--vis`` writes them next to ``--out`` (one frame) or into
 ``<out-dir>_vis`` beside the output folder (folder mode: the submission folder holds only

@@ -11,9 +11,9 @@ next to the nearest-neighbour baseline, and writes to ``--out-dir`` (default
 - ``<name>_input.png``: the camera image with the LiDAR points drawn on it, coloured by
   depth like the depth picture, with its colour bar in metres;
 - ``<name>_depth.png``: the dense depth (near = warm) with a colour bar in metres
-  (:func:`crfdepth.pictures.depth_picture`);
+  (:func:`crfdepth.pictures.figures.depth_picture`);
 - ``<name>_std.png``: the standard deviation on a log scale with a colour bar in
-  metres (:func:`crfdepth.pictures.std_picture`, docs/design.md section 5);
+  metres (:func:`crfdepth.pictures.figures.std_picture`, docs/design.md section 5);
 - ``<name>_points.png``: the completed depth as a coloured 3D point cloud seen from
   above and behind the camera;
 - ``data/<name>_depth16.png``: the depth as data, a KITTI uint16 PNG (metres * 256,
@@ -49,12 +49,12 @@ from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.cli.common import model_line, vis_range_type, write_rgb_png
 from crfdepth.errors import InputError
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained, own_structure
-from crfdepth.pictures import depth_picture, std_picture
-from crfdepth.visualize import depth_range, draw_points, render_point_cloud
+from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
 
 logger = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import RIG_SUFFIXES, load_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
-from crfdepth.projection import keep_every_ring, keep_fraction, project_velodyne
+from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 
 logger = logging.getLogger(__name__)
 

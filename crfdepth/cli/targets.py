@@ -6,14 +6,14 @@
 For each frame of a drive folder (``<day>/<drive>_sync`` with ``velodyne_points/data/*.bin``
 and ``image_0X/data/*.png``; the calibration is the day folder's ``calib_cam_to_cam.txt`` and
 ``calib_velo_to_cam.txt``) the scans ``t - k .. t + k`` are registered with the drive's poses
-and accumulated into the frame's camera by :func:`crfdepth.targets.camera_view_targets`,
+and accumulated into the frame's camera by :func:`crfdepth.sequences.targets.camera_view_targets`,
 which keeps only the returns the camera sees (movers and occluded returns dropped, the
 frame's own scan first).
 
 Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR
 odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked, the
-registration too (:func:`crfdepth.odometry.step_alignment`); when the registration slid it is
-retried without the ground (:func:`crfdepth.odometry.lidar_odometry_with_fallback`); a failed
+registration too (:func:`crfdepth.sequences.odometry.step_alignment`); when the registration slid it is
+retried without the ground (:func:`crfdepth.sequences.odometry.lidar_odometry_with_fallback`); a failed
 step is an error naming the frame, never accumulated), ``oxts``, or a KITTI odometry
 ``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
 
@@ -30,7 +30,7 @@ Written under ``--out-dir OUT`` in KITTI's depth-completion layout:
   ``--poses``;
 - ``OUT/<drive>/index_image_0X.csv``: one row per frame (see :data:`INDEX_COLUMNS`);
 - with ``--vis [DIR]``: ``DIR/<drive>_image_0X_<frame>.png``, the targets coloured by depth and
-  the dropped returns by reason (:func:`crfdepth.pictures.targets_picture`).
+  the dropped returns by reason (:func:`crfdepth.pictures.figures.targets_picture`).
 
 Everything is checked before anything is written (the drive's files, frame numbers, the
 calibration, every scan used, the poses, the odometry, the output folder). Frame numbers must
@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crfdepth import odometry
+from crfdepth.sequences import odometry
 from crfdepth.cli import targets_bag
 from crfdepth.cli.common import (
     BAD_INPUT,
@@ -70,8 +70,8 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import read_velodyne, write_depth_png
-from crfdepth.pictures import targets_picture
-from crfdepth.targets import (
+from crfdepth.pictures.figures import targets_picture
+from crfdepth.sequences.targets import (
     MOVED,
     OCCLUDED,
     OUTSIDE,

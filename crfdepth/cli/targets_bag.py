@@ -28,7 +28,7 @@ drive code path (:func:`crfdepth.cli.targets.run`): ``OUT/<bag name>_sync/proj_d
 
 Poses (``--poses``): ``tf``: the bag's odometry on /tf, the transform from the top of the
 LiDAR frame's tree (``odom``, ``map`` ...) to the LiDAR frame at each cloud's stamp, checked
-for jumps like LiDAR odometry (:func:`crfdepth.odometry.check_poses`, failures named by
+for jumps like LiDAR odometry (:func:`crfdepth.sequences.odometry.check_poses`, failures named by
 frame); ``odometry``: KISS-ICP (the drive path); ``auto``: ``tf`` when the LiDAR frame's
 tree changes over time, else ``odometry``; ``FILE``: camera poses, KITTI odometry format,
 one line per paired frame of the bag.
@@ -52,7 +52,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crfdepth import odometry
+from crfdepth.sequences import odometry
 from crfdepth.cli.bag import (
     DEFAULT_MAX_DT_S,
     Plan,

@@ -37,7 +37,7 @@ class Sample:
         has_target: False when the frame has no ground truth at all (test split).
         neighbours: optional (S, 3, H, W) float32 RGB of S neighbouring frames of the same
             camera (same size and ``K`` as ``image``), for the photometric term
-            (:mod:`crfdepth.photometric`); None (the default) for single frames.
+            (:mod:`crfdepth.sequences.photometric`); None (the default) for single frames.
         poses: optional (S, 4, 4) float32 ``T_cam(s)<-cam(t)``: points of this frame's
             camera into neighbour ``s``'s camera, metres; given exactly when
             ``neighbours`` is (:class:`crfdepth.data.sequences.SequenceFrames`).

@@ -4,7 +4,7 @@
 the frames of KITTI raw drives together with the camera-view targets that
 ``crfdepth targets`` wrote for them (docs/design.md sections 13, 14 and 15), and gives each
 frame's neighbours (images and relative camera poses) for the photometric term
-(:func:`crfdepth.photometric.photometric_loss`, ``CRFDepthModule(photometric_weight=...)``).
+(:func:`crfdepth.sequences.photometric.photometric_loss`, ``CRFDepthModule(photometric_weight=...)``).
 
 Make the targets first, once per drive::
 
@@ -33,9 +33,9 @@ same S neighbours and no training frame looks at a frame of another block.
 Input-density augmentation (docs/design.md section 15): ``beams`` (e.g. ``[16, 32, 64]``)
 keeps, per item, the rings ``r % k == o`` of the 64-ring scan with ``k = 64 / beams`` and a
 random offset ``o`` (rings recovered from the scan order,
-:func:`crfdepth.projection.recover_rings`); ``keep_fraction`` ``[low, high]`` then keeps a
+:func:`crfdepth.geometry.projection.recover_rings`); ``keep_fraction`` ``[low, high]`` then keeps a
 uniformly random share in that range of the remaining points
-(:func:`crfdepth.projection.fraction_mask`). The target is never thinned.
+(:func:`crfdepth.geometry.projection.fraction_mask`). The target is never thinned.
 
 Clean inputs (``target_input``): with probability ``p`` an item's input is not its scan but a
 random share (``target_input_fraction``, default 10-40%) of its camera-view target pixels, and
@@ -58,14 +58,14 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from crfdepth import projection
+from crfdepth.geometry import projection
 from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_root
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, read_raw_calibration
 from crfdepth.io.kitti import read_depth_png, read_rgb, read_velodyne
-from crfdepth.odometry import read_kitti_poses
+from crfdepth.sequences.odometry import read_kitti_poses
 
 __all__ = ["FULL_BEAMS", "SequenceFrames", "colour_camera_poses"]
 
@@ -115,7 +115,7 @@ class SequenceFrames(Dataset):
 
     Each item is a :class:`~crfdepth.data.sample.Sample` named ``<drive>_<frame>_image_0X``:
     image; sparse = the frame's own scan projected
-    (:func:`crfdepth.projection.project_velodyne`, as :class:`~crfdepth.data.kitti.KittiRawScans`),
+    (:func:`crfdepth.geometry.projection.project_velodyne`, as :class:`~crfdepth.data.kitti.KittiRawScans`),
     after the density augmentation; target = the camera-view target; ``neighbours``
     (S, 3, H, W) the images of frames ``t + offset``; ``poses`` (S, 4, 4) float32
     ``T_cam(s)<-cam(t)`` (module docstring: the chain and the dropped ends). The

@@ -21,7 +21,7 @@
 
 :func:`load_any_calibration` reads either kind into a :class:`RigCalibration` (a KITTI
 one keeps its :class:`Calibration`), so callers need not care which they were given.
-Projecting points with either type is :mod:`crfdepth.projection`'s job; this module
+Projecting points with either type is :mod:`crfdepth.geometry.projection`'s job; this module
 imports nothing above :mod:`crfdepth.checks` and :mod:`crfdepth.io.files`.
 
 Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` and
@@ -146,8 +146,8 @@ class RigCalibration:
             the raw image, or None for an undistorted / rectified image.
         image_size: (height, width) in pixels, or None when the file does not say.
         kitti: the KITTI :class:`Calibration` this came from, or None. When set,
-            :func:`crfdepth.projection.project_points` projects with ``P_rect R_rect
-            T_velo_to_cam`` exactly (:func:`~crfdepth.projection.project_velodyne`), so
+            :func:`crfdepth.geometry.projection.project_points` projects with ``P_rect R_rect
+            T_velo_to_cam`` exactly (:func:`~crfdepth.geometry.projection.project_velodyne`), so
             results match the KITTI tools bit for bit. Here ``K = P_rect[:, :3]`` and ``T_cam_lidar`` is the transform
             into the chosen camera's own frame, ``[I | K^-1 P_rect[:, 3]] R_rect
             T_velo_to_cam`` (so ``K [I | 0] T_cam_lidar == P_rect R_rect T_velo_to_cam``);
@@ -401,7 +401,7 @@ def load_any_calibration(path: PathLike, camera: int = 2) -> RigCalibration:
 
     Returns:
         :class:`RigCalibration`; for KITTI its ``kitti`` attribute holds the original
-        calibration and :func:`crfdepth.projection.project_points` reproduces
+        calibration and :func:`crfdepth.geometry.projection.project_points` reproduces
         ``project_velodyne``.
     """
     path = Path(path)

@@ -187,7 +187,7 @@ def read_velodyne(path: PathLike) -> np.ndarray:
     Returns:
         (N, 4) float32: x, y, z in metres in the Velodyne frame (x forward, y left,
         z up) and reflectance in [0, 1], in the sensor's scan order (which
-        :func:`crfdepth.projection.recover_rings` relies on).
+        :func:`crfdepth.geometry.projection.recover_rings` relies on).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.

@@ -1,6 +1,6 @@
 """Sparse SPD solves for graph-Laplacian systems, differentiable by implicit adjoints."""
 
-from crfdepth.linalg.autograd import SolveInfo
+from crfdepth.linalg.adjoint import SolveInfo
 from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.linalg.solve import solve_grid_laplacian, solve_laplacian, solver_settings
 

@@ -4,7 +4,7 @@
 - :func:`solve_grid_laplacian` for batches of 4-connected pixel grids (fast path).
 
 Both check their inputs before iterating, then call the trusted solves of
-:mod:`crfdepth.linalg.autograd` (Jacobi-preconditioned CG, default, or CGS under
+:mod:`crfdepth.linalg.adjoint` (Jacobi-preconditioned CG, default, or CGS under
 ``no_grad``, differentiated by one adjoint solve), so memory does not grow with the
 iteration count. :func:`solver_settings` checks the settings once for callers that solve
 many times (the model, the layer).
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.linalg.autograd import (
+from crfdepth.linalg.adjoint import (
     _METHODS,
     GRAD_RTOL,
     SolveInfo,
@@ -63,7 +63,7 @@ def _check_float(name: str, t: torch.Tensor, ref: torch.Tensor, nonneg: bool) ->
 def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
                     on_nonconvergence: OnFail = "warn", grad_rtol: float = GRAD_RTOL,
                     preconditioner: Preconditioner = "auto") -> _Settings:
-    """The checked settings of a solve, for :mod:`crfdepth.linalg.autograd`'s trusted solves.
+    """The checked settings of a solve, for :mod:`crfdepth.linalg.adjoint`'s trusted solves.
 
     The arguments are those of :func:`solve_grid_laplacian` (graph solves ignore
     ``preconditioner``: always Jacobi).

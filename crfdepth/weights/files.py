@@ -149,7 +149,7 @@ def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Map
     """Write a weights file holding ``config`` (with the learned values) and ``about``, atomically.
 
     ``state``: the tensors that are not constructor arguments (the weights of the learned
-    head, :mod:`crfdepth.head`), stored as nested lists under ``"state"``.
+    head, :mod:`crfdepth.potentials.head`), stored as nested lists under ``"state"``.
 
     Raises:
         InputError: ``path`` is a folder, or ``config`` / ``about`` are not

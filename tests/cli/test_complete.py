@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth

@@ -9,7 +9,7 @@ import pytest
 import crfdepth.cli.demo as demo
 from crfdepth.cli import main
 from crfdepth.errors import InputError
-from crfdepth.pictures import depth_picture
+from crfdepth.pictures.figures import depth_picture
 
 PICTURES = ("input", "depth", "std", "points")
 

@@ -9,7 +9,7 @@ import torch
 from crfdepth import cli
 from crfdepth.data.example import EXAMPLE_SEED, example_scene
 from crfdepth.data.example_bag import CLOUD_DELAY_NS, EXAMPLE_TOPICS, START_NS, main, write_example_bag
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.metrics import depth_metrics
 

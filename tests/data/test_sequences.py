@@ -17,7 +17,7 @@ from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration
 from crfdepth.io.kitti import read_depth_png
-from crfdepth.photometric import photometric_loss
+from crfdepth.sequences.photometric import photometric_loss
 from tests.sequence_drive import DRIVE, make_targets, stem, write_drive
 
 N_FRAMES = 6

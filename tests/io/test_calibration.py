@@ -1,7 +1,7 @@
 """Tests of crfdepth.io.calibration: the KITTI Calibration and its two file formats (raw
 day folder, object benchmark), rig YAML/JSON files with the checks on K and T_cam_lidar,
 and load_any_calibration on the shared KITTI calibrations (projection identical to
-crfdepth.projection.project_velodyne)."""
+crfdepth.geometry.projection.project_velodyne)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from crfdepth.io.calibration import (
     read_rig_calibration,
 )
 from crfdepth.io.kitti import read_velodyne
-from crfdepth.projection import project_points, project_to_depth, project_velodyne
+from crfdepth.geometry.projection import project_points, project_to_depth, project_velodyne
 
 K = [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]
 # LiDAR x forward, y left, z up -> camera x right, y down, z forward; 10 cm offsets.
@@ -308,8 +308,8 @@ def test_calibration_and_projection_import_one_way():
     """Calibration types in one module, projection math in another, imported one way only."""
     package = Path(crfdepth.io.__file__).resolve().parents[1]
     calibration = _imports(package / "io" / "calibration.py")
-    assert not any(name.startswith(("crfdepth.projection", "crfdepth.api")) for name in calibration), calibration
-    assert "crfdepth.io.calibration" in _imports(package / "projection.py")
+    assert not any(name.startswith(("crfdepth.geometry.projection", "crfdepth.api")) for name in calibration), calibration
+    assert "crfdepth.io.calibration" in _imports(package / "geometry" / "projection.py")
     assert not (package / "io" / "rig.py").exists()
     assert all(len((package / "io" / f).read_text().splitlines()) <= 410
                for f in ("calibration.py", "kitti.py", "pointcloud.py", "files.py"))

@@ -133,7 +133,7 @@ def test_bad_preconditioner():
 
 def test_auto_inference_uses_multigrid_on_large_grids_only(monkeypatch):
     """An undifferentiated "auto" solve: Jacobi below MULTIGRID_MIN_PIXELS per image, multigrid from there."""
-    import crfdepth.linalg.autograd as autograd
+    import crfdepth.linalg.adjoint as autograd
 
     h, w = 96, 160
     b, d, wh, wv = lidar_like_system(6, h, w)

@@ -16,7 +16,7 @@ import torch
 import yaml
 
 from crfdepth.data import build_dataset, collate_samples
-from crfdepth.predictive import DEFAULT_STD_TERMS, STD_TERMS
+from crfdepth.uncertainty.predictive import DEFAULT_STD_TERMS, STD_TERMS
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
 from train.__main__ import main

@@ -5,7 +5,7 @@ Raw-data drives or the object benchmark; the scan is split into input and target
 pixel in both (docs/design.md section 7). By default the target is then cleaned of
 see-through points (:func:`remove_see_through`), as KITTI's annotation was.
 
-Share of target pixels the cleaning removes (default mask of :mod:`crfdepth.occlusion`,
+Share of target pixels the cleaning removes (default mask of :mod:`crfdepth.potentials.occlusion`,
 1216x352 crop, target pixels of all frames pooled, per-frame range in brackets):
 
 | holdout | drive 0060 (13 frames) | object (11 frames) | drive 0001 frame 5 |
@@ -37,14 +37,14 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from crfdepth import projection
+from crfdepth.geometry import projection
 from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_dir, require_root
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
 from crfdepth.io.kitti import read_rgb, read_velodyne
-from crfdepth.occlusion import see_through_mask
+from crfdepth.potentials.occlusion import see_through_mask
 
 if TYPE_CHECKING:
     from crfdepth.io.calibration import Calibration
@@ -55,7 +55,7 @@ __all__ = ["KittiRawScans", "remove_see_through"]
 def remove_see_through(target: np.ndarray, full: np.ndarray) -> np.ndarray:
     """The target without its see-through pixels, judged against the whole scan.
 
-    A target pixel is dropped when :func:`crfdepth.occlusion.see_through_mask` (default
+    A target pixel is dropped when :func:`crfdepth.potentials.occlusion.see_through_mask` (default
     window and threshold) flags it in ``full``: the projection of the whole scan, input
     and target together, is denser than either part, so every target point is compared
     with all the nearer returns around it, as KITTI compared its annotation with the
@@ -98,7 +98,7 @@ class KittiRawScans(Dataset):
         ``testing``) folder. Names ``<id>``.
         Frames are the scans (``.bin``); each must have its image and calibration.
 
-    Each item projects the scan (:func:`crfdepth.projection.project_velodyne`, z-buffer,
+    Each item projects the scan (:func:`crfdepth.geometry.projection.project_velodyne`, z-buffer,
     camera z-depth in metres) after splitting its points:
 
     - ``holdout="fraction"``: a random ``1 - holdout_fraction`` of the points is the input,

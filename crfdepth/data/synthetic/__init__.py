@@ -14,7 +14,7 @@ casting from a pinhole camera:
 - ``sparse``: a simulated Velodyne HDL-64E-like scan (64 beams by default) with range
   noise, random dropouts and a maximum range, mounted like KITTI's LiDAR (0.27 m behind,
   0.08 m above and 0.06 m to the right of the camera) and projected into the camera with
-  :func:`crfdepth.projection.project_to_depth` (z-buffer, nearest point per pixel). Because
+  :func:`crfdepth.geometry.projection.project_to_depth` (z-buffer, nearest point per pixel). Because
   the LiDAR sees the scene from another viewpoint, background points leak through at the
   edges of foreground objects, as they do in KITTI's ``velodyne_raw``.
 - ``points``: the same scan as (N, 4) points in the LiDAR frame, with ``T_cam_lidar``.

@@ -3,7 +3,7 @@
 :func:`make_scene` draws the world (:mod:`~crfdepth.data.synthetic.world`), renders the
 camera (:mod:`~crfdepth.data.synthetic.camera`), simulates the LiDAR scan
 (:mod:`~crfdepth.data.synthetic.lidar_sim`) and projects it into the image with
-:func:`crfdepth.projection.project_to_depth`. All randomness comes from one
+:func:`crfdepth.geometry.projection.project_to_depth`. All randomness comes from one
 ``numpy.random.default_rng(seed)``, drawn in that order.
 """
 
@@ -18,7 +18,7 @@ from crfdepth.data.synthetic._checks import check_int, check_real
 from crfdepth.data.synthetic.camera import camera_intrinsics, render_camera
 from crfdepth.data.synthetic.lidar_sim import MIN_RANGE_M, lidar_to_camera, scan_lidar
 from crfdepth.data.synthetic.world import build_world
-from crfdepth.projection import project_to_depth
+from crfdepth.geometry.projection import project_to_depth
 
 __all__ = ["EVAL_MAX_DEPTH_M", "SyntheticScene", "make_scene"]
 
@@ -118,7 +118,7 @@ def make_scene(
 
     Returns:
         A :class:`SyntheticScene`. ``sparse`` is the scan projected with
-        :func:`crfdepth.projection.project_to_depth` using ``T_cam_lidar`` and ``K``.
+        :func:`crfdepth.geometry.projection.project_to_depth` using ``T_cam_lidar`` and ``K``.
 
     Raises:
         InputError: an argument is of the wrong type or out of range.

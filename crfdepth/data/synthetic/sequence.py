@@ -43,7 +43,7 @@ from crfdepth.data.synthetic.lidar_sim import MIN_RANGE_M, lidar_to_camera, scan
 from crfdepth.data.synthetic.scene import SyntheticScene
 from crfdepth.data.synthetic.world import CAR_BODY, World, build_world
 from crfdepth.errors import InputError
-from crfdepth.projection import project_to_depth
+from crfdepth.geometry.projection import project_to_depth
 
 __all__ = ["SyntheticFrame", "SyntheticSequence", "ego_pose", "make_sequence"]
 

@@ -8,7 +8,7 @@ import torch
 
 from crfdepth.data.synthetic import KITTI_FOCAL_PX, make_scene
 from crfdepth.errors import InputError
-from crfdepth.projection import project_to_depth
+from crfdepth.geometry.projection import project_to_depth
 
 
 def test_shapes_dtypes_and_ranges(scene):

@@ -71,7 +71,7 @@ import torch.nn.functional as F
 
 from crfdepth.checks import check_map, check_number, check_scalar_tensor
 from crfdepth.errors import InputError
-from crfdepth.windows import window_max
+from crfdepth.geometry.windows import window_max
 
 __all__ = [
     "DEFAULT_SOFTNESS",

@@ -1,7 +1,7 @@
 """Pictures for people: a depth or std map with a colour bar in metres under it (docs/design.md sections 1 and 5).
 
-- :func:`depth_picture`: TURBO on inverse depth (near = warm), see :func:`crfdepth.visualize.colorize_depth`;
-- :func:`std_picture`: VIRIDIS on a log scale by default (:func:`crfdepth.visualize.colorize_std`);
+- :func:`depth_picture`: TURBO on inverse depth (near = warm), see :func:`crfdepth.pictures.colour.colorize_depth`;
+- :func:`std_picture`: VIRIDIS on a log scale by default (:func:`crfdepth.pictures.colour.colorize_std`);
 - :func:`targets_picture`: camera-view targets on their image, dropped returns by reason (section 14).
 
 ``vis_range=(min_m, max_m)`` gives the same colours for the same metres in every frame of a
@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.targets import REASON_COLOURS, Targets
-from crfdepth.visualize import (
+from crfdepth.sequences.targets import REASON_COLOURS, Targets
+from crfdepth.pictures.colour import (
     Scale,
     _BLACK,
     _WHITE,
@@ -212,7 +212,7 @@ def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.nd
 def targets_picture(image, targets: Targets, vis_range: tuple[float, float] | None = None) -> np.ndarray:
     """The image with the targets coloured by depth and the dropped returns by reason.
 
-    Targets are painted like :func:`crfdepth.visualize.colorize_depth` (near = warm) on the
+    Targets are painted like :func:`crfdepth.pictures.colour.colorize_depth` (near = warm) on the
     image darkened to half; pixels without a target where a dropped return lands are
     painted with :data:`REASON_COLOURS` (occluded: magenta, moved: white). A legend strip
     under the picture names the colours and the density.

@@ -267,7 +267,7 @@ def ground_plane(points) -> tuple[np.ndarray, float] | None:
     """The ground of a scan as ``(normal, height)``: points ``p`` on it have ``p @ normal ~ height``
     (negative: below the sensor), or None (no ground plane found).
 
-    The normal is :func:`crfdepth.projection.ground_normal`'s (RANSAC, on at most 5000 returns of
+    The normal is :func:`crfdepth.geometry.projection.ground_normal`'s (RANSAC, on at most 5000 returns of
     a fixed-seed subsample); the height is the 0.1 m bin of ``p @ normal`` below
     ``-ALIGN_ABOVE_GROUND_M`` holding the most returns; both are then refined by a least-squares
     plane through the returns within 0.15 m of it. Measured: -1.71 to -1.77 m on drive
@@ -276,7 +276,7 @@ def ground_plane(points) -> tuple[np.ndarray, float] | None:
     Args:
         points: (N, 3+) finite points in the LiDAR frame, metres, z up.
     """
-    from crfdepth.projection import ground_normal
+    from crfdepth.geometry.projection import ground_normal
 
     pts = np.asarray(points, dtype=np.float64)[:, :3]
     if len(pts) < 3:

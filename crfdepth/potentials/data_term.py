@@ -1,7 +1,7 @@
 """What the LiDAR tells the CRF: gated returns, the prior fill and per-node aggregates.
 
 Shared by both graphs of :class:`crfdepth.model.CRFDepth` (docs/design.md sections 3 and 3b):
-the occlusion gate of :mod:`crfdepth.occlusion` scales each return's data weight, the
+the occlusion gate of :mod:`crfdepth.potentials.occlusion` scales each return's data weight, the
 returns it rejects (gate < 1/2) are left out of everything that takes hard evidence (the
 prior fill, LiDAR normals, the learned head's inputs), and a superpixel's LiDAR value is
 the gate-weighted mean of its returns.
@@ -13,15 +13,15 @@ from typing import Literal
 
 import torch
 
-from crfdepth.classical import ip_basic_fill
-from crfdepth.fill import nearest_fill
-from crfdepth.occlusion import gate_or_fallback
-from crfdepth.potentials import Variable, to_unknown
+from crfdepth.fill.ip_basic import ip_basic_fill
+from crfdepth.fill.nearest import nearest_fill
+from crfdepth.potentials.occlusion import gate_or_fallback
+from crfdepth.potentials.energy import Variable, to_unknown
 
 __all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
 
 PRIORS = ("nearest", "ip_basic")
-"""The prior fills ``x0``: nearest LiDAR return (:mod:`crfdepth.fill`) or IP-Basic (:mod:`crfdepth.classical`)."""
+"""The prior fills ``x0``: nearest LiDAR return (:mod:`crfdepth.fill.nearest`) or IP-Basic (:mod:`crfdepth.fill.ip_basic`)."""
 
 
 def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor] | None, window: int,

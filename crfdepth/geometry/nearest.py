@@ -1,7 +1,7 @@
 """The nearest valid pixel of every pixel: exact Euclidean, in torch on any device (docs/design.md section 10).
 
-The nearest-LiDAR fill (:mod:`crfdepth.fill`) and the predictive std's distance signal
-(:mod:`crfdepth.predictive`) both need, for each pixel, the nearest pixel holding a
+The nearest-LiDAR fill (:mod:`crfdepth.fill.nearest`) and the predictive std's distance signal
+(:mod:`crfdepth.uncertainty.predictive`) both need, for each pixel, the nearest pixel holding a
 return. On the CPU SciPy's and OpenCV's distance transforms do this in C (12 ms and 2 ms
 at 1216x352) and are used there. On other devices this module does it without leaving
 the device, exactly, in two separable passes (the idea of the separable exact

@@ -36,7 +36,7 @@ import torch
 from crfdepth.crf import grid_crf
 from crfdepth.linalg import SolveInfo
 from crfdepth.linalg.operators import PixelGrid
-from crfdepth.potentials import Variable, grid_system, to_depth
+from crfdepth.potentials.energy import Variable, grid_system, to_depth
 
 __all__ = ["DEFAULT_IRLS_SCALE", "leave_one_out", "reweight", "robust_factor"]
 
@@ -84,7 +84,7 @@ def reweight(t: dict, x: torch.Tensor, sparse: torch.Tensor, rounds: int, scale:
     solution, and solves again (warm-started); the last solve carries the gradients.
 
     Args:
-        t: the potentials of :func:`crfdepth.potentials.grid_potentials` that gave ``x``.
+        t: the potentials of :func:`crfdepth.potentials.energy.grid_potentials` that gave ``x``.
         x: (B, H, W) their solution, in the unknown ``variable``.
         sparse: (B, 1, H, W) LiDAR depth in metres, 0 = none.
         rounds: >= 1; scale: ``sigma`` (1/m); settings: the solver settings.

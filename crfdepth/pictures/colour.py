@@ -5,12 +5,12 @@ an uint8 **RGB** image; nothing is written and the input is never modified. Pixe
 without a value (0, negative, NaN or inf: KITTI's "no measurement") are painted
 ``invalid_color`` (black by default), which neither colour map uses.
 
-Pictures for people, with a colour bar in metres under the map, are in :mod:`crfdepth.pictures`:
+Pictures for people, with a colour bar in metres under the map, are in :mod:`crfdepth.pictures.figures`:
 
-- :func:`crfdepth.pictures.depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
+- :func:`crfdepth.pictures.figures.depth_picture`: the dense depth (docs/design.md section 1), TURBO on *inverse*
   depth, near = warm (red), far = cold (blue). Inverse depth spreads the near range,
   where the detail is, and compresses the sky and far background.
-- :func:`crfdepth.pictures.std_picture`: the standard deviation (docs/design.md section 5),
+- :func:`crfdepth.pictures.figures.std_picture`: the standard deviation (docs/design.md section 5),
   VIRIDIS (dark purple = certain, yellow = uncertain) on a *log* scale by default: the
   std is small near the LiDAR and one or two decades larger far from it, and a linear
   scale paints everything near the data with a single colour.
@@ -145,7 +145,7 @@ def _robust_range(values: np.ndarray, percentiles, name: str, what: str) -> tupl
 
 
 def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
-    """The default colour range of :func:`crfdepth.pictures.depth_picture`: robust percentiles of the valid depths.
+    """The default colour range of :func:`crfdepth.pictures.figures.depth_picture`: robust percentiles of the valid depths.
 
     The 2nd to 98th percentile by default, so a few very near points or the far
     background do not squeeze the colours of the rest. To give every frame of a sequence
@@ -169,7 +169,7 @@ def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
 
 
 def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
-    """The default colour range of :func:`crfdepth.pictures.std_picture`: robust percentiles of the stds > 0.
+    """The default colour range of :func:`crfdepth.pictures.figures.std_picture`: robust percentiles of the stds > 0.
 
     Like :func:`depth_range`; zero stds are left out (the log scale has no place for
     them; they are painted with the bottom colour).
@@ -192,7 +192,7 @@ def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
 def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, *,
                    vis_range: tuple[float, float] | None = None, colormap: int = cv2.COLORMAP_TURBO,
                    invalid_color=_BLACK) -> np.ndarray:
-    """Colour map of a depth map, near = warm (no colour bar: see :func:`crfdepth.pictures.depth_picture`).
+    """Colour map of a depth map, near = warm (no colour bar: see :func:`crfdepth.pictures.figures.depth_picture`).
 
     The colour is linear in inverse depth: ``t = (1/d - 1/vmax) / (1/vmin - 1/vmax)``,
     clipped to [0, 1], so ``vmin`` (and nearer) gets the warm end of ``colormap`` (dark
@@ -242,7 +242,7 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
                  percentile: float = 99.0, colormap: int = cv2.COLORMAP_VIRIDIS,
                  invalid_color=_BLACK) -> np.ndarray:
     """Colour map of a standard-deviation (uncertainty) map, certain = dark (no colour bar:
-    see :func:`crfdepth.pictures.std_picture`).
+    see :func:`crfdepth.pictures.figures.std_picture`).
 
     ``scale="linear"``: ``t = (std - vmin) / (vmax - vmin)``; ``scale="log"``:
     ``t = log(std / vmin) / log(vmax / vmin)``; clipped to [0, 1]. With VIRIDIS, ``vmin``

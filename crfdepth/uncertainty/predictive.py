@@ -21,7 +21,7 @@ through a log-linear model, ``log std = bias + sum_k c_k log(f_k + offset_k)``: 
 of powers of the signals, so every term scales the std multiplicatively and the weights
 are comparable. The conditional variance ``1 / A_ii`` is the exact lower bound of the
 posterior variance (the variance of a pixel given its neighbours) and costs nothing; the
-sampled posterior (:mod:`crfdepth.uncertainty`) costs 40 solves and is the model's
+sampled posterior (:mod:`crfdepth.uncertainty.posterior`) costs 40 solves and is the model's
 ``uncertainty="posterior"`` option.
 
 The model's std adds, in quadrature, the range noise of the LiDAR itself
@@ -47,8 +47,8 @@ import torch
 from torch import nn
 
 from crfdepth.errors import InputError
-from crfdepth.nearest import nearest_valid
-from crfdepth.windows import window_max
+from crfdepth.geometry.nearest import nearest_valid
+from crfdepth.geometry.windows import window_max
 
 __all__ = ["DEFAULT_STD_TERMS", "RANGE_NOISE_M", "STD_TERMS", "PredictiveStd", "check_std_terms", "fit_std_terms",
            "predictive_std", "std_features"]
@@ -80,7 +80,7 @@ def _distance(missing: np.ndarray) -> np.ndarray:
 
 def return_distance(kept: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) exact distance in pixels to the nearest return of ``kept`` (the image diagonal in a
-    frame without one): OpenCV on the CPU (2 ms at 1216x352), :func:`crfdepth.nearest.nearest_valid` elsewhere."""
+    frame without one): OpenCV on the CPU (2 ms at 1216x352), :func:`crfdepth.geometry.nearest.nearest_valid` elsewhere."""
     if kept.device.type == "cpu":
         missing = (kept[:, 0] <= 0).numpy()
         return torch.from_numpy(np.stack([_distance(m) for m in missing])[:, None]).to(kept.dtype)

@@ -15,11 +15,11 @@ import torch
 from skimage.segmentation import relabel_sequential, slic
 
 from crfdepth.errors import InputError
-from crfdepth.slic import slic_torch
+from crfdepth.superpixels.slic import slic_torch
 
 __all__ = ["SlicBackend", "batch_segments", "paint", "slic_batch", "slic_segments"]
 
-#: Implementation of :func:`slic_segments`: ``"torch"`` (:func:`crfdepth.slic.slic_torch`,
+#: Implementation of :func:`slic_segments`: ``"torch"`` (:func:`crfdepth.superpixels.slic.slic_torch`,
 #: on the image's device), ``"skimage"`` (:func:`skimage.segmentation.slic`, on the CPU)
 #: or ``"auto"`` (see :func:`slic_segments`).
 SlicBackend = Literal["auto", "torch", "skimage"]
@@ -124,7 +124,7 @@ def slic_segments(
       ``enforce_connectivity=True``, labels renumbered consecutively with
       :func:`skimage.segmentation.relabel_sequential`; runs on the CPU (a GPU image makes a
       host round trip).
-    - ``backend="torch"``: :func:`crfdepth.slic.slic_torch`, on the image's device. Same
+    - ``backend="torch"``: :func:`crfdepth.superpixels.slic.slic_torch`, on the image's device. Same
       grid, distance and iterations; the k-means labels agree with scikit-image's on
       99.96-99.99% of the pixels of the real frames (the candidate centres are the 3x3
       seed blocks around a pixel instead of every centre within two grid steps); small
@@ -207,7 +207,7 @@ def slic_batch(images: torch.Tensor, n_segments: int = 5500, *, compactness: flo
                max_num_iter: int = 5, convert2lab: bool = True, backend: SlicBackend = "auto") -> torch.Tensor:
     """:func:`slic_segments` of every frame of a (B, 3, H, W) batch (same arguments): (B, H, W) int64
     labels ``0 .. S_k-1`` per frame. The torch backend runs the whole batch at once on the images'
-    device (:func:`crfdepth.slic.slic_torch`); scikit-image one frame after another."""
+    device (:func:`crfdepth.superpixels.slic.slic_torch`); scikit-image one frame after another."""
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
         raise InputError(f"image: expected a (B, 3, H, W) RGB tensor, got {_describe(images)}")
     settings = dict(compactness=compactness, sigma=sigma, max_num_iter=max_num_iter, convert2lab=convert2lab)

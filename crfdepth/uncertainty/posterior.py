@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.linalg.autograd import solve_grid_laplacian_trusted, solve_laplacian_trusted
+from crfdepth.linalg.adjoint import solve_grid_laplacian_trusted, solve_laplacian_trusted
 from crfdepth.linalg.solve import solver_settings
 
 #: Memory the sampling estimate may use at once; the samples are solved in chunks that fit.

@@ -20,7 +20,7 @@ The target of a pixel is the nearest kept return of the frame's own scan where i
 (rule c: the own scan has priority where it is consistent), else the nearest kept return of
 the other scans. :class:`Targets` carries the depth, a per-pixel support count (how many
 scans have a kept return within the band of the target) and the reason code of every
-dropped return; :func:`crfdepth.pictures.targets_picture` paints them.
+dropped return; :func:`crfdepth.pictures.figures.targets_picture` paints them.
 
 Pure numpy (and OpenCV for the min filters); no torch, no Lightning.
 """
@@ -35,8 +35,8 @@ import numpy as np
 
 from crfdepth.checks import check_intrinsics, check_number, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.free_space import seen_through
-from crfdepth.projection import _check_image_size
+from crfdepth.sequences.free_space import seen_through
+from crfdepth.geometry.projection import _check_image_size
 
 __all__ = [
     "KEPT",

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 
 from crfdepth.errors import ConvergenceError, ConvergenceWarning
-from crfdepth.linalg.krylov import conjugate_gradient, conjugate_gradient_squared
+from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.multigrid import GridMultigrid
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 

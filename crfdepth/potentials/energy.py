@@ -21,7 +21,7 @@ from typing import Literal
 import torch
 
 from crfdepth.linalg.operators import grid_edge_index
-from crfdepth.normals import camera_points, dense_normals
+from crfdepth.geometry.normals import camera_points, dense_normals
 
 
 #: The CRF's unknown (docs/design.md section 3b): ``"depth"`` solves for z (the paper),
@@ -248,8 +248,8 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         variable: the unknown, ``"depth"`` or ``"inverse"`` (:func:`to_unknown`); ``z`` and
             ``prior`` of the result are in it, ``geometry`` stays depth.
         gate: (B, 1, H, W) per-pixel factor on the data weight (the occlusion gate of
-            :mod:`crfdepth.occlusion`) or None.
-        factors: ``(data (B, 1, H, W), edge (B, 2, H, W))`` of :class:`crfdepth.head.PotentialHead`
+            :mod:`crfdepth.potentials.occlusion`) or None.
+        factors: ``(data (B, 1, H, W), edge (B, 2, H, W))`` of :class:`crfdepth.potentials.head.PotentialHead`
             or None: the data weight is multiplied by ``data``, the pairwise weights of the
             edge to the right / downwards of a pixel by ``edge[:, 0]`` / ``edge[:, 1]``.
 

@@ -13,7 +13,7 @@ import torch
 from scipy.ndimage import distance_transform_edt
 
 from crfdepth.checks import check_depth_frames
-from crfdepth.nearest import nearest_valid
+from crfdepth.geometry.nearest import nearest_valid
 
 __all__ = ["nearest_fill"]
 
@@ -28,7 +28,7 @@ def _fill_frame(depth: np.ndarray) -> np.ndarray:
 
 
 def fill_on_device(frames: torch.Tensor) -> torch.Tensor:
-    """(B, H, W) checked depth -> nearest fill with :func:`crfdepth.nearest.nearest_valid` (any device)."""
+    """(B, H, W) checked depth -> nearest fill with :func:`crfdepth.geometry.nearest.nearest_valid` (any device)."""
     index, _ = nearest_valid(frames > 0)
     return torch.gather(frames.flatten(1), 1, index.flatten(1)).view_as(frames)
 
@@ -39,7 +39,7 @@ def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
     Uses :func:`scipy.ndimage.distance_transform_edt` with ``return_indices=True`` (exact
     Euclidean distance; among equally near valid pixels, scipy's deterministic choice) on
     the CPU, about 12 ms per 1216x352 frame; on other devices the same exact distances
-    without leaving the device (:func:`crfdepth.nearest.nearest_valid`; ties may pick
+    without leaving the device (:func:`crfdepth.geometry.nearest.nearest_valid`; ties may pick
     another of the equally near pixels). Valid pixels keep their value. Not
     differentiable (it is a fixed prior, not a learned quantity); the output is detached,
     on the input's device and dtype, and the input is not modified.

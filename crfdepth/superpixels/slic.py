@@ -378,12 +378,12 @@ def slic_torch(
 ) -> torch.Tensor:
     """SLIC superpixels of a batch of RGB images in torch (paper Sec. 3.2).
 
-    The algorithm and parameters of :func:`crfdepth.superpixels.slic_segments` (scikit-image's
+    The algorithm and parameters of :func:`crfdepth.superpixels.segments.slic_segments` (scikit-image's
     ``slic`` with ``enforce_connectivity=True``), batched over frames and run on the
     image's device; see the module docstring for the steps and where they differ from
     scikit-image. Computed in float32 whatever the input dtype. About 0.1 s per 1216x352
     frame with 5500 segments on 2 CPU threads, half of scikit-image's time (measurements
-    in :func:`crfdepth.superpixels.slic_segments`).
+    in :func:`crfdepth.superpixels.segments.slic_segments`).
 
     Args:
         image: (B, 3, H, W) or (3, H, W) float tensor, RGB in [0, 1]. Not modified. Each

@@ -21,7 +21,7 @@ from kornia.filters import bilateral_blur, gaussian_blur2d, median_blur
 
 from crfdepth.checks import check_depth_frames, check_number
 from crfdepth.errors import InputError
-from crfdepth.fill import nearest_fill
+from crfdepth.fill.nearest import nearest_fill
 
 __all__ = ["CONFIGS", "MIN_DEPTH_M", "Config", "ip_basic_fill"]
 
@@ -66,14 +66,14 @@ def ip_basic_fill(sparse: torch.Tensor, *, config: Config = "fast", max_depth: f
     border pixels. **Deviation (paper):** pixels that steps 2 to 6 leave empty (more than
     15 px from every filled pixel below the top-most one of their column, or in a column
     without returns; none on the two official KITTI val frames) take, before step 7, the
-    value of the nearest filled pixel (:func:`crfdepth.fill.nearest_fill`). The paper
+    value of the nearest filled pixel (:func:`crfdepth.fill.nearest.nearest_fill`). The paper
     leaves them empty and blurs only the filled pixels, mixing the zeros of empty
     neighbours into them; here step 7 sees no empty pixel, and the output is > 0
     everywhere. LiDAR pixels do not keep their exact value (step 7 smooths them).
 
     About 0.1 s of CPU time per 1216x352 frame (``"multiscale"``: 0.2 s), half of it the median.
 
-    Not differentiable (a fixed prior, like :func:`crfdepth.fill.nearest_fill`): the output
+    Not differentiable (a fixed prior, like :func:`crfdepth.fill.nearest.nearest_fill`): the output
     is detached, on the input's device and dtype; the input is not modified.
 
     Args:

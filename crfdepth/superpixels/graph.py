@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.superpixels import _describe, _image_tensor, _labels_tensor, slic_batch
+from crfdepth.superpixels.segments import _describe, _image_tensor, _labels_tensor, slic_batch
 
 __all__ = [
     "DIRECTIONS_DEG",
@@ -94,7 +94,7 @@ def boundary_pairs(node: torch.Tensor, num_nodes: int) -> tuple[torch.Tensor, to
 
     Args:
         node: (H, W) or (B, H, W) int64 node index per pixel, ``0 .. num_nodes-1`` (for a
-            batch, global indices as from :func:`crfdepth.superpixels.batch_segments`).
+            batch, global indices as from :func:`crfdepth.superpixels.segments.batch_segments`).
         num_nodes: number of nodes.
 
     Returns:

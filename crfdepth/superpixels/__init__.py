@@ -1,0 +1,1 @@
+"""SLIC superpixels, their label maps and the region graph the CRF runs on (docs/design.md section 2)."""
