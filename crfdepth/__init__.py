@@ -11,7 +11,7 @@ from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
 from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
 from crfdepth.model import CRFDepth, CRFOutput
-from crfdepth.weights import load_model, load_pretrained, save_model, save_weights
+from crfdepth.checkpoints import load_model, load_pretrained, save_model, save_weights
 
 from crfdepth._version import __version__  # pyproject.toml's version, via the package metadata
 

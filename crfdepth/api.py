@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import torch
 
+from crfdepth.checkpoints import load_pretrained
 from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import Calibration, RigCalibration
@@ -276,8 +277,6 @@ def _device(device) -> torch.device:
 
 
 def _model_on(model, device: str | torch.device):
-    from crfdepth.weights import load_pretrained
-
     device = _device(device)
     if model is None:
         return load_pretrained().to(device)
@@ -335,7 +334,7 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             When given, the image is undistorted (module docstring) and the output is
             the depth of the undistorted image.
         model: a :class:`~crfdepth.model.CRFDepth` (e.g. from
-            :func:`crfdepth.weights.load_model`, or ``CRFDepth.from_pretrained("paper")``
+            :func:`crfdepth.load_model`, or ``CRFDepth.from_pretrained("paper")``
             for the hand-set weights); None = ``CRFDepth.from_pretrained()``, the weights
             learned on KITTI. Used in its current train/eval mode, under ``no_grad``; a
             model on another device is copied there (the caller's model is not moved).

@@ -41,6 +41,7 @@ from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, Variable, colour
 from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE, reweight
 from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.posterior import conditional_variance, grid_conditional_variance
+from crfdepth.weights import load_state, pretrained_state, weights_path
 
 Mode = Literal["superpixel", "pixel"]
 POTENTIALS = ("colour", "normal", "distance")
@@ -211,7 +212,7 @@ class CRFDepth(ConstrainedWeights):
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
-        """The model with a shipped weight set, in eval mode (:func:`crfdepth.weights.load_pretrained`).
+        """The model with a shipped weight set, in eval mode (:func:`crfdepth.checkpoints.load_pretrained`).
 
         ``"kitti"``: weights learned on real KITTI frames (``crfdepth/weights/README.md``
         says how); ``"paper"``: the hand-set initial values of ``CRFDepth()``.
@@ -220,12 +221,34 @@ class CRFDepth(ConstrainedWeights):
         depth, occlusion gate). Stored tensors are loaded with every key checked (a
         missing or unexpected one is an error naming the file).
         """
-        return CRFDepth.pretrained_loader(cls, name, overrides)
+        config, state = pretrained_state(name)
+        return cls.from_stored({**config, **overrides}, state, file=weights_path(name)).eval()
 
-    pretrained_loader: Callable[..., "CRFDepth"] | None = None
-    """``(cls, name, overrides) -> model``: the shipped-weights loader, which :mod:`crfdepth.weights`
-    sets when it is imported (``import crfdepth`` does, so before any submodule), so that this
-    module does not import the package that builds it (no import cycle)."""
+    @classmethod
+    def from_stored(cls, config: Mapping, state: dict[str, torch.Tensor], *, file=None,
+                    kind: str | None = None) -> "CRFDepth":
+        """The model built from a stored configuration and state dict: the one step every loader
+        (shipped sets, weights files, checkpoints) ends in, with its checks.
+
+        ``kind`` names the file's kind ("Lightning checkpoint" ...) when the configuration
+        comes from that file, and errors in it name the file; without it the configuration's
+        faults are the caller's ``overrides``.
+
+        Raises:
+            InputError: a configuration ``CRFDepth`` rejects, or tensors that do not fit it
+                (:func:`crfdepth.weights.state.load_state`), naming ``file``.
+        """
+        try:
+            model = cls(**config)
+        except TypeError as exc:  # unknown or missing keyword arguments
+            if kind is None:
+                raise InputError(f"overrides: not CRFDepth arguments ({exc})") from None
+            raise InputError(f"{file}: the {kind}'s model configuration does not fit CRFDepth ({exc})") from None
+        except InputError as exc:
+            if kind is None:
+                raise
+            raise InputError(f"{file}: invalid model configuration in the {kind} ({exc})") from None
+        return load_state(file, model, state) if state else model
 
     def _scales(self) -> tuple[torch.Tensor, ...]:
         """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""

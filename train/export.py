@@ -1,4 +1,4 @@
-"""Turn a trainer checkpoint into a crfdepth weights file (JSON, :mod:`crfdepth.weights`).
+"""Turn a trainer checkpoint into a crfdepth weights file (JSON, :mod:`crfdepth.checkpoints`).
 
 ::
 
@@ -29,7 +29,7 @@ from typing import Any, Sequence
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.weights import load_model, save_weights
+from crfdepth.checkpoints import load_model, save_weights
 from train.calibrate import calibrate_std
 
 

@@ -5,7 +5,7 @@ fits its few parameters (alpha..delta, the sigmas, the data confidence, the refi
 prior and, with a negative log-likelihood term, the std scale) with Adam, by backpropagating a depth loss on
 the target pixels through the CRF's implicit solves.
 
-Checkpoint contract (read by :func:`crfdepth.weights.load_model` and
+Checkpoint contract (read by :func:`crfdepth.load_model` and
 ``crfdepth evaluate``): state-dict keys are ``model.<parameter>``, and
 ``checkpoint["hyper_parameters"]["crf"]`` holds the complete ``CRFDepth`` constructor
 arguments (``CRFDepth(**crf)`` rebuilds the model; the defaults are written out when the

@@ -45,7 +45,8 @@ from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, cli_advice
 from crfdepth.model import POTENTIALS, CRFDepth
 from crfdepth.pictures.figures import depth_picture, std_picture
-from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, describe, load_model, load_pretrained, own_structure
+from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
+from crfdepth.checkpoints import describe, load_model, load_pretrained, own_structure
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     shared by ``complete`` and ``evaluate``; :func:`build_model` reads it.
 
     The help texts of the structure options name the shipped sets' own values, read from the
-    sets (:func:`crfdepth.weights.own_structure`), so they say what a run without them does."""
+    sets (:func:`crfdepth.checkpoints.own_structure`), so they say what a run without them does."""
 
     def own(key: str) -> str:  # e.g. "kitti: pixel, paper: superpixel" or "5500 for the shipped sets"
         values = {name: own_structure(name).get(key) for name in WEIGHTS}
@@ -125,8 +126,8 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--checkpoint", metavar="CKPT",
                        help="trained model instead of --weights, run in the structure stored with it: a "
                             "Lightning .ckpt of train/ (configuration in hyper_parameters['crf']), a model file "
-                            "of crfdepth.weights.save_model(model, path), or a JSON weights file "
-                            "(crfdepth.weights.save_weights, python -m train.export); a bare state_dict is "
+                            "of crfdepth.save_model(model, path), or a JSON weights file "
+                            "(crfdepth.save_weights, python -m train.export); a bare state_dict is "
                             "refused (it holds no structure)")
     model.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="default: cpu")
     model.add_argument("--dtype", choices=("float32", "float64"), default="float32",
@@ -271,9 +272,9 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
     """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
 
     Without ``--checkpoint``: the shipped weight set ``--weights`` (default "kitti",
-    :func:`crfdepth.weights.load_pretrained`) in its own structure (kitti: pixel grid, log
+    :func:`crfdepth.load_pretrained`) in its own structure (kitti: pixel grid, log
     depth, occlusion gate), the options given overriding it. With it:
-    :func:`crfdepth.weights.load_model` rebuilds the model from the checkpoint's
+    :func:`crfdepth.load_model` rebuilds the model from the checkpoint's
     configuration (a bare state dict, which has none, is refused), and the explicit options
     (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``) override that
     configuration. Prints the model line (:func:`model_line`) on stdout unless ``--quiet``.

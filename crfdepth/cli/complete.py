@@ -63,8 +63,8 @@ be writable). Each PNG is written atomically, so a failed run leaves no partial 
 The model (:func:`build_model`): without ``--checkpoint``, the shipped weights named by
 ``--weights`` (default ``kitti``, learned on KITTI; ``paper`` = the hand-set initial
 values of ``CRFDepth()``) with the options given. ``--checkpoint`` is read by
-:func:`crfdepth.weights.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
-:func:`crfdepth.weights.save_model` or a JSON weights file; a bare state dict, which holds
+:func:`crfdepth.load_model` (a Lightning ``.ckpt`` of ``train/``, a file of
+:func:`crfdepth.save_model` or a JSON weights file; a bare state dict, which holds
 no configuration, is refused): the checkpoint's configuration defines the model, and the model options
 given explicitly (``--mode``, ``--superpixels``, ``--potentials``, ``--no-refine``)
 override it, e.g. ``--mode pixel`` runs superpixel-trained weights on the pixel graph.

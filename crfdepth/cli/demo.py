@@ -52,7 +52,8 @@ from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
-from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, load_pretrained, own_structure
+from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
+from crfdepth.checkpoints import load_pretrained, own_structure
 from crfdepth.pictures.figures import depth_picture, std_picture
 from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
 

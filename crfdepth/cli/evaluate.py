@@ -7,7 +7,7 @@
         [--batch-size B] [--workers N]
 
 Runs :class:`~crfdepth.model.CRFDepth` (``--checkpoint`` read by
-:func:`crfdepth.weights.load_model`; without it, the shipped ``--weights``, by default
+:func:`crfdepth.load_model`; without it, the shipped ``--weights``, by default
 the ones learned on KITTI), in the structure stored with the weights unless ``--mode``
 etc. override it (the line ``model: ...`` says which; ``--quiet`` drops it), over the
 frames of ``crfdepth.data.build_dataset(--layout, --data, ...)`` under
@@ -93,7 +93,8 @@ from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
                               uncertainty_metrics)
-from crfdepth.weights import DEFAULT_WEIGHTS, describe
+from crfdepth.weights import DEFAULT_WEIGHTS
+from crfdepth.checkpoints import describe
 
 logger = logging.getLogger(__name__)
 

@@ -1,15 +1,15 @@
-"""Reading and writing the files of :mod:`crfdepth.weights`, without building a model.
+"""Reading and writing weights files and checkpoints, without building a model.
 
 Everything here works on plain data: a configuration (``CRFDepth`` keyword arguments)
 and a state dict (parameter name -> tensor). Building the
-:class:`~crfdepth.model.CRFDepth` is left to the caller (:mod:`crfdepth.weights`,
-``CRFDepth.from_pretrained``), so this module does not import :mod:`crfdepth.model` and
-the model can import it (docs/design.md section 8).
+:class:`~crfdepth.model.CRFDepth` is left to the caller (``CRFDepth.from_stored``), so this
+module does not import :mod:`crfdepth.model` and the model can import it (docs/design.md
+section 8).
 
 - The shipped weight sets: :func:`weights_path`, :func:`pretrained_state`.
 - The JSON weights file: :func:`read_weights`, :func:`write_weights`.
 - crfdepth's own model file: :func:`write_model_file`.
-- Any checkpoint (the three kinds of the :mod:`crfdepth.weights` docstring):
+- Any checkpoint (the three kinds of the :mod:`crfdepth.checkpoints` docstring):
   :func:`read_checkpoint`. Torch files are read with ``torch.load(weights_only=True)``;
   every floating tensor must be finite. A bare ``state_dict()`` is refused
   (:data:`BARE_STATE_DICT`): it does not say which structure its weights belong to.
@@ -34,7 +34,7 @@ __all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MOD
            "write_model_file", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
-"""Names of the shipped weight sets (:func:`crfdepth.weights.load_pretrained`, ``--weights``)."""
+"""Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
 DEFAULT_WEIGHTS = "kitti"
 """The weight set used when none is named and no checkpoint is given."""
 WEIGHTS_FORMAT = "crfdepth-weights"
@@ -42,7 +42,7 @@ WEIGHTS_FORMAT = "crfdepth-weights"
 WEIGHTS_VERSION = 1
 """Version of the weights-file layout that this module reads and writes."""
 MODEL_FORMAT = "crfdepth"
-"""Value of the ``"format"`` key of a crfdepth model file (:func:`crfdepth.weights.save_model`)."""
+"""Value of the ``"format"`` key of a crfdepth model file (:func:`crfdepth.save_model`)."""
 MODEL_VERSION = 1
 """Version of the model-file layout that this module reads and writes."""
 LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
@@ -56,7 +56,7 @@ _OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "ne
 BARE_STATE_DICT = (
     "path: {file}: expected a complete model file, got a bare state dict: it holds weights but not the "
     "model's structure (mode, variable, gate ...); load it into the model it came from and save that with "
-    "crfdepth.weights.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
+    "crfdepth.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
 """The refusal of a bare ``state_dict()`` (no configuration): run in another structure (the default
 one), the weights would give wrong depth without any error."""
 
@@ -324,7 +324,7 @@ def _unpack(file: Path, loaded: Any) -> tuple[dict[str, Any], dict[str, torch.Te
         state = {k[len(_LIGHTNING_PREFIX):]: v for k, v in full.items() if k.startswith(_LIGHTNING_PREFIX)}
         if not state:
             raise InputError(f"{file}: {kind} has no '{_LIGHTNING_PREFIX}' keys in its state_dict (the CRF "
-                             f"is stored as the LightningModule's 'model'); got {_some(sorted(full))}")
+                             f"is stored as the LightningModule's 'model'); got {some_keys(sorted(full))}")
         return dict(config), state, kind
     _state_dict(file, loaded, "file")  # not even a state dict: that is the message
     raise InputError(BARE_STATE_DICT.format(file=file))
@@ -397,7 +397,7 @@ def _is_config(value: Any) -> bool:
     return isinstance(value, Mapping) and all(isinstance(k, str) for k in value)
 
 
-def _some(keys: list[str], n: int = 5) -> str:
+def some_keys(keys: list[str], n: int = 5) -> str:
     return ", ".join(keys[:n]) + (" ..." if len(keys) > n else "")
 
 

@@ -24,7 +24,8 @@ from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.weights import save_model, weights_path
+from crfdepth.weights import weights_path
+from crfdepth.checkpoints import save_model
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
 # Cheap model options for tests about files and names rather than accuracy.
@@ -382,7 +383,7 @@ def _modified_model() -> CRFDepth:
 
 
 def _model_file(state: dict[str, torch.Tensor]):
-    """Writes a crfdepth model file (crfdepth.weights.save_model's layout) of the default configuration."""
+    """Writes a crfdepth model file (crfdepth.save_model's layout) of the default configuration."""
     return lambda p: torch.save({"format": "crfdepth", "version": 1, "config": CRFDepth().config,
                                  "state_dict": state}, p)
 

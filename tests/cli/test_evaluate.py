@@ -32,7 +32,7 @@ from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.metrics import METRICS, UNCERTAINTY_METRICS, UNITS, average_metrics, depth_metrics, uncertainty_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.weights import save_model
+from crfdepth.checkpoints import save_model
 
 COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
 

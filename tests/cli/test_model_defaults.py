@@ -18,7 +18,8 @@ from crfdepth import cli
 from crfdepth.data.synthetic import make_scene
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.model import CRFDepth
-from crfdepth.weights import WEIGHTS, load_pretrained, save_model
+from crfdepth.weights import WEIGHTS
+from crfdepth.checkpoints import load_pretrained, save_model
 
 KITTI_LINE = "model: kitti weights, pixel grid, log depth, occlusion gate"
 PAPER_LINE = "model: paper weights, superpixel graph (5500 segments) + pixel refinement, depth, no gate"
@@ -172,7 +173,7 @@ def _bare(tmp_path: Path) -> Path:
 def _bare_line(command: str, path: Path) -> str:
     return (f"crfdepth {command}: error: --checkpoint: {path}: expected a complete model file, got a bare state "
             f"dict: it holds weights but not the model's structure (mode, variable, gate ...); load it into the "
-            f"model it came from and save that with crfdepth.weights.save_model(model, path), or give the "
+            f"model it came from and save that with crfdepth.save_model(model, path), or give the "
             f"trainer's Lightning .ckpt as it is")
 
 
@@ -225,7 +226,7 @@ def test_help_names_the_real_default_structure(main, capsys, command):
 def test_checkpoint_help_names_the_real_function(main, capsys, command):
     text = _help(main, capsys, command)
     assert "crfdepth.checkpoint" not in text
-    assert "crfdepth.weights.save_model(model, path)" in text and "a bare state_dict is refused" in text
+    assert "crfdepth.save_model(model, path)" in text and "a bare state_dict is refused" in text
     import crfdepth.weights
 
-    assert callable(crfdepth.weights.save_model)
+    assert callable(crfdepth.save_model)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from crfdepth.model import CRFDepth
-from crfdepth.weights import load_model
+from crfdepth.checkpoints import load_model
 from train.export import main
 
 

@@ -148,7 +148,7 @@ def test_checkpoint_loads_with_weights_only(kitti_run):
         assert keys == {f"model.{k}" for k in CRFDepth().state_dict()}
         assert ckpt["datamodule_hyper_parameters"]["val_names_contain"] == "drive_0001"
 
-    from crfdepth.weights import load_model
+    from crfdepth.checkpoints import load_model
 
     ckpt = torch.load(kitti_run.checkpoints()[-1], weights_only=True)
     model = load_model(kitti_run.checkpoints()[-1])

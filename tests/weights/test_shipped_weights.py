@@ -9,7 +9,8 @@ import torch
 from crfdepth import CRFDepth, complete_depth
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
-from crfdepth.weights import LEARNED, WEIGHTS, files, load_pretrained, pretrained_state, read_weights, weights_path
+from crfdepth.weights import LEARNED, WEIGHTS, files, pretrained_state, read_weights, weights_path
+from crfdepth.checkpoints import load_pretrained
 
 
 def _close(a: dict[str, float], b: dict[str, float], rtol: float = 1e-5) -> bool:

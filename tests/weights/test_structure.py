@@ -10,17 +10,8 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
-from crfdepth.weights import (
-    LEARNED,
-    describe,
-    files,
-    load_model,
-    load_pretrained,
-    own_structure,
-    save_model,
-    save_weights,
-    weights_path,
-)
+from crfdepth.weights import LEARNED, files, weights_path
+from crfdepth.checkpoints import describe, load_model, load_pretrained, own_structure, save_model, save_weights
 from crfdepth.weights.files import BARE_STATE_DICT, read_checkpoint
 
 KITTI_STRUCTURE = dict(mode="pixel", variable="log", gate=True)
@@ -33,7 +24,7 @@ def _structure(model: CRFDepth) -> dict:
 def _bare_refusal(path) -> str:
     return (f"path: {path}: expected a complete model file, got a bare state dict: it holds weights but not the "
             f"model's structure (mode, variable, gate ...); load it into the model it came from and save that "
-            f"with crfdepth.weights.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
+            f"with crfdepth.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
 
 
 # --------------------------------------------------------------------------- bare state dicts
