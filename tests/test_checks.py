@@ -28,6 +28,9 @@ def _sparse(median_m: float, count: int = 500, shape=(60, 80), seed=0) -> np.nda
 
 @pytest.mark.parametrize("median", [2.0, 14.0, 80.0, 120.0])
 def test_metres_pass(median):
+    """The same map in metres passes and in millimetres is refused: the check tells them apart."""
+    with pytest.raises(InputError, match="millimetres"):
+        check_sparse_units("sparse", _sparse(median) * 1000)
     check_sparse_units("sparse", _sparse(median))
     check_sparse_units("sparse", torch.from_numpy(_sparse(median)).float())
     if median <= 80:  # whole metres in an integer map, all below 300
@@ -35,8 +38,12 @@ def test_metres_pass(median):
 
 
 def test_empty_and_nan_maps_are_left_to_other_checks():
-    check_sparse_units("sparse", np.zeros((4, 5)))
-    check_sparse_units("sparse", np.full((4, 5), np.nan))
+    """No returns, or no finite ones: nothing to judge the unit by, so no unit error (the
+    empty-scan and non-finite checks name those faults)."""
+    for sparse in (np.zeros((4, 5)), np.full((4, 5), np.nan)):
+        assert check_sparse_units("sparse", sparse) is None
+    with pytest.raises(InputError, match="millimetres"):  # one millimetre-scale return is enough to judge
+        check_sparse_units("sparse", np.where(np.arange(20).reshape(4, 5) == 7, 14000.0, 0.0))
 
 
 def test_raw_png_codes_are_named_with_the_fix():

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.potentials.head import PotentialHead
 from crfdepth.model import CRFDepth
+from crfdepth.potentials.head import PotentialHead
+from tests.scenes import leaky_wall
 
 F, CY, H, W = 720.0, -20.0, 60, 96  # every row below the horizon: a road from 14 m to 59 m
 
@@ -83,28 +84,8 @@ def test_each_unknown_averages_a_near_and_a_far_return_in_its_own_space(variable
     assert torch.allclose(depth, torch.full_like(depth, mean), rtol=2e-3)
 
 
-def _leaky_wall(leak_columns=((30, 32), (58, 60))):
-    """A box at 8 m in front of a wall at 25 m, scan lines every 4 rows, with wall returns
-    leaked into the box's columns ``[a, b)`` of ``leak_columns`` on every scan line through it
-    (by default 2 px at both edges: the gate's default window, 5 px, sees a foreground
-    return within 2 px)."""
-    h, w = 48, 96
-    K = torch.tensor([[720.0, 0, w / 2], [0, 720.0, h / 2], [0, 0, 1]])
-    truth = torch.full((h, w), 25.0)
-    truth[12:40, 30:60] = 8.0
-    image = torch.full((1, 3, h, w), 0.8)
-    image[:, :, 12:40, 30:60] = 0.2
-    sparse = torch.zeros(h, w)
-    sparse[2::4] = truth[2::4]  # scan lines every 4 rows, a return in every column
-    leaked = torch.zeros(h, w, dtype=torch.bool)
-    for a, b in leak_columns:
-        leaked[14:38:4, a:b] = True
-    sparse[leaked] = 25.0
-    return image, sparse[None, None], K, truth, leaked
-
-
 def test_gate_keeps_leaked_background_out_of_the_foreground():
-    image, sparse, K, truth, leaked = _leaky_wall()
+    image, sparse, K, truth, leaked = leaky_wall()
     box = torch.zeros_like(truth, dtype=torch.bool)
     box[14:39, 30:60] = True  # the box between its first and last scan line
     err = {}
@@ -123,7 +104,7 @@ def test_gate_keeps_leaked_background_out_of_the_foreground():
 
 
 def test_gate_threshold_and_softness_get_gradients():
-    image, sparse, K, truth, _ = _leaky_wall()
+    image, sparse, K, truth, _ = leaky_wall()
     for mode in ("pixel", "superpixel"):
         model = CRFDepth(mode=mode, gate=True, superpixels=300, scale_superpixels=False).double()
         out = model(image.double(), sparse.double(), K.double())
@@ -134,7 +115,7 @@ def test_gate_threshold_and_softness_get_gradients():
 
 
 def test_ip_basic_prior_changes_only_the_prior():
-    image, sparse, K, truth, _ = _leaky_wall()
+    image, sparse, K, truth, _ = leaky_wall()
     with torch.no_grad():
         a = CRFDepth(mode="pixel", gate=True)(image, sparse, K).depth
         b = CRFDepth(mode="pixel", gate=True, prior="ip_basic")(image, sparse, K).depth
@@ -144,7 +125,7 @@ def test_ip_basic_prior_changes_only_the_prior():
 
 
 def test_fresh_head_is_the_identity_and_learns():
-    image, sparse, K, truth, _ = _leaky_wall()
+    image, sparse, K, truth, _ = leaky_wall()
     plain = CRFDepth(mode="pixel", gate=True)
     headed = CRFDepth(mode="pixel", gate=True, head=True)
     headed.load_state_dict(plain.state_dict(), strict=False)
@@ -160,7 +141,7 @@ def test_fresh_head_is_the_identity_and_learns():
 def test_head_factors_are_bounded_and_positive():
     head = PotentialHead(limit=2.0)
     torch.nn.init.normal_(head.net[-1].weight, std=100.0)
-    image, sparse, K, truth, _ = _leaky_wall()
+    image, sparse, K, truth, _ = leaky_wall()
     data, edge = head(image, sparse, truth[None, None])
     assert data.shape == (1, 1, 48, 96) and edge.shape == (1, 2, 48, 96)
     for f in (data.detach(), edge.detach()):

@@ -99,4 +99,4 @@ def test_more_gpus_than_the_machine_has(gpus, capsys, stop_after_checks, devices
 
 def test_check_accelerator_accepts_cpu_and_auto():
     for trainer in ({"accelerator": "cpu", "devices": 2}, {"accelerator": "auto", "devices": "auto"}, {}):
-        train_main.check_accelerator(trainer)  # no error
+        assert train_main.check_accelerator(trainer) is None  # no error

@@ -10,7 +10,7 @@ from crfdepth.linalg import grid_edge_index
 from crfdepth.linalg.operators import PixelGrid
 from crfdepth.model import CRFDepth
 from crfdepth.potentials.robust import leave_one_out, robust_factor
-from tests.test_model_beyond_paper import _leaky_wall
+from tests.scenes import leaky_wall
 
 
 def _dense_matrix(d, wh, wv):
@@ -74,7 +74,7 @@ def _isolated_leaks():
     """The box before the wall of the gate's tests, one wall return leaked into columns 40 and
     50 of the box on every scan line (isolated: no other leak beside it), and the box's rows
     between its first and last scan line."""
-    image, sparse, K, truth, leaked = _leaky_wall(leak_columns=((40, 41), (50, 51)))
+    image, sparse, K, truth, leaked = leaky_wall(leak_columns=((40, 41), (50, 51)))
     box = torch.zeros_like(leaked)
     box[14:39, 30:60] = True
     return image, sparse, K, truth, leaked, box
