@@ -219,33 +219,34 @@ def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
     """Iterations and time of each pixel-grid solve of the default and the superpixel model on
     ``frame`` (captured from a forward), with the Jacobi and multigrid preconditioners and "auto"."""
     import crfdepth.model as model_module
-    from crfdepth.linalg.adjoint import solve_grid_laplacian_trusted
+    from crfdepth.linalg import solve_system
 
-    captured, original = [], model_module.grid_crf
+    captured, original = [], model_module.solve_system
 
-    def capture(d, b, weight_h, weight_v, *, x0, settings):
-        captured.append((d, b, weight_h, weight_v, x0, settings))
-        return original(d, b, weight_h, weight_v, x0=x0, settings=settings)
+    def capture(system, x0, settings):
+        if system.is_grid:
+            captured.append((system, x0, settings))
+        return original(system, x0, settings)
 
     f = on_device(frame, device)
-    model_module.grid_crf = capture
+    model_module.solve_system = capture
     try:  # the default model's grid solves: the first pass and the round with geometry
         run_once("default", make_model("default", device), f, False, device)
         names = [f"default solve {k + 1}" for k in range(len(captured))]
         run_once("superpixel", make_model("superpixel", device), f, False, device)  # one grid solve: the refinement
         names.append("superpixel refinement")
     finally:
-        model_module.grid_crf = original
+        model_module.solve_system = original
     rows = []
-    for name, (d, b, weight_h, weight_v, x0, settings) in zip(names, captured):
-        row = dict(solve=name, size=list(d.shape[-2:]))
+    for name, (system, x0, settings) in zip(names, captured):
+        row = dict(solve=name, size=list(system.diagonal.shape[-2:]))
         for pre in ("jacobi", "multigrid", "auto"):
             chosen = replace(settings, preconditioner=pre)
             times = []
             for _ in range(repeats):
                 sync(device)
                 start = time.perf_counter()
-                _, info = solve_grid_laplacian_trusted(b, d, weight_h, weight_v, x0, chosen)
+                _, info = solve_system(system, x0, chosen)
                 sync(device)
                 times.append(time.perf_counter() - start)
             row[pre] = dict(iterations=int(info.iterations.max()), seconds=min(times))

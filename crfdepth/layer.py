@@ -42,10 +42,10 @@ import torch
 from torch import nn
 
 from crfdepth.checks import check_map, check_scalar_tensor, describe
-from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.superpixels.graph import boundary_pairs
-from crfdepth.linalg import SolveInfo, solver_settings
+from crfdepth.linalg import SolveInfo, System, solve_system, solver_settings
+from crfdepth.uncertainty.posterior import posterior_std
 from crfdepth.potentials.energy import unary_system
 from crfdepth.superpixels.segments import batch_segments, slic_batch
 
@@ -218,8 +218,9 @@ def crf_refine(
     std_settings = dict(samples=std_samples, seed=seed, rtol=max(rtol, 1e-4))
 
     if labels is None:
-        x, info = grid_crf(d, b, weight_h, weight_v, x0=y, settings=settings)
-        std = grid_crf_std(d, weight_h, weight_v, sigma, **std_settings)[:, None] if return_std else None
+        system = System.grid(d, b, weight_h, weight_v)
+        x, info = solve_system(system, y, settings)
+        std = posterior_std(system, sigma, **std_settings)[:, None] if return_std else None
         return RefineOutput(x[:, None], std, info)
 
     # Superpixel mode: the energy restricted to piecewise-constant maps (module docstring).
@@ -235,10 +236,11 @@ def crf_refine(
     pixel_weights = torch.cat([weight_h.reshape(-1), weight_v.reshape(-1)])[crossing]
     edge_weight = torch.zeros(edge_index.shape[1], dtype=y.dtype, device=y.device).index_add(
         0, pair_of_edge, pixel_weights)
-    x, info = graph_crf(d_s, b_s, edge_index, edge_weight, ptr, x0=x0, settings=settings)
+    system = System.graph(d_s, b_s, edge_index, edge_weight, ptr)
+    x, info = solve_system(system, x0, settings)
     std = None
     if return_std:
-        std = graph_crf_std(d_s, edge_index, edge_weight, ptr, sigma, **std_settings)[node][:, None]
+        std = posterior_std(system, sigma, **std_settings)[node][:, None]
     return RefineOutput(x[node][:, None], std, info)
 
 

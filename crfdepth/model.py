@@ -23,12 +23,11 @@ import torch
 from kornia.geometry.camera import unproject_points
 
 from crfdepth.checks import check_frames, check_number
-from crfdepth.crf import graph_crf, graph_crf_std, grid_crf, grid_crf_std
 from crfdepth.errors import InputError
 from crfdepth.potentials.data_term import PRIORS, lidar_evidence, node_lidar
 from crfdepth.superpixels.graph import build_superpixel_graphs
 from crfdepth.potentials.head import PotentialHead
-from crfdepth.linalg import SolveInfo, solver_settings
+from crfdepth.linalg import SolveInfo, solve_system, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.parameters import ConstrainedWeights
@@ -36,11 +35,11 @@ from crfdepth.geometry.normals import aggregate_normals, graph_normals, lidar_no
 from crfdepth.potentials.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
 from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms, std_features
 from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
-                                 distance_affinity, energy, grid_energy_terms, grid_potentials, grid_system,
-                                 normal_affinity, std_in_metres, system_terms, to_depth, to_unknown)
+                                 distance_affinity, energy, graph_system, grid_energy_terms, grid_potentials, grid_system,
+                                 normal_affinity, std_in_metres, to_depth, to_unknown)
 from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE, reweight
 from crfdepth.superpixels.segments import slic_batch
-from crfdepth.uncertainty.posterior import conditional_variance, grid_conditional_variance
+from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
 Mode = Literal["superpixel", "pixel"]
@@ -404,17 +403,16 @@ class CRFDepth(ConstrainedWeights):
         node_std = std = features = None
         if return_std:
             with stage("uncertainty"):
-                _, d, ew = system_terms(terms)
+                system = graph_system(terms, ptr)
                 if self.uncertainty == "posterior":
-                    node_std = graph_crf_std(d, edge_index, ew, ptr, self.std_scale, samples=self.std_samples)
+                    node_std = posterior_std(system, self.std_scale, samples=self.std_samples)
                     node_std = std_in_metres(node_std, x, self.variable)
                     std = node_std[labels][:, None]
                 else:
                     if self.refine:  # the last solve is the refinement's pixel grid
-                        gd, _, gwh, gwv = grid_system(t)
-                        var = grid_conditional_variance(gd, gwh, gwv)[:, None]
+                        var = system_conditional_variance(grid_system(t))[:, None]
                     else:
-                        var = conditional_variance(d, edge_index, ew)[labels][:, None]
+                        var = system_conditional_variance(system)[labels][:, None]
                     std, features = self._predictive(depth, sparse, kept, gate, var)
                     node_std = torch.cat([g.node_mean(std[b])[:, 0] for b, g in enumerate(graphs)])
         return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds, features)
@@ -427,8 +425,7 @@ class CRFDepth(ConstrainedWeights):
         return self.std_head(features), features
 
     def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
-        b, d, ew = system_terms(terms)
-        x, info = graph_crf(d, b, terms.edge_index, ew, ptr, x0=x0, settings=self.solver)
+        x, info = solve_system(graph_system(terms, ptr), x0, self.solver)
         infos.append(info)
         return x
 
@@ -443,14 +440,14 @@ class CRFDepth(ConstrainedWeights):
         extra = dict(variable=v, gate=gate, factors=None if self.head is None else self.head(image, kept, prior))
         if geometry is None:
             t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid(), **extra)
-            x, info = grid_crf(*grid_system(t), x0=t["prior"], settings=self.solver)
+            x, info = solve_system(grid_system(t), t["prior"], self.solver)
             infos.append(info)
             if "normal" not in self.potentials and "distance" not in self.potentials:
                 return to_depth(x, v)[:, None], t
             geometry, rounds = to_depth(x, v)[:, None], self.rounds
         for _ in range(rounds):
             t = grid_potentials(image, sparse, K, prior, eps, geometry, self._weights_for_grid(), **extra)
-            x, info = grid_crf(*grid_system(t), x0=to_unknown(geometry[:, 0], v), settings=self.solver)
+            x, info = solve_system(grid_system(t), to_unknown(geometry[:, 0], v), self.solver)
             infos.append(info)
             geometry = to_depth(x, v)[:, None]
         if self.irls:
@@ -469,13 +466,13 @@ class CRFDepth(ConstrainedWeights):
         std = node_std = features = None
         if return_std:
             with stage("uncertainty"):
-                d, _, wh, wv = grid_system(t)
+                system = grid_system(t)
                 if self.uncertainty == "posterior":
-                    std = grid_crf_std(d, wh, wv, self.std_scale, samples=self.std_samples)[:, None]
+                    std = posterior_std(system, self.std_scale, samples=self.std_samples)[:, None]
                     std = std_in_metres(std, depth, self.variable)
                 else:
                     std, features = self._predictive(depth, sparse, kept, gate,
-                                                     grid_conditional_variance(d, wh, wv)[:, None])
+                                                     system_conditional_variance(system)[:, None])
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
         terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],

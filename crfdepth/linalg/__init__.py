@@ -1,7 +1,9 @@
 """Sparse SPD solves for graph-Laplacian systems, differentiable by implicit adjoints."""
 
-from crfdepth.linalg.adjoint import SolveInfo
+from crfdepth.linalg.adjoint import SolveInfo, SolverSettings, solve_system
 from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.linalg.solve import solve_grid_laplacian, solve_laplacian, solver_settings
+from crfdepth.linalg.system import System
 
-__all__ = ["SolveInfo", "grid_edge_index", "solve_grid_laplacian", "solve_laplacian", "solver_settings"]
+__all__ = ["SolveInfo", "SolverSettings", "System", "grid_edge_index", "solve_grid_laplacian", "solve_laplacian",
+           "solve_system", "solver_settings"]

@@ -1,8 +1,8 @@
 """The implicit-gradient solve of ``(diag(d) + L(w)) x = b`` (docs/design.md section 4).
 
 Algorithm and autograd, no input checks: :mod:`crfdepth.linalg.solve` checks the
-arguments of the public functions; the library's own callers pass trusted tensors to
-:func:`solve_laplacian_trusted` / :func:`solve_grid_laplacian_trusted`.
+arguments of the public functions; the library's own callers pass a trusted
+:class:`~crfdepth.linalg.system.System` to :func:`solve_system`.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from crfdepth.errors import ConvergenceError, ConvergenceWarning
 from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.multigrid import GridMultigrid
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
+from crfdepth.linalg.system import System
 
 _METHODS = {"cg": conjugate_gradient, "cgs": conjugate_gradient_squared}
 
@@ -58,7 +59,7 @@ GRAD_RTOL = 1e-10
 
 
 @dataclass
-class _Settings:
+class SolverSettings:
     """Checked solve settings (:func:`crfdepth.linalg.solver_settings` documents them)."""
 
     method: str
@@ -81,7 +82,7 @@ def _default_max_iter(n: int) -> int:
 
 
 def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, x0_rows,
-                  settings: _Settings, precondition=None) -> tuple[torch.Tensor, SolveInfo]:
+                  settings: SolverSettings, precondition=None) -> tuple[torch.Tensor, SolveInfo]:
     """Solve on (G, n) rows; restarts from the true residual when the recurrence drifted.
 
     With a ``precondition`` (multigrid) convergence is checked after every iteration: one
@@ -114,7 +115,7 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     return x_rows, SolveInfo(settings.method, total, rel, converged, settings.rtol)
 
 
-def _report(info: SolveInfo, settings: _Settings, what: str) -> None:
+def _report(info: SolveInfo, settings: SolverSettings, what: str) -> None:
     if settings.on_nonconvergence == "ignore" or bool(info.converged.all()):
         return
     bad = torch.nonzero(~info.converged).flatten().tolist()
@@ -204,7 +205,7 @@ MULTIGRID_MIN_PIXELS = 4_000_000
 (docs/design.md section 10)."""
 
 
-def _use_multigrid(structure, settings: _Settings, differentiable: bool) -> bool:
+def _use_multigrid(structure, settings: SolverSettings, differentiable: bool) -> bool:
     """Multigrid for CG on pixel grids: when asked, or ("auto") for solves that will be differentiated
     and for those on images of :data:`MULTIGRID_MIN_PIXELS` or more.
 
@@ -255,19 +256,12 @@ def _scaled_multigrid(cycle: GridMultigrid, sqrt_diag_rows: torch.Tensor):
     return precondition
 
 
-
-def solve_laplacian_trusted(b, d, edge_index, edge_weight, ptr, x0, settings: _Settings):
-    """:func:`crfdepth.linalg.solve_laplacian` without input checks (``ptr`` required, ``x0`` detached or None)."""
+def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettings) -> tuple[torch.Tensor, SolveInfo]:
+    """``x`` of ``system`` (differentiable in its diagonal, right-hand side and weights) and the
+    solve's :class:`SolveInfo`, without input checks; ``x0`` is a warm start, no gradient flows to it."""
+    structure = PixelGrid(*system.rhs.shape) if system.is_grid else EdgeGraph(system.edge_index, system.ptr)
+    tensors = (system.rhs, system.diagonal, *system.weights)
     box: list[SolveInfo] = []
-    x = _LaplacianSolve.apply(EdgeGraph(edge_index, ptr), settings, _differentiable(b, d, edge_weight), box, x0, b,
-                              d, edge_weight)
-    return x, box[0]
-
-
-def solve_grid_laplacian_trusted(b, d, weight_h, weight_v, x0, settings: _Settings):
-    """:func:`crfdepth.linalg.solve_grid_laplacian` without input checks."""
-    box: list[SolveInfo] = []
-    bsz, h, w = b.shape
-    x = _LaplacianSolve.apply(PixelGrid(bsz, h, w), settings, _differentiable(b, d, weight_h, weight_v), box, x0,
-                              b, d, weight_h, weight_v)
+    x = _LaplacianSolve.apply(structure, settings, _differentiable(*tensors), box,
+                              None if x0 is None else x0.detach(), *tensors)
     return x, box[0]

@@ -22,10 +22,10 @@ from crfdepth.linalg.adjoint import (
     _METHODS,
     GRAD_RTOL,
     SolveInfo,
-    _Settings,
-    solve_grid_laplacian_trusted,
-    solve_laplacian_trusted,
+    SolverSettings,
+    solve_system,
 )
+from crfdepth.linalg.system import System
 
 Method = Literal["cg", "cgs"]
 OnFail = Literal["warn", "raise", "ignore"]
@@ -62,7 +62,7 @@ def _check_float(name: str, t: torch.Tensor, ref: torch.Tensor, nonneg: bool) ->
 
 def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
                     on_nonconvergence: OnFail = "warn", grad_rtol: float = GRAD_RTOL,
-                    preconditioner: Preconditioner = "auto") -> _Settings:
+                    preconditioner: Preconditioner = "auto") -> SolverSettings:
     """The checked settings of a solve, for :mod:`crfdepth.linalg.adjoint`'s trusted solves.
 
     The arguments are those of :func:`solve_grid_laplacian` (graph solves ignore
@@ -72,7 +72,7 @@ def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | N
 
 
 def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol=GRAD_RTOL,
-                    preconditioner="auto") -> _Settings:
+                    preconditioner="auto") -> SolverSettings:
     if method not in _METHODS:
         raise InputError(f"method: expected one of {sorted(_METHODS)}, got {method!r}")
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
@@ -89,7 +89,7 @@ def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad
         raise InputError(f"preconditioner: expected 'auto', 'jacobi' or 'multigrid', got {preconditioner!r}")
     if preconditioner == "multigrid" and method != "cg":
         raise InputError(f"preconditioner: 'multigrid' needs method 'cg', got method {method!r}")
-    return _Settings(str(method), float(rtol), max_iter, check_every, on_nonconvergence,
+    return SolverSettings(str(method), float(rtol), max_iter, check_every, on_nonconvergence,
                      grad_rtol=float(grad_rtol), preconditioner=str(preconditioner))
 
 
@@ -226,7 +226,7 @@ def solve_laplacian(
         x0 = x0.detach()
     _check_positive_definite(d.detach().cpu().numpy(), edge_index[0].cpu().numpy(),
                              edge_index[1].cpu().numpy(), edge_weight.detach().cpu().numpy(), n, "d")
-    return solve_laplacian_trusted(b, d, edge_index, edge_weight, ptr, x0, settings)
+    return solve_system(System.graph(d, b, edge_index, edge_weight, ptr), x0, settings)
 
 
 def solve_grid_laplacian(
@@ -295,4 +295,4 @@ def solve_grid_laplacian(
         wts = torch.cat([weight_h.detach().reshape(bsz, -1), weight_v.detach().reshape(bsz, -1)], 1)
         _check_positive_definite(d.detach().reshape(-1).cpu().numpy(), src, dst,
                                  wts.reshape(-1).cpu().numpy(), bsz * n, "d")
-    return solve_grid_laplacian_trusted(b, d, weight_h, weight_v, x0, settings)
+    return solve_system(System.grid(d, b, weight_h, weight_v), x0, settings)

@@ -10,7 +10,8 @@ enters the system matrix *as it is*, as the weight of a graph Laplacian:
          + eps   * sum_i (x_i - x0_i)^2                 prior toward the initial fill
 
 and its minimiser solves ``A x = b`` with ``A = diag(alpha w + eps) + L(beta e + gamma nr +
-delta dp)`` and ``b = alpha w z + eps x0`` (:func:`system_terms`).
+delta dp)`` and ``b = alpha w z + eps x0``: the :class:`~crfdepth.linalg.system.System` of
+:func:`graph_system` (superpixel graphs) or :func:`grid_system` (pixel grids).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Literal
 import torch
 
 from crfdepth.linalg.operators import grid_edge_index
+from crfdepth.linalg.system import System
 from crfdepth.geometry.normals import camera_points, dense_normals
 
 
@@ -124,7 +126,7 @@ class EnergyTerms:
 
     Node tensors are (N,) and edge tensors (E,), with ``edge_index`` (2, E); on a pixel grid
     use :func:`crfdepth.linalg.grid_edge_index` ordering. Weights are already multiplied
-    by nothing: ``alpha``..``delta`` and ``eps`` are applied by :func:`system_terms`.
+    by nothing: ``alpha``..``delta`` and ``eps`` are applied by :func:`graph_system`.
     """
 
     z: torch.Tensor  # (N,) aggregated LiDAR depth, metres (anything where w = 0)
@@ -163,10 +165,10 @@ def unary_system(*terms: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tenso
     return d, b
 
 
-def system_terms(t: EnergyTerms) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(b, d, edge_weight)`` of ``A x = b`` with ``A = diag(d) + L(edge_weight)``."""
+def graph_system(t: EnergyTerms, ptr: torch.Tensor | None = None) -> System:
+    """The system of ``t`` on its graph batch (node offsets ``ptr``; None: one graph)."""
     d, b = unary_system((t.alpha * t.w, t.z), (t.eps, t.x_prior))
-    return b, d, t.edge_weight()
+    return System.graph(d, b, t.edge_index, t.edge_weight(), ptr)
 
 
 def grid_pairs(values: torch.Tensor, reduce: Literal["squared_distance", "dot"]
@@ -278,8 +280,8 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
     return t
 
 
-def grid_system(t: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(d, b, weight_h, weight_v)`` of the grid system ``A x = b`` from :func:`grid_potentials`."""
+def grid_system(t: dict) -> System:
+    """The pixel-grid system of the potentials of :func:`grid_potentials`."""
     wh = t["beta"] * t["colour"][0]
     wv = t["beta"] * t["colour"][1]
     for scale, name in (("gamma", "normal"), ("delta", "distance")):
@@ -290,4 +292,4 @@ def grid_system(t: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torc
         wh = wh * t["edge_factor"][0]
         wv = wv * t["edge_factor"][1]
     d, b = unary_system((t["alpha"] * t["w"], t["z"]), (t["eps"], t["prior"]))
-    return d, b, wh, wv
+    return System.grid(d, b, wh, wv)

@@ -33,8 +33,7 @@ from __future__ import annotations
 
 import torch
 
-from crfdepth.crf import grid_crf
-from crfdepth.linalg import SolveInfo
+from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.linalg.operators import PixelGrid
 from crfdepth.potentials.energy import Variable, grid_system, to_depth
 
@@ -96,11 +95,11 @@ def reweight(t: dict, x: torch.Tensor, sparse: torch.Tensor, rounds: int, scale:
     base, s = t["w"], sparse[:, 0]
     inv_z = torch.where(s > 0, s.reciprocal(), torch.zeros_like(s))
     for _ in range(rounds):
-        d, _, wh, wv = grid_system(t)
+        system = grid_system(t)
         x_hat = leave_one_out(x.detach(), t["z"], (t["alpha"] * t["w"]).detach(),
-                              (d + PixelGrid.degree(wh, wv)).detach())
+                              (system.diagonal + PixelGrid.degree(*system.weights)).detach())
         lead = torch.where(s > 0, to_depth(x_hat, variable).clamp_min(1e-3).reciprocal() - inv_z, torch.zeros_like(s))
         t = dict(t, w=base * robust_factor(lead, scale))
-        x, info = grid_crf(*grid_system(t), x0=x, settings=settings)
+        x, info = solve_system(grid_system(t), x, settings)
         infos.append(info)
     return to_depth(x, variable)[:, None], t

@@ -25,8 +25,9 @@ from __future__ import annotations
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.linalg.adjoint import solve_grid_laplacian_trusted, solve_laplacian_trusted
+from crfdepth.linalg.adjoint import solve_system
 from crfdepth.linalg.solve import solver_settings
+from crfdepth.linalg.system import System
 
 #: Memory the sampling estimate may use at once; the samples are solved in chunks that fit.
 MEMORY_BUDGET_BYTES = 2 * 1024**3
@@ -115,8 +116,8 @@ def posterior_variance(
     ei_rep = (edge_index[:, None, :] + offsets[None, :, None]).reshape(2, -1)
     ptr_rep = torch.cat([ptr[:-1][None, :] + offsets[:, None] for _ in range(1)], 0).reshape(-1)
     ptr_rep = torch.cat([ptr_rep, torch.tensor([k * n], device=d.device)])
-    x, _ = solve_laplacian_trusted(xi.reshape(-1), d.repeat(k), ei_rep, edge_weight.repeat(k), ptr_rep, None,
-                                   solver_settings(rtol=rtol))
+    x, _ = solve_system(System.graph(d.repeat(k), xi.reshape(-1), ei_rep, edge_weight.repeat(k), ptr_rep), None,
+                        solver_settings(rtol=rtol))
     x = x.view(k, n)
     m = x - xi / diag
     return 1.0 / diag + (m * m).mean(0)
@@ -170,11 +171,32 @@ def grid_posterior_variance(
         xi[..., :-1, :] += vv
         xi[..., 1:, :] -= vv
         del vh, vv
-        x, _ = solve_grid_laplacian_trusted(xi.reshape(k * bsz, h, w), d.repeat(k, 1, 1), weight_h.repeat(k, 1, 1),
-                                            weight_v.repeat(k, 1, 1), None, solver_settings(rtol=rtol))
+        samples_system = System.grid(d.repeat(k, 1, 1), xi.reshape(k * bsz, h, w), weight_h.repeat(k, 1, 1),
+                                     weight_v.repeat(k, 1, 1))
+        x, _ = solve_system(samples_system, None, solver_settings(rtol=rtol))
         m = x.view(k, bsz, h, w) - xi / diag
         total += (m * m).sum(0)
     return 1.0 / diag + total / samples
+
+
+def system_conditional_variance(system: System) -> torch.Tensor:
+    """``1 / A_ii`` of ``system`` (graph or grid), in its node or pixel layout."""
+    if system.is_grid:
+        return grid_conditional_variance(system.diagonal, *system.weights)
+    return conditional_variance(system.diagonal, system.edge_index, system.weights[0])
+
+
+def posterior_std(system: System, scale: torch.Tensor, *, samples: int, seed: int | None = 0,
+                  rtol: float = 1e-4) -> torch.Tensor:
+    """``scale * sqrt(diag(A^-1))`` of ``system`` (graph: exact up to 1,000 nodes per graph; grid:
+    sampled); the variance carries no gradient, ``scale`` does (docs/design.md section 5)."""
+    fixed = system.detached()
+    if fixed.is_grid:
+        var = grid_posterior_variance(fixed.diagonal, *fixed.weights, samples=samples, seed=seed, rtol=rtol)
+    else:
+        var = posterior_variance(fixed.diagonal, fixed.edge_index, fixed.weights[0], ptr=fixed.ptr, samples=samples,
+                                 seed=seed, rtol=rtol)
+    return scale * var.sqrt()
 
 
 def _exact(d, edge_index, edge_weight, ptr) -> torch.Tensor:
