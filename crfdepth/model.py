@@ -34,8 +34,8 @@ from crfdepth.potentials.parameters import ConstrainedWeights
 from crfdepth.geometry.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.potentials.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
 from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms, std_features
-from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, Variable, colour_affinity, data_confidence,
-                                 distance_affinity, energy, graph_system, grid_energy_terms, grid_potentials, grid_system,
+from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, PotentialWeights, Variable, colour_affinity, data_confidence,
+                                 distance_affinity, energy, graph_system, grid_potentials, grid_system,
                                  normal_affinity, std_in_metres, to_depth, to_unknown)
 from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE, reweight
 from crfdepth.superpixels.segments import slic_batch
@@ -259,11 +259,11 @@ class CRFDepth(ConstrainedWeights):
         mean = torch.stack(active).mean()
         return alpha, beta, gamma, delta, self.eps * mean, mean
 
-    def _weights_for_grid(self) -> dict:
+    def _weights_for_grid(self) -> PotentialWeights:
         """The weights :func:`crfdepth.potentials.energy.grid_potentials` needs (None: potential off)."""
         alpha, beta, gamma, delta, _, _ = self._scales()
-        return dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, confidence=self.confidence,
-                    sigma_d=self.sigma_d, sigma_n=self.sigma_n, sigma_p=self.sigma_p)
+        return PotentialWeights(alpha=alpha, beta=beta, gamma=gamma, delta=delta, confidence=self.confidence,
+                                sigma_d=self.sigma_d, sigma_n=self.sigma_n, sigma_p=self.sigma_p)
 
     def segments_for(self, height: int, width: int) -> int:
         """SLIC segments used for an image of this size."""
@@ -440,7 +440,7 @@ class CRFDepth(ConstrainedWeights):
         extra = dict(variable=v, gate=gate, factors=None if self.head is None else self.head(image, kept, prior))
         if geometry is None:
             t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid(), **extra)
-            x, info = solve_system(grid_system(t), t["prior"], self.solver)
+            x, info = solve_system(grid_system(t), t.prior, self.solver)
             infos.append(info)
             if "normal" not in self.potentials and "distance" not in self.potentials:
                 return to_depth(x, v)[:, None], t
@@ -475,8 +475,7 @@ class CRFDepth(ConstrainedWeights):
                                                      system_conditional_variance(system)[:, None])
                 node_std = std.reshape(-1)
         count_map = (sparse <= 0).to(sparse.dtype)
-        terms = grid_energy_terms(t["z"], t["w"], t["prior"], t["colour"], t["normal"], t["distance"], t["alpha"],
-                                  t["beta"], t["gamma"], t["delta"], t["eps"])
+        terms = t.energy_terms()
         return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
                          torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds,
                          features)

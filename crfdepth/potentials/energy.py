@@ -234,10 +234,50 @@ def energy(x: torch.Tensor, t: EnergyTerms) -> dict[str, torch.Tensor]:
     return out
 
 
+@dataclass(frozen=True)
+class PotentialWeights:
+    """The weights of the potentials (``gamma`` / ``delta`` None for a potential that is off)."""
+
+    alpha: torch.Tensor
+    beta: torch.Tensor
+    gamma: torch.Tensor | None
+    delta: torch.Tensor | None
+    confidence: torch.Tensor
+    sigma_d: torch.Tensor
+    sigma_n: torch.Tensor
+    sigma_p: torch.Tensor
+
+
+Pair = tuple[torch.Tensor, torch.Tensor]  # (horizontal (B, H, W-1), vertical (B, H-1, W)) of grid_pairs
+
+
+@dataclass(frozen=True)
+class GridTerms:
+    """The potentials of one pixel-grid round: maps (B, H, W) and pairwise terms as :data:`Pair`."""
+
+    alpha: torch.Tensor
+    beta: torch.Tensor
+    gamma: torch.Tensor | None
+    delta: torch.Tensor | None
+    eps: torch.Tensor
+    z: torch.Tensor  # LiDAR in the unknown
+    w: torch.Tensor  # data weight (confidence x gate x head factor)
+    prior: torch.Tensor  # x0 in the unknown
+    colour: Pair
+    normal: Pair | None = None
+    distance: Pair | None = None
+    edge_factor: Pair | None = None  # the head's factor on the edge to the right / downwards
+
+    def energy_terms(self) -> EnergyTerms:
+        """The same terms in edge-list form (:func:`grid_energy_terms`)."""
+        return grid_energy_terms(self.z, self.w, self.prior, self.colour, self.normal, self.distance, self.alpha,
+                                 self.beta, self.gamma, self.delta, self.eps)
+
+
 def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, prior: torch.Tensor,
-                    eps: torch.Tensor, geometry: torch.Tensor | None, weights: dict, *,
+                    eps: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights, *,
                     variable: Variable = "depth", gate: torch.Tensor | None = None,
-                    factors: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict:
+                    factors: tuple[torch.Tensor, torch.Tensor] | None = None) -> GridTerms:
     """The potentials of one pixel-grid round (pixel mode and the refinement; docs/design.md sections 3 and 6).
 
     Args:
@@ -245,8 +285,7 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         K: (B, 3, 3); prior: (B, 1, H, W) the prior depth ``x0``; eps: its weight.
         geometry: (B, 1, H, W) depth from which normals and 3D points are taken (None in a
             first pass: then only the colour term is on).
-        weights: ``alpha, beta, gamma, delta`` (``gamma`` / ``delta`` None when that
-            potential is off), ``confidence``, ``sigma_d, sigma_n, sigma_p``.
+        weights: the potentials' weights (``gamma`` / ``delta`` None when that potential is off).
         variable: the unknown, ``"depth"`` or ``"inverse"`` (:func:`to_unknown`); ``z`` and
             ``prior`` of the result are in it, ``geometry`` stays depth.
         gate: (B, 1, H, W) per-pixel factor on the data weight (the occlusion gate of
@@ -256,40 +295,39 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
             edge to the right / downwards of a pixel by ``edge[:, 0]`` / ``edge[:, 1]``.
 
     Returns:
-        The weights and ``z, w, prior`` (B, H, W) and ``colour, normal, distance`` as
-        ``(horizontal (B, H, W-1), vertical (B, H-1, W))`` pairs or None, for :func:`grid_system`.
+        The :class:`GridTerms`, for :func:`grid_system`.
     """
     s = sparse[:, 0]
-    w = data_confidence((s > 0).to(s.dtype), weights["confidence"])
+    w = data_confidence((s > 0).to(s.dtype), weights.confidence)
     if gate is not None:
         w = w * gate[:, 0]
     if factors is not None:
         w = w * factors[0][:, 0]
-    t = dict(alpha=weights["alpha"], beta=weights["beta"], gamma=weights["gamma"], delta=weights["delta"], eps=eps,
-             z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
-             colour=tuple(gaussian_affinity(q, weights["sigma_d"]) for q in grid_pairs(image, "squared_distance")),
-             normal=None, distance=None,
-             edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
+    colour = tuple(gaussian_affinity(q, weights.sigma_d) for q in grid_pairs(image, "squared_distance"))
+    normal = distance = None
     if geometry is not None:
-        if t["gamma"] is not None:
+        if weights.gamma is not None:
             n, _ = dense_normals(geometry, K)  # differentiable: gradients flow through the geometry
-            t["normal"] = tuple(cosine_affinity(c, weights["sigma_n"]) for c in grid_pairs(n, "dot"))
-        if t["delta"] is not None:
+            normal = tuple(cosine_affinity(c, weights.sigma_n) for c in grid_pairs(n, "dot"))
+        if weights.delta is not None:
             points = camera_points(geometry[:, 0], K)
-            t["distance"] = tuple(gaussian_affinity(q, weights["sigma_p"]) for q in grid_pairs(points, "squared_distance"))
-    return t
+            distance = tuple(gaussian_affinity(q, weights.sigma_p) for q in grid_pairs(points, "squared_distance"))
+    return GridTerms(alpha=weights.alpha, beta=weights.beta, gamma=weights.gamma, delta=weights.delta, eps=eps,
+                     z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
+                     colour=colour, normal=normal, distance=distance,
+                     edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
 
 
-def grid_system(t: dict) -> System:
+def grid_system(t: GridTerms) -> System:
     """The pixel-grid system of the potentials of :func:`grid_potentials`."""
-    wh = t["beta"] * t["colour"][0]
-    wv = t["beta"] * t["colour"][1]
-    for scale, name in (("gamma", "normal"), ("delta", "distance")):
-        if t[name] is not None:
-            wh = wh + t[scale] * t[name][0]
-            wv = wv + t[scale] * t[name][1]
-    if t.get("edge_factor") is not None:
-        wh = wh * t["edge_factor"][0]
-        wv = wv * t["edge_factor"][1]
-    d, b = unary_system((t["alpha"] * t["w"], t["z"]), (t["eps"], t["prior"]))
+    wh = t.beta * t.colour[0]
+    wv = t.beta * t.colour[1]
+    for scale, term in ((t.gamma, t.normal), (t.delta, t.distance)):
+        if term is not None:
+            wh = wh + scale * term[0]
+            wv = wv + scale * term[1]
+    if t.edge_factor is not None:
+        wh = wh * t.edge_factor[0]
+        wv = wv * t.edge_factor[1]
+    d, b = unary_system((t.alpha * t.w, t.z), (t.eps, t.prior))
     return System.grid(d, b, wh, wv)

@@ -31,6 +31,8 @@ reach ``sigma`` and every weight through the last system (:func:`reweight`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from crfdepth.linalg import SolveInfo, solve_system
@@ -92,14 +94,14 @@ def reweight(t: dict, x: torch.Tensor, sparse: torch.Tensor, rounds: int, scale:
     Returns:
         ``(depth (B, 1, H, W), potentials of the last round)``.
     """
-    base, s = t["w"], sparse[:, 0]
+    base, s = t.w, sparse[:, 0]
     inv_z = torch.where(s > 0, s.reciprocal(), torch.zeros_like(s))
     for _ in range(rounds):
         system = grid_system(t)
-        x_hat = leave_one_out(x.detach(), t["z"], (t["alpha"] * t["w"]).detach(),
+        x_hat = leave_one_out(x.detach(), t.z, (t.alpha * t.w).detach(),
                               (system.diagonal + PixelGrid.degree(*system.weights)).detach())
         lead = torch.where(s > 0, to_depth(x_hat, variable).clamp_min(1e-3).reciprocal() - inv_z, torch.zeros_like(s))
-        t = dict(t, w=base * robust_factor(lead, scale))
+        t = dataclasses.replace(t, w=base * robust_factor(lead, scale))
         x, info = solve_system(grid_system(t), x, settings)
         infos.append(info)
     return to_depth(x, variable)[:, None], t
