@@ -20,26 +20,21 @@ from __future__ import annotations
 from typing import Callable, Literal, Mapping, Sequence
 
 import torch
-from kornia.geometry.camera import unproject_points
 
 from crfdepth.checks import check_frames, check_number
 from crfdepth.errors import InputError
-from crfdepth.potentials.data_term import PRIORS, lidar_evidence, node_lidar
-from crfdepth.superpixels.graph import build_superpixel_graphs
+from crfdepth.inference.pixel import pixel_forward
+from crfdepth.inference.superpixel import superpixel_forward
+from crfdepth.potentials.data_term import PRIORS
 from crfdepth.potentials.head import PotentialHead
-from crfdepth.linalg import SolveInfo, solve_system, solver_settings
+from crfdepth.linalg import solver_settings
 from crfdepth.memory import check_frame_size, check_memory
-from crfdepth.output import CRFOutput, Stages
+from crfdepth.output import CRFOutput
 from crfdepth.potentials.parameters import ConstrainedWeights
-from crfdepth.geometry.normals import aggregate_normals, graph_normals, lidar_normals
 from crfdepth.potentials.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
-from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms, std_features
-from crfdepth.potentials.energy import (VARIABLES, EnergyTerms, PotentialWeights, Variable, colour_affinity, data_confidence,
-                                 distance_affinity, energy, graph_system, grid_potentials, grid_system,
-                                 normal_affinity, std_in_metres, to_depth, to_unknown)
-from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE, reweight
-from crfdepth.superpixels.segments import slic_batch
-from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
+from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms
+from crfdepth.potentials.energy import (VARIABLES, PotentialWeights, Variable, energy)
+from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
 Mode = Literal["superpixel", "pixel"]
@@ -249,8 +244,9 @@ class CRFDepth(ConstrainedWeights):
             raise InputError(f"{file}: invalid model configuration in the {kind} ({exc})") from None
         return load_state(file, model, state) if state else model
 
-    def _scales(self) -> tuple[torch.Tensor, ...]:
-        """alpha, beta, gamma, delta (0 for potentials that are off) and the scaled eps."""
+    def scales(self) -> tuple[torch.Tensor, ...]:
+        """``(alpha, beta, gamma, delta, eps', mean)``: ``gamma`` / ``delta`` None for potentials that are
+        off, ``eps' = eps * mean`` the prior's weight and ``mean`` that of the potentials that are on."""
         alpha = self.alpha
         beta = self.beta
         gamma = self.gamma if "normal" in self.potentials else None
@@ -259,9 +255,9 @@ class CRFDepth(ConstrainedWeights):
         mean = torch.stack(active).mean()
         return alpha, beta, gamma, delta, self.eps * mean, mean
 
-    def _weights_for_grid(self) -> PotentialWeights:
+    def potential_weights(self) -> PotentialWeights:
         """The weights :func:`crfdepth.potentials.energy.grid_potentials` needs (None: potential off)."""
-        alpha, beta, gamma, delta, _, _ = self._scales()
+        alpha, beta, gamma, delta, _, _ = self.scales()
         return PotentialWeights(alpha=alpha, beta=beta, gamma=gamma, delta=delta, confidence=self.confidence,
                                 sigma_d=self.sigma_d, sigma_n=self.sigma_n, sigma_p=self.sigma_p)
 
@@ -306,179 +302,8 @@ class CRFDepth(ConstrainedWeights):
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         if self.mode == "pixel":
-            return self._forward_pixel(image, sparse, K, return_std)
-        return self._forward_superpixel(image, sparse, K, return_std)
-
-    def _evidence(self, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-        """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
-        gate = (self.gate_threshold, self.gate_softness) if self.gate else None
-        return lidar_evidence(sparse, gate, self.gate_window, self.prior)
-
-    # -- superpixel mode -----------------------------------------------------------------
-    def _forward_superpixel(self, image, sparse, K, return_std) -> CRFOutput:
-        bsz, _, h, w = sparse.shape
-        dtype, device = sparse.dtype, sparse.device
-        stage = Stages(sparse.device, self.progress)
-        with stage("fill"):
-            gate, kept, fill = self._evidence(sparse)
-        n_seg = self.segments_for(h, w)
-        offsets = [0]
-        z, count, colour, centroid, prior, nrm, nrm_ok, frame, edges = [], [], [], [], [], [], [], [], []
-        with stage("slic"):
-            all_labels = slic_batch(image.detach(), n_seg)  # (B, H, W), the whole batch at once
-        with stage("graph"):
-            graphs = build_superpixel_graphs(image.detach(), kept.detach(), aggregate=self.aggregate, labels=all_labels)
-        if "normal" in self.potentials:
-            with stage("normals"):  # (B, 3, H, W), (B, 1, H, W): all frames' returns at once
-                lidar_n, lidar_ok = lidar_normals(kept.detach(), K.detach())
-        for b, g in enumerate(graphs):
-            with stage("graph"):
-                col = g.node_mean(image[b])  # colour kept differentiable in the image
-                x0 = g.node_mean(fill[b])[:, 0]
-                if gate is None:
-                    z.append(to_unknown(g.lidar_depth.to(dtype), self.variable))
-                    count.append(g.lidar_count)
-                else:  # gate-weighted mean and count, differentiable in the gate's parameters
-                    zn, n = node_lidar(sparse[b, 0], gate[b, 0], g.labels, g.num_nodes, self.variable)
-                    z.append(zn)
-                    count.append(n)
-                colour.append(col)
-                centroid.append(g.centroid.to(dtype))
-                prior.append(x0)
-                frame.append(torch.full((g.num_nodes,), b, dtype=torch.long, device=device))
-                edges.append(g.edge_index + offsets[-1])
-                offsets.append(offsets[-1] + g.num_nodes)
-            if "normal" in self.potentials:
-                with stage("normals"):
-                    nn_, nv = aggregate_normals(lidar_n[b], lidar_ok[b, 0], g.labels, g.num_nodes)
-                    nrm.append(nn_.to(dtype))
-                    nrm_ok.append(nv)
-        with stage("potentials"):
-            ptr = torch.tensor(offsets, device=device)
-            z, count, colour = torch.cat(z), torch.cat(count), torch.cat(colour)
-            centroid, prior, frame = torch.cat(centroid), torch.cat(prior), torch.cat(frame)
-            prior = to_unknown(prior, self.variable)
-            edge_index = torch.cat(edges, 1)
-            src, dst = edge_index
-            alpha, beta, gamma, delta, eps, mean_weight = self._scales()
-            wdata = data_confidence(count, self.confidence)
-            e = colour_affinity(colour[src], colour[dst], self.sigma_d)
-            node_normal = normal_ok = None
-            nr = None
-            if "normal" in self.potentials:
-                node_normal, normal_ok = torch.cat(nrm), torch.cat(nrm_ok)
-                both = (normal_ok[src] & normal_ok[dst]).to(dtype)
-                nr = normal_affinity(node_normal[src], node_normal[dst], self.sigma_n) * both
-            terms = EnergyTerms(z, wdata, prior, edge_index, e, nr, None, alpha, beta,
-                                gamma if gamma is not None else torch.zeros_like(alpha),
-                                torch.zeros_like(alpha), eps)
-        infos: list[SolveInfo] = []
-        with stage("solve"):
-            x = self._graph_solve(terms, ptr, prior, infos)
-        K_node = K[frame]
-        if "normal" in self.potentials or "distance" in self.potentials:
-            for _ in range(self.rounds):
-                with stage("potentials"):
-                    points = unproject_points(centroid, to_depth(x, self.variable)[:, None], K_node)
-                    if "normal" in self.potentials:
-                        fitted = graph_normals(points, edge_index, x.shape[0])
-                        normals = torch.where(normal_ok[:, None], node_normal, fitted)
-                        terms.normal = normal_affinity(normals[src], normals[dst], self.sigma_n)
-                    if "distance" in self.potentials:
-                        terms.distance = distance_affinity(points[src], points[dst], self.sigma_p)
-                        terms.delta = delta
-                with stage("solve"):
-                    x = self._graph_solve(terms, ptr, x, infos)
-        with stage("painting"):
-            x = to_depth(x, self.variable)  # node depths in metres from here on
-            labels = torch.stack([g.labels for g in graphs]) + ptr[:-1, None, None]
-            depth = x[labels][:, None]
-            lidar = torch.cat([g.lidar_count for g in graphs])
-            node_count = torch.where(lidar == 0, 1.0, torch.where(lidar == 1, 0.5, 0.0)).to(dtype)
-            count_map = node_count[labels][:, None]
-        if self.refine:
-            with stage("refine"):
-                depth, t = self._pixel_solve(image, sparse, K, depth, self.refine_prior * mean_weight, infos,
-                                             geometry=depth, gate=gate, kept=kept)
-        node_std = std = features = None
-        if return_std:
-            with stage("uncertainty"):
-                system = graph_system(terms, ptr)
-                if self.uncertainty == "posterior":
-                    node_std = posterior_std(system, self.std_scale, samples=self.std_samples)
-                    node_std = std_in_metres(node_std, x, self.variable)
-                    std = node_std[labels][:, None]
-                else:
-                    if self.refine:  # the last solve is the refinement's pixel grid
-                        var = system_conditional_variance(grid_system(t))[:, None]
-                    else:
-                        var = system_conditional_variance(system)[labels][:, None]
-                    std, features = self._predictive(depth, sparse, kept, gate, var)
-                    node_std = torch.cat([g.node_mean(std[b])[:, 0] for b, g in enumerate(graphs)])
-        return CRFOutput(depth, std, count_map, x, node_std, ptr, graphs, terms, infos, stage.seconds, features)
-
-    def _predictive(self, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
-        """The predictive std (:mod:`crfdepth.uncertainty.predictive`) and its signals, from the conditional
-        variance of the last solve in the unknown's units."""
-        variance = (std_in_metres(variance.sqrt(), depth, self.variable) / depth.detach()) ** 2  # in (log z)^2
-        features = std_features(depth, sparse, kept, gate, variance)
-        return self.std_head(features), features
-
-    def _graph_solve(self, terms: EnergyTerms, ptr, x0, infos) -> torch.Tensor:
-        x, info = solve_system(graph_system(terms, ptr), x0, self.solver)
-        infos.append(info)
-        return x
-
-    # -- pixel grid (pixel mode and the refinement) --------------------------------------
-    def _pixel_solve(self, image, sparse, K, prior, eps, infos, geometry=None, gate=None, kept=None):
-        """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
-
-        Returns the (B, 1, H, W) depth and the last round's potentials.
-        """
-        rounds, v = 1, self.variable
-        kept = sparse if kept is None else kept
-        extra = dict(variable=v, gate=gate, factors=None if self.head is None else self.head(image, kept, prior))
-        if geometry is None:
-            t = grid_potentials(image, sparse, K, prior, eps, None, self._weights_for_grid(), **extra)
-            x, info = solve_system(grid_system(t), t.prior, self.solver)
-            infos.append(info)
-            if "normal" not in self.potentials and "distance" not in self.potentials:
-                return to_depth(x, v)[:, None], t
-            geometry, rounds = to_depth(x, v)[:, None], self.rounds
-        for _ in range(rounds):
-            t = grid_potentials(image, sparse, K, prior, eps, geometry, self._weights_for_grid(), **extra)
-            x, info = solve_system(grid_system(t), to_unknown(geometry[:, 0], v), self.solver)
-            infos.append(info)
-            geometry = to_depth(x, v)[:, None]
-        if self.irls:
-            geometry, t = reweight(t, x, sparse, self.irls, self.irls_scale, v, self.solver, infos)
-        return geometry, t
-
-    def _forward_pixel(self, image, sparse, K, return_std) -> CRFOutput:
-        bsz, _, h, w = sparse.shape
-        stage = Stages(sparse.device, self.progress)
-        with stage("fill"):
-            gate, kept, fill = self._evidence(sparse)
-        eps = self._scales()[4]
-        infos: list[SolveInfo] = []
-        with stage("solve"):  # potentials, normals and solves of all rounds
-            depth, t = self._pixel_solve(image, sparse, K, fill, eps, infos, gate=gate, kept=kept)
-        std = node_std = features = None
-        if return_std:
-            with stage("uncertainty"):
-                system = grid_system(t)
-                if self.uncertainty == "posterior":
-                    std = posterior_std(system, self.std_scale, samples=self.std_samples)[:, None]
-                    std = std_in_metres(std, depth, self.variable)
-                else:
-                    std, features = self._predictive(depth, sparse, kept, gate,
-                                                     system_conditional_variance(system)[:, None])
-                node_std = std.reshape(-1)
-        count_map = (sparse <= 0).to(sparse.dtype)
-        terms = t.energy_terms()
-        return CRFOutput(depth, std, count_map, depth.reshape(-1), node_std,
-                         torch.arange(bsz + 1, device=sparse.device) * (h * w), None, terms, infos, stage.seconds,
-                         features)
+            return pixel_forward(self, image, sparse, K, return_std)
+        return superpixel_forward(self, image, sparse, K, return_std)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]
