@@ -27,6 +27,7 @@ in ``--fractions`` (the target is the same pixels for every fraction), table and
 
 from __future__ import annotations
 
+import itertools
 import statistics
 from collections.abc import Callable
 
@@ -62,9 +63,9 @@ def depth_bin_errors(depth: torch.Tensor, target: torch.Tensor) -> tuple[np.ndar
 
 def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) -> tuple[list[dict], dict]:
     """Rows (one per method) of protocol ``key`` and its mean sparsification curves."""
-    title, groups = PROTOCOLS[key]
+    groups = PROTOCOLS[key][1]
     methods = list(args.methods) + (list(LEARNED_ABLATIONS) if args.learn_ablations and key == "a" else [])
-    per = {m: dict(metrics=[], seconds=[], unc={}, bins=[]) for m in methods}
+    per = {m: {"metrics": [], "seconds": [], "unc": {}, "bins": []} for m in methods}
     curves: dict = {}
     fit_note = {}
     for group, layout, folder, options in groups:
@@ -113,21 +114,21 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
         se = np.sum([b[0] for b in per[m]["bins"]], 0)
         count = np.sum([b[1] for b in per[m]["bins"]], 0)
         labels = [f"{lo:g}-{hi:g} m" if np.isfinite(hi) else f">= {lo:g} m"
-                  for lo, hi in zip(DEPTH_BINS_M[:-1], DEPTH_BINS_M[1:])]
+                  for lo, hi in itertools.pairwise(DEPTH_BINS_M)]
         # pooled over the protocol's target pixels: RMSE within each bin and its share of all squared error
-        row["depth_bins"] = {lab: dict(pixels=int(n), rmse_mm=float(np.sqrt(e / max(n, 1)) * 1000.0),
-                                       share_of_squared_error=float(e / max(se.sum(), 1e-12)))
+        row["depth_bins"] = {lab: {"pixels": int(n), "rmse_mm": float(np.sqrt(e / max(n, 1)) * 1000.0),
+                                   "share_of_squared_error": float(e / max(se.sum(), 1e-12))}
                              for lab, e, n in zip(labels, se, count)}
         sec = statistics.median(per[m]["seconds"])
         row.update(seconds_median=sec, fps_median=1.0 / sec, device=args.device, batch_size=1,
                    threads=torch.get_num_threads(), size=f"{w}x{h}")
         if m in LEARNED_ABLATIONS:
-            row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in LEARNED_ABLATIONS[m].items()}
+            row["config"] = _as_json(LEARNED_ABLATIONS[m])
             row["fit"] = (f"weights learned for this configuration by the shipped recipe on its "
                           f"{fits[('recipe', m)]['frames']} frames (drive 0060, object frames; both hold-outs)")
             row["weights"] = fits[("recipe", m)]["weights"]
         elif m in CRF_METHODS:
-            row["config"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in method_config(m).items()}
+            row["config"] = _as_json(method_config(m))
         for name, items in per[m]["unc"].items():
             row[f"ause_{name}_mm"] = 1000.0 * float(np.mean([a["ause"] for a in items]))
             row[f"ause_random_{name}_mm"] = 1000.0 * float(np.mean([a["ause_random"] for a in items]))
@@ -149,6 +150,11 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
     return rows, curves
 
 
+def _as_json(config: dict) -> dict:
+    """A model configuration as it is written to the JSON line (tuples as lists)."""
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in config.items()}
+
+
 def subsampling(args, log) -> list[dict]:
     """RMSE of the hand-set weights and NN on protocol b for every keep fraction."""
     rows = []
@@ -158,13 +164,13 @@ def subsampling(args, log) -> list[dict]:
         for group, layout, folder, options in PROTOCOLS["b"][1]:
             for s in load_group(args.kitti_root, layout, folder, options, args.subsample_frames, frac):
                 image, sparse, target, K = batch(s, args.device)
-                for m in res:
+                for m, items in res.items():
                     depth, *_ = predict(m, model if m == "paper" else None, image, sparse, K, args.device)
-                    res[m].append(depth_metrics(depth, target))
+                    items.append(depth_metrics(depth, target))
         for m, items in res.items():
             stacked = {k: torch.cat([d[k] for d in items]) for k in items[0]}
             avg = average_metrics(stacked)
-            rows.append(dict(study="subsampling", protocol="b", method=m, keep_fraction=frac, frames=len(items),
-                             rmse=avg["rmse"], mae=avg["mae"]))
+            rows.append({"study": "subsampling", "protocol": "b", "method": m, "keep_fraction": frac,
+                         "frames": len(items), "rmse": avg["rmse"], "mae": avg["mae"]})
         log(f"  keep {frac:.0%}: paper {rows[-2]['rmse']:.0f} mm, nn {rows[-1]['rmse']:.0f} mm")
     return rows

@@ -93,8 +93,8 @@ def get_fit(source, args, fits: dict, log) -> CRFDepth:
                 f"{time.perf_counter() - t:.0f} s, last-epoch loss {loss:.4f}; "
                 + ", ".join(f"{k} {v:.3g}" for k, v in model.weights().items())
                 + "; std " + ", ".join(f"{k} {v:.3g}" for k, v in model.std_head.terms().items()))
-        fits[source] = dict(model=model, weights=model.weights(), loss=loss, frames=count,
-                            std_terms=model.std_head.terms(), train_frames=frames)
+        fits[source] = {"model": model, "weights": model.weights(), "loss": loss, "frames": count,
+                        "std_terms": model.std_head.terms(), "train_frames": frames}
     return fits[source]["model"]
 
 

@@ -55,25 +55,25 @@ from crfdepth.model import CRFDepth
 
 RECIPE = Path(__file__).resolve().parents[2] / "configs" / "kitti_weights.yaml"
 CRF_METHODS = {
-    "paper": dict(),
-    "learned": dict(),
-    "hand-set": dict(),  # the recipe's structure (recipe_crf()), the constructor's weights
-    "pixel": dict(mode="pixel"),
-    "sp-c": dict(potentials=("colour",), refine=False),
-    "sp-cn": dict(potentials=("colour", "normal"), refine=False),
-    "sp-cnd": dict(refine=False),
-    "sp-c+r": dict(potentials=("colour",)),
-    "sp-cn+r": dict(potentials=("colour", "normal")),
-    "sp1200": dict(superpixels=1200, refine=False),
-    "sp2400": dict(superpixels=2400, refine=False),
+    "paper": {},
+    "learned": {},
+    "hand-set": {},  # the recipe's structure (recipe_crf()), the constructor's weights
+    "pixel": {"mode": "pixel"},
+    "sp-c": {"potentials": ("colour",), "refine": False},
+    "sp-cn": {"potentials": ("colour", "normal"), "refine": False},
+    "sp-cnd": {"refine": False},
+    "sp-c+r": {"potentials": ("colour",)},
+    "sp-cn+r": {"potentials": ("colour", "normal")},
+    "sp1200": {"superpixels": 1200, "refine": False},
+    "sp2400": {"superpixels": 2400, "refine": False},
     # docs/design.md section 3b, hand-set weights: 1/z unknown, occlusion gate, on both graphs
-    "inv": dict(variable="inverse"),
-    "inv+gate": dict(variable="inverse", gate=True),
-    "pixel+gate": dict(mode="pixel", gate=True),
-    "pixel+inv+gate": dict(mode="pixel", variable="inverse", gate=True),
-    "pixel+inv+gate+ipb": dict(mode="pixel", variable="inverse", gate=True, prior="ip_basic"),
-    "pixel+inv+gate+irls": dict(mode="pixel", variable="inverse", gate=True, irls=1),
-    "pixel+log+gate": dict(mode="pixel", variable="log", gate=True),
+    "inv": {"variable": "inverse"},
+    "inv+gate": {"variable": "inverse", "gate": True},
+    "pixel+gate": {"mode": "pixel", "gate": True},
+    "pixel+inv+gate": {"mode": "pixel", "variable": "inverse", "gate": True},
+    "pixel+inv+gate+ipb": {"mode": "pixel", "variable": "inverse", "gate": True, "prior": "ip_basic"},
+    "pixel+inv+gate+irls": {"mode": "pixel", "variable": "inverse", "gate": True, "irls": 1},
+    "pixel+log+gate": {"mode": "pixel", "variable": "log", "gate": True},
 }
 METHODS = ("nn", "ipbasic", "inpaint", *CRF_METHODS)
 WITH_STD = ("paper", "hand-set", "learned")

@@ -21,8 +21,8 @@ def markdown_tables(rows: list[dict]) -> list[str]:
     lines = []
     for key in dict.fromkeys(r["protocol"] for r in rows):
         rs = [r for r in rows if r["protocol"] == key]
-        lines += ["", f"**{PROTOCOLS[key][0]}** ({rs[0]['frames']} frames, {rs[0]['size']}, "
-                      f"{rs[0]['device']}, batch 1, {rs[0]['threads']} thread(s))", "",
+        lines += ["", (f"**{PROTOCOLS[key][0]}** ({rs[0]['frames']} frames, {rs[0]['size']}, "
+                       f"{rs[0]['device']}, batch 1, {rs[0]['threads']} thread(s))"), "",
                   "| method | RMSE mm | MAE mm | iRMSE 1/km | iMAE 1/km | REL | d<1.25 | fps |",
                   "|---|---|---|---|---|---|---|---|"]
         for r in rs:
@@ -41,10 +41,10 @@ def markdown_tables(rows: list[dict]) -> list[str]:
             lines.append(f"| {r['protocol']} | {r['method']} | " + " | ".join(cells) + " |")
     unc = [r for r in rows if "ause_std_mm" in r]
     if unc:
-        lines += ["", "**Uncertainty** (per image, averaged; AUSE of RMSE in mm, lower is better; within k std: "
-                      "a calibrated Gaussian has 0.683 / 0.954; NLL: Gaussian, nats, errors in m)", "",
-                  "| protocol | method | map | AUSE mm | random mm | AUSE / random | Spearman | within 1 std "
-                  "| within 2 std | NLL |", "|---|---|---|---|---|---|---|---|---|---|"]
+        lines += ["", ("**Uncertainty** (per image, averaged; AUSE of RMSE in mm, lower is better; within k std: "
+                       "a calibrated Gaussian has 0.683 / 0.954; NLL: Gaussian, nats, errors in m)"), "",
+                  ("| protocol | method | map | AUSE mm | random mm | AUSE / random | Spearman | within 1 std "
+                   "| within 2 std | NLL |"), "|---|---|---|---|---|---|---|---|---|---|"]
         for r in unc:
             for name in ("std", "posterior", "count"):
                 if f"ause_{name}_mm" not in r:
@@ -58,8 +58,8 @@ def markdown_tables(rows: list[dict]) -> list[str]:
 
 
 def subsampling_table(rows: list[dict]) -> list[str]:
-    lines = ["", f"**Sub-sampling, protocol (b): RMSE mm vs share of input LiDAR points kept** "
-                 f"({rows[0]['frames']} frames)", "", "| kept | paper | nn |", "|---|---|---|"]
+    lines = ["", (f"**Sub-sampling, protocol (b): RMSE mm vs share of input LiDAR points kept** "
+                  f"({rows[0]['frames']} frames)"), "", "| kept | paper | nn |", "|---|---|---|"]
     for frac in dict.fromkeys(r["keep_fraction"] for r in rows):
         d = {r["method"]: r["rmse"] for r in rows if r["keep_fraction"] == frac}
         lines.append(f"| {frac:.0%} | {d['paper']:.0f} | {d['nn']:.0f} |")
@@ -128,10 +128,7 @@ def plots(out_dir: Path, sub_rows: list[dict], curves: dict) -> list[Path]:
         ax.set_title("protocol (b): sub-sampling")
         ax.grid(alpha=0.3)
         ax.legend()
-        fig.tight_layout()
-        paths.append(out_dir / "subsampling.png")
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+        paths.append(_save(fig, out_dir / "subsampling.png"))
     if curves:
         keys = list(curves)
         fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.3), squeeze=False)
