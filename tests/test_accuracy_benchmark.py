@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from crfdepth.model import CRFDepth
 from crfdepth.uncertainty.predictive import STD_TERMS
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
@@ -77,7 +78,7 @@ def test_learned_weights_on_raw_protocols_come_from_the_other_source(accuracy, k
     assert learned["frames"] == 2  # one raw frame, one object frame
     assert "raw frames: fitted on the 1 object frames" in learned["fit"]
     assert "object frames: fitted on the 1 raw frames" in learned["fit"]
-    paper = accuracy.CRFDepth().weights()
+    paper = CRFDepth().weights()
     for group, weights in learned["weights"].items():  # each fit moved the hand-set weights
         assert any(abs(weights[k] - paper[k]) > 1e-3 * paper[k] for k in ("alpha", "beta", "confidence")), group
 
@@ -86,7 +87,7 @@ def test_learned_ablations_are_fitted_per_configuration_on_protocol_a_only(accur
     rows = accuracy.main(["--quick", "--kitti-root", str(kitti_root), "--protocols", "a", "c", "--methods", "nn",
                           "--learn-ablations", "--no-subsample", "--out-dir", str(tmp_path)])
     names = [(r["protocol"], r["method"]) for r in rows]
-    assert names == [("a", "nn"), *[("a", m) for m in accuracy.LEARNED_ABLATIONS], ("c", "nn")]
+    assert names == [("a", "nn"), *[("a", m) for m in accuracy.methods.LEARNED_ABLATIONS], ("c", "nn")]
     by = {r["method"]: r for r in rows if r["protocol"] == "a"}
     assert by["sp-c/learned"]["config"] == {"potentials": ["colour"], "refine": False}
     assert "drive 0060, object frames" in by["sp-cn+r/learned"]["fit"]
