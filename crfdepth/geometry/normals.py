@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_3d_v2
 
-from crfdepth.checks import describe
+from crfdepth.checks import check_depth_values, describe
 from crfdepth.errors import InputError
 
 __all__ = ["aggregate_normals", "camera_points", "dense_normals", "lidar_normals", "smallest_eigenvector"]
@@ -42,12 +42,7 @@ def _as_batch(depth: torch.Tensor, K: torch.Tensor, name: str) -> tuple[torch.Te
         depth.ndim == 2 or (depth.ndim == 3 and depth.shape[0] == 1) or (depth.ndim == 4 and depth.shape[1] == 1)
     ):
         raise InputError(f"{name}: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {describe(depth)}")
-    if not depth.is_floating_point():
-        raise InputError(f"{name}: expected floating-point depth in metres, got dtype {depth.dtype}")
-    if not bool(torch.isfinite(depth).all()):
-        raise InputError(f"{name}: expected finite depth in metres (0 = missing), got NaN or inf")
-    if bool((depth < 0).any()):
-        raise InputError(f"{name}: expected depth >= 0 metres (0 = missing), got minimum {float(depth.min()):.4g}")
+    check_depth_values(name, depth, zero="missing")
     h, w = depth.shape[-2:]
     if h < 2 or w < 2:
         raise InputError(f"{name}: expected H >= 2 and W >= 2, got {describe(depth)}")

@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from crfdepth.checks import describe
+from crfdepth.checks import check_depth_values, describe
 from crfdepth.errors import InputError
 from crfdepth.superpixels.segments import _image_tensor, _labels_tensor, slic_batch
 
@@ -74,12 +74,7 @@ def _sparse_tensor(sparse: torch.Tensor, size: tuple[int, int], name: str = "spa
             f"{name}: expected a (1, {h}, {w}) or ({h}, {w}) depth tensor (the image size), "
             f"got {describe(sparse)}"
         )
-    if not sparse.is_floating_point():
-        raise InputError(f"{name}: expected floating-point depth in metres, got dtype {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()):
-        raise InputError(f"{name}: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
-    if bool((sparse < 0).any()):
-        raise InputError(f"{name}: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
+    check_depth_values(name, sparse)
     return sparse
 
 
