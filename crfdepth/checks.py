@@ -21,6 +21,7 @@ __all__ = [
     "MAX_LIDAR_DEPTH_M",
     "MIN_FOV_DEG",
     "RIGID_TOLERANCE",
+    "check_choice",
     "check_depth_frames",
     "check_depth_values",
     "check_frames",
@@ -53,6 +54,17 @@ def describe(value: object) -> str:
     if shape is not None:
         return f"shape {tuple(shape)} {getattr(value, 'dtype', '')}".rstrip()
     return type(value).__name__
+
+
+def check_choice(name: str, value: object, choices) -> object:
+    """``value`` if it is one of ``choices``; the message lists them quoted, in their order."""
+    try:
+        known = value in choices
+    except (TypeError, ValueError):  # unhashable, or an array whose == is elementwise
+        known = False
+    if not known:
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+    return value
 
 
 def check_number(name: str, value: object, *, low: float | None = None, high: float | None = None,

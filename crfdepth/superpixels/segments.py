@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from skimage.segmentation import relabel_sequential, slic
 
-from crfdepth.checks import describe
+from crfdepth.checks import check_choice, describe
 from crfdepth.errors import InputError
 from crfdepth.superpixels.slic import slic_torch
 
@@ -89,8 +89,7 @@ def _labels_tensor(
 
 def _resolve_backend(backend: object, device: torch.device) -> str:
     """``"torch"`` or ``"skimage"`` for ``backend`` on ``device`` (``"auto"``: see :func:`slic_segments`)."""
-    if not isinstance(backend, str) or backend not in _BACKENDS:
-        raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
+    check_choice("backend", backend, _BACKENDS)
     if backend != "auto":
         return backend
     return _CPU_BACKEND if device.type == "cpu" else "torch"
