@@ -1,6 +1,7 @@
 """What the ``crfdepth`` sub-commands share: argument types, the model options, output paths.
 
-- :func:`int_at_least`: an argparse type naming what was expected;
+- :func:`int_at_least` / :func:`fraction` / :func:`positive_number`: argparse types naming what
+  was expected;
 - :func:`add_model_arguments` / :func:`build_model`: the "model" options of ``complete``
   and ``evaluate`` (``--weights`` or ``--checkpoint``, structure overrides, device, dtype);
 - :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch`: frames
@@ -24,6 +25,7 @@ import contextlib
 import csv
 import io
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -52,7 +54,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["BAD_INPUT", "LISTED_BAD", "MAX_WORKERS", "SKIPPED_CSV", "add_batch_arguments", "bad_frames",
            "skipped_frames", "write_skipped", "add_model_arguments", "build_model", "check_output_file",
            "check_output_folders", "check_writable_dir",
-           "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
+           "check_sample", "complete_batch", "complete_frame", "flag_names", "fraction", "frame_batches", "int_at_least",
            "make_output_dir", "output_folders", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
@@ -73,9 +75,11 @@ def _potentials(text: str) -> tuple[str, ...]:
     return names
 
 
-def int_at_least(low: int, high: int | None = None):
-    """An argparse ``type`` accepting integers >= ``low`` (and <= ``high`` when given)."""
+def int_at_least(low: int, high: int | None = None, meaning: str | None = None):
+    """An argparse ``type`` accepting integers >= ``low`` (and <= ``high`` when given); ``meaning``,
+    when given, says in the message what the number is."""
     bounds = f">= {low}" if high is None else f"in [{low}, {high}]"
+    note = f" ({meaning})" if meaning else ""
 
     def parse(text: str) -> int:
         try:
@@ -83,7 +87,25 @@ def int_at_least(low: int, high: int | None = None):
         except ValueError:
             value = low - 1
         if value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}{note}, got {text!r}")
+        return value
+
+    return parse
+
+
+def fraction(*, include_one: bool, meaning: str | None = None):
+    """An argparse ``type`` accepting a number in (0, 1] (``include_one``) or in (0, 1); ``meaning``,
+    when given, says in the message what the number is."""
+    bounds = "(0, 1]" if include_one else "(0, 1)"
+    note = f" ({meaning})" if meaning else ""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (0.0 < value <= 1.0 if include_one else 0.0 < value < 1.0):  # also refuses nan
+            raise argparse.ArgumentTypeError(f"expected a number in {bounds}{note}, got {text!r}")
         return value
 
     return parse
