@@ -6,9 +6,10 @@
   and ``evaluate`` (``--weights`` or ``--checkpoint``, structure overrides, device, dtype);
 - :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch`: frames
   read by DataLoader workers, batched by size, completed by one model call per batch;
-- :func:`check_output_file` / :func:`make_output_dir` / :func:`same_file`: output paths
-  checked before any computation, named by their flag (a file is actually created in the
-  folder and removed, :func:`crfdepth.io.files.probe_folder`);
+- :func:`make_output_dir` / :func:`same_file`: output paths checked before any computation,
+  named by their flag (a file is actually created in the folder and removed,
+  :func:`crfdepth.io.files.probe_folder`); output files are checked with
+  :func:`crfdepth.io.files.check_output_file`;
 - :func:`check_output_folders` / :func:`output_folders`: the output folders of the folder
   and bag modes, checked up front (another run writing there is refused at once), then
   created and locked for the run (:func:`crfdepth.io.files.lock_folder`);
@@ -41,7 +42,6 @@ from crfdepth import api
 from crfdepth.cli.progress import FrameProgress
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
-from crfdepth.io import files
 from crfdepth.io.files import atomic_write_bytes, check_not_locked, lock_folder, probe_folder
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, cli_advice
@@ -52,7 +52,7 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS, describe, load_model, loa
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "LISTED_BAD", "MAX_WORKERS", "SKIPPED_CSV", "add_batch_arguments", "bad_frames",
-           "skipped_frames", "write_skipped", "add_model_arguments", "build_model", "check_output_file",
+           "skipped_frames", "write_skipped", "add_model_arguments", "build_model",
            "check_output_folders", "check_writable_dir",
            "check_sample", "complete_batch", "complete_frame", "flag_names", "fraction", "frame_batches", "int_at_least",
            "make_output_dir", "output_folders", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
@@ -165,15 +165,6 @@ def check_writable_dir(directory: Path, what: str) -> None:
     if problem is not None:
         raise PermissionError(f"{what}: output folder is not writable: {directory} (creating a file there "
                               f"fails: {problem})")
-
-
-def check_output_file(path: str, what: str) -> Path:
-    """An output PNG path whose folder exists and takes new files (a probe file is created and removed:
-    :func:`crfdepth.io.files.check_output_file`), checked before any computation."""
-    out = Path(path)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"{what}: expected a file name ending in .png, got {out}")
-    return files.check_output_file(out, what)
 
 
 def make_output_dir(path: str | Path, what: str) -> Path:

@@ -69,10 +69,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _check_out(args: argparse.Namespace) -> Path:
     """``--out``, checked before any input is read: a .png name, creatable, not an input."""
-    out = Path(args.out)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"--out: expected a file name ending in .png, got {out}")
-    out = check_output_file(out, "--out")
+    out = check_output_file(args.out, "--out", suffix=".png")
     for flag in ("--velodyne", "--calib", "--image"):
         source = getattr(args, flag[2:])
         if os.path.realpath(source) == os.path.realpath(out):
