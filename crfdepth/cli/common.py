@@ -4,7 +4,7 @@
   was expected;
 - :func:`add_model_arguments` / :func:`build_model`: the "model" options of ``complete``
   and ``evaluate`` (``--weights`` or ``--checkpoint``, structure overrides, device, dtype);
-- :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch`: frames
+- :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch_with_cli_advice`: frames
   read by DataLoader workers, batched by size, completed by one model call per batch;
 - :func:`make_output_dir` / :func:`same_file`: output paths checked before any computation,
   named by their flag (a file is actually created in the folder and removed,
@@ -54,8 +54,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["BAD_INPUT", "LISTED_BAD", "MAX_WORKERS", "SKIPPED_CSV", "add_batch_arguments", "bad_frames",
            "skipped_frames", "write_skipped", "add_model_arguments", "build_model",
            "check_output_folders", "check_writable_dir",
-           "check_sample", "complete_batch", "complete_frame", "flag_names", "fraction", "frame_batches", "int_at_least",
-           "make_output_dir", "output_folders", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
+           "check_sample", "complete_batch_with_cli_advice", "complete_frame", "flag_names", "fraction",
+           "frame_batches", "int_at_least", "make_output_dir", "output_folders", "positive_number", "same_file",
+           "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
@@ -369,8 +370,8 @@ def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
 
 def complete_frame(args: argparse.Namespace, model, image, where: dict[str, str], with_std: bool, **inputs):
     """One frame through :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
-    calls its batched form, :func:`complete_batch`); errors name ``where``'s flags. Returns float64 numpy
-    (H, W) depth and std (None without ``with_std``), metres.
+    calls its batched form, :func:`complete_batch_with_cli_advice`); errors name ``where``'s flags. Returns
+    float64 numpy (H, W) depth and std (None without ``with_std``), metres.
 
     A frame too large for the memory (refused up front, or an allocator failure in the forward) is an
     InputError naming the image's flag with the CLI's fix. Outside the bag mode and without ``--quiet``, a
@@ -491,7 +492,8 @@ def check_sample(sample: Sample) -> None:
     api.check_frame(sample.image, sample.sparse, sample.K)
 
 
-def complete_batch(model: CRFDepth, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+def complete_batch_with_cli_advice(model: CRFDepth, batch: Batch, return_std: bool
+                                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`crfdepth.api.complete_batch` of a batch of frames checked by :func:`check_sample`, on the
     model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. A memory refusal
     advises the CLI's options."""
@@ -574,7 +576,7 @@ def frame_batches(dataset: Dataset, batch_size: int, workers: int,
     iteration: the frames before it are yielded first, then its exception is raised with
     the type and message it had where it was read, so the error reads the same for any
     ``workers`` and ``batch_size``. Results do not depend on how the frames are batched
-    beyond :func:`complete_batch`'s solver tolerance.
+    beyond :func:`complete_batch_with_cli_advice`'s solver tolerance.
     """
     loader = DataLoader(_CheckedFrames(dataset, check), batch_size=None, shuffle=False, num_workers=workers,
                         collate_fn=_as_is)

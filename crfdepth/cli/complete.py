@@ -123,7 +123,7 @@ from crfdepth.cli.common import (
     build_model,
     check_output_folders,
     check_sample,
-    complete_batch,
+    complete_batch_with_cli_advice,
     frame_batches,
     make_output_dir,
     output_folders,
@@ -412,7 +412,7 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
             if len(batch) > 1:
                 where = (f"frames {positions[written] + 1}-{positions[written + len(batch) - 1] + 1}/{total} "
                          f"({', '.join(batch.names)})")
-            depth, std = complete_batch(model, batch, with_std)
+            depth, std = complete_batch_with_cli_advice(model, batch, with_std)
             depth = depth.double().cpu().numpy()
             std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
             for name, frame_depth, frame_std in zip(batch.names, depth, std):

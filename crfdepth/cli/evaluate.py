@@ -85,8 +85,8 @@ import torch
 from torch.utils.data import Subset
 from tqdm import tqdm
 
-from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model, complete_batch,
-                                 fraction, frame_batches, int_at_least, output_folders)
+from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model,
+                                 complete_batch_with_cli_advice, fraction, frame_batches, int_at_least, output_folders)
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -276,9 +276,9 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
 def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
     (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.cli.common.complete_batch`, the batched ``complete_depth``)."""
+    (:func:`crfdepth.cli.common.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
     try:
-        depth, std = complete_batch(model, batch, return_std)
+        depth, std = complete_batch_with_cli_advice(model, batch, return_std)
     except InputError as exc:
         raise InputError(f"{where}: {exc}") from None
     if return_std and std is None:
