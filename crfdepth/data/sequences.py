@@ -59,7 +59,7 @@ import torch
 from torch.utils.data import Dataset
 
 from crfdepth.geometry import projection
-from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_root
+from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_root, rgb_tensor
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
@@ -348,7 +348,7 @@ class SequenceFrames(Dataset):
             if image.shape != rgb.shape:
                 raise InputError(f"{f.name}: neighbouring image {path} is {image.shape[0]}x{image.shape[1]} (HxW), "
                                  f"the frame's {f.image} is {rgb.shape[0]}x{rgb.shape[1]}")
-            neighbours.append(torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))))
-        sample = dataclasses.replace(sample, neighbours=torch.stack(neighbours).to(torch.float32) / 255.0,
+            neighbours.append(rgb_tensor(image))
+        sample = dataclasses.replace(sample, neighbours=torch.stack(neighbours),
                                      poses=torch.from_numpy(f.poses).to(torch.float32))
         return self.transform(sample) if self.transform is not None else sample

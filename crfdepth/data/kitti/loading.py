@@ -19,7 +19,7 @@ import torch
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 
-__all__ = ["PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root"]
+__all__ = ["PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
 
 PathLike = str | os.PathLike
 Transform = Callable[[Sample], Sample]
@@ -58,7 +58,7 @@ def load_sample(
                 f"{name}: RGB and depth sizes differ: image {files.get('image')} is {h}x{w} (HxW) "
                 f"but {key} {files.get(key)} is {array.shape[0]}x{array.shape[1]}"
             )
-    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).to(torch.float32) / 255.0
+    image_t = rgb_tensor(rgb)
     sparse_t = torch.from_numpy(np.ascontiguousarray(sparse, dtype=np.float32))[None]
     if target is None:
         target_t = torch.zeros_like(sparse_t)
@@ -73,6 +73,11 @@ def load_sample(
         has_target=target is not None,
     )
     return transform(sample) if transform is not None else sample
+
+
+def rgb_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (3, H, W) float32 in [0, 1], the layout of :attr:`Sample.image`."""
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).to(torch.float32) / 255.0
 
 
 def require_root(root: PathLike, what: str = "root") -> Path:
