@@ -15,14 +15,30 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import Dataset
 
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 
-__all__ = ["PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
+__all__ = ["FrameDataset", "PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
 
 PathLike = str | os.PathLike
 Transform = Callable[[Sample], Sample]
+
+
+class FrameDataset(Dataset):
+    """A dataset of the frames its constructor lists in ``self._frames`` (each with a ``name``), in
+    that order: their count and names."""
+
+    _frames: list
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def names(self) -> list[str]:
+        """Sample names in dataset order."""
+        return [f.name for f in self._frames]
 
 
 def load_sample(
