@@ -21,6 +21,9 @@ __all__ = [
     "MAX_LIDAR_DEPTH_M",
     "MIN_FOV_DEG",
     "RIGID_TOLERANCE",
+    "check_choice",
+    "check_depth_frames",
+    "check_depth_values",
     "check_frames",
     "check_intrinsics",
     "check_map",
@@ -51,6 +54,17 @@ def describe(value: object) -> str:
     if shape is not None:
         return f"shape {tuple(shape)} {getattr(value, 'dtype', '')}".rstrip()
     return type(value).__name__
+
+
+def check_choice(name: str, value: object, choices) -> object:
+    """``value`` if it is one of ``choices``; the message lists them quoted, in their order."""
+    try:
+        known = value in choices
+    except (TypeError, ValueError):  # unhashable, or an array whose == is elementwise
+        known = False
+    if not known:
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+    return value
 
 
 def check_number(name: str, value: object, *, low: float | None = None, high: float | None = None,
@@ -140,6 +154,16 @@ def check_scalar_tensor(name: str, value: object, ref: torch.Tensor, *, positive
     return t
 
 
+def check_depth_values(name: str, depth: torch.Tensor, *, zero: str = "no LiDAR") -> None:
+    """A depth tensor's values: floating dtype, finite, >= 0 metres (``zero``: what 0 means)."""
+    if not depth.is_floating_point():
+        raise InputError(f"{name}: expected floating-point depth in metres, got dtype {depth.dtype}")
+    if not bool(torch.isfinite(depth).all()):
+        raise InputError(f"{name}: expected finite depth in metres (0 = {zero}), got NaN or inf")
+    if bool((depth < 0).any()):
+        raise InputError(f"{name}: expected depth >= 0 metres (0 = {zero}), got minimum {float(depth.min()):.4g}")
+
+
 def check_depth_frames(sparse: object, *, above: float = 0.0, what: str = "the fill") -> torch.Tensor:
     """A (B, 1, H, W), (1, H, W) or (H, W) LiDAR depth map as a detached (B, 1, H, W) view.
 
@@ -152,12 +176,7 @@ def check_depth_frames(sparse: object, *, above: float = 0.0, what: str = "the f
     ):
         got = f"shape {tuple(sparse.shape)}" if isinstance(sparse, torch.Tensor) else type(sparse).__name__
         raise InputError(f"sparse: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {got}")
-    if not sparse.is_floating_point():
-        raise InputError(f"sparse: expected floating-point depth in metres, got dtype {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()):
-        raise InputError("sparse: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
-    if bool((sparse < 0).any()):
-        raise InputError(f"sparse: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
+    check_depth_values("sparse", sparse)
     h, w = sparse.shape[-2:]
     frames = sparse.detach().reshape(-1, 1, h, w)
     has_return = (frames > above).flatten(1).any(dim=1)

@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_units
+from crfdepth.checks import (
+    MAX_LIDAR_DEPTH_M,
+    check_choice,
+    check_intrinsics,
+    check_rigid,
+    check_sparse_units,
+)
 from crfdepth.errors import InputError
 
 KITTI_K = [[721.5377, 0.0, 596.5593], [0.0, 721.5377, 149.854], [0.0, 0.0, 1.0]]
@@ -141,3 +147,15 @@ def test_check_rigid():
         check_rigid(scaled)
     with pytest.raises(InputError, match=r"^T: expected a rotation part with determinant \+1, got -1"):
         check_rigid(np.diag([1.0, -1.0, 1.0, 1.0]), "T")
+
+
+# --------------------------------------------------------------------------- choices
+
+
+def test_check_choice():
+    assert check_choice("mode", "pixel", ("superpixel", "pixel")) == "pixel"
+    with pytest.raises(InputError, match=r"^mode: expected one of 'superpixel', 'pixel', got 'voxel'$"):
+        check_choice("mode", "voxel", ("superpixel", "pixel"))
+    for odd in ([1], np.array(["pixel", "pixel"]), None):  # unhashable, elementwise ==, not a string
+        with pytest.raises(InputError, match=r"^mode: expected one of 'superpixel', 'pixel', got "):
+            check_choice("mode", odd, ("superpixel", "pixel"))

@@ -36,6 +36,7 @@ from typing import Any
 import lightning.pytorch as pl
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Subset
 
+from crfdepth.checks import check_choice
 from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, build_dataset, collate_samples
 from crfdepth.data.factory import LAYOUTS
 from crfdepth.data.sample import Sample
@@ -95,8 +96,7 @@ def _check_source(index: int, source: Any) -> dict[str, Any]:
     unknown = set(source) - {"layout", "root", "options", "names_contain"}
     if unknown:
         raise InputError(f"{where}: expected keys among layout, root, options, names_contain, got {sorted(unknown)}")
-    if source.get("layout") not in LAYOUTS:
-        raise InputError(f"{where}.layout: expected one of {', '.join(LAYOUTS)}, got {source.get('layout')!r}")
+    check_choice(f"{where}.layout", source.get("layout"), LAYOUTS)
     options = source.get("options")
     if options is not None and not isinstance(options, dict):
         raise InputError(f"{where}.options: expected a mapping of dataset options, got {type(options).__name__}")
@@ -180,8 +180,8 @@ class CRFDataModule(pl.LightningDataModule):
     ) -> None:
         super().__init__()
         for name, value in (("layout", layout), ("val_layout", val_layout)):
-            if value is not None and value not in LAYOUTS:
-                raise InputError(f"{name}: expected one of {', '.join(LAYOUTS)}, got {value!r}")
+            if value is not None:
+                check_choice(name, value, LAYOUTS)
         if val_names_contain is not None and val_fraction is not None:
             raise InputError("val_names_contain, val_fraction: give at most one of the two split options")
         if val_fraction is not None and not 0.0 < float(val_fraction) < 1.0:

@@ -1,13 +1,15 @@
 """What the ``crfdepth`` sub-commands share: argument types, the model options, output paths.
 
-- :func:`int_at_least`: an argparse type naming what was expected;
+- :func:`int_at_least` / :func:`fraction` / :func:`positive_number`: argparse types naming what
+  was expected;
 - :func:`add_model_arguments` / :func:`build_model`: the "model" options of ``complete``
   and ``evaluate`` (``--weights`` or ``--checkpoint``, structure overrides, device, dtype);
-- :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch`: frames
+- :func:`add_batch_arguments` / :func:`frame_batches` / :func:`complete_batch_with_cli_advice`: frames
   read by DataLoader workers, batched by size, completed by one model call per batch;
-- :func:`check_output_file` / :func:`make_output_dir` / :func:`same_file`: output paths
-  checked before any computation, named by their flag (a file is actually created in the
-  folder and removed, :func:`crfdepth.io.files.probe_folder`);
+- :func:`make_output_dir` / :func:`same_file`: output paths checked before any computation,
+  named by their flag (a file is actually created in the folder and removed,
+  :func:`crfdepth.io.files.probe_folder`); output files are checked with
+  :func:`crfdepth.io.files.check_output_file`;
 - :func:`check_output_folders` / :func:`output_folders`: the output folders of the folder
   and bag modes, checked up front (another run writing there is refused at once), then
   created and locked for the run (:func:`crfdepth.io.files.lock_folder`);
@@ -24,6 +26,7 @@ import contextlib
 import csv
 import io
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -39,7 +42,6 @@ from crfdepth import api
 from crfdepth.cli.progress import FrameProgress
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
-from crfdepth.io import files
 from crfdepth.io.files import atomic_write_bytes, check_not_locked, lock_folder, probe_folder
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, cli_advice
@@ -51,10 +53,11 @@ from crfdepth.checkpoints import describe, load_model, load_pretrained, own_stru
 logger = logging.getLogger(__name__)
 
 __all__ = ["BAD_INPUT", "LISTED_BAD", "MAX_WORKERS", "SKIPPED_CSV", "add_batch_arguments", "bad_frames",
-           "skipped_frames", "write_skipped", "add_model_arguments", "build_model", "check_output_file",
+           "skipped_frames", "write_skipped", "add_model_arguments", "build_model",
            "check_output_folders", "check_writable_dir",
-           "check_sample", "complete_batch", "complete_frame", "flag_names", "frame_batches", "int_at_least",
-           "make_output_dir", "output_folders", "positive_number", "same_file", "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
+           "check_sample", "complete_batch_with_cli_advice", "complete_frame", "flag_names", "fraction",
+           "frame_batches", "int_at_least", "make_output_dir", "output_folders", "positive_number", "same_file",
+           "vis_range_type", "write_frame", "write_pictures", "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
@@ -74,9 +77,11 @@ def _potentials(text: str) -> tuple[str, ...]:
     return names
 
 
-def int_at_least(low: int, high: int | None = None):
-    """An argparse ``type`` accepting integers >= ``low`` (and <= ``high`` when given)."""
+def int_at_least(low: int, high: int | None = None, meaning: str | None = None):
+    """An argparse ``type`` accepting integers >= ``low`` (and <= ``high`` when given); ``meaning``,
+    when given, says in the message what the number is."""
     bounds = f">= {low}" if high is None else f"in [{low}, {high}]"
+    note = f" ({meaning})" if meaning else ""
 
     def parse(text: str) -> int:
         try:
@@ -84,7 +89,25 @@ def int_at_least(low: int, high: int | None = None):
         except ValueError:
             value = low - 1
         if value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}{note}, got {text!r}")
+        return value
+
+    return parse
+
+
+def fraction(*, include_one: bool, meaning: str | None = None):
+    """An argparse ``type`` accepting a number in (0, 1] (``include_one``) or in (0, 1); ``meaning``,
+    when given, says in the message what the number is."""
+    bounds = "(0, 1]" if include_one else "(0, 1)"
+    note = f" ({meaning})" if meaning else ""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (0.0 < value <= 1.0 if include_one else 0.0 < value < 1.0):  # also refuses nan
+            raise argparse.ArgumentTypeError(f"expected a number in {bounds}{note}, got {text!r}")
         return value
 
     return parse
@@ -144,15 +167,6 @@ def check_writable_dir(directory: Path, what: str) -> None:
     if problem is not None:
         raise PermissionError(f"{what}: output folder is not writable: {directory} (creating a file there "
                               f"fails: {problem})")
-
-
-def check_output_file(path: str, what: str) -> Path:
-    """An output PNG path whose folder exists and takes new files (a probe file is created and removed:
-    :func:`crfdepth.io.files.check_output_file`), checked before any computation."""
-    out = Path(path)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"{what}: expected a file name ending in .png, got {out}")
-    return files.check_output_file(out, what)
 
 
 def make_output_dir(path: str | Path, what: str) -> Path:
@@ -357,8 +371,8 @@ def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
 
 def complete_frame(args: argparse.Namespace, model, image, where: dict[str, str], with_std: bool, **inputs):
     """One frame through :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
-    calls its batched form, :func:`complete_batch`); errors name ``where``'s flags. Returns float64 numpy
-    (H, W) depth and std (None without ``with_std``), metres.
+    calls its batched form, :func:`complete_batch_with_cli_advice`); errors name ``where``'s flags. Returns
+    float64 numpy (H, W) depth and std (None without ``with_std``), metres.
 
     A frame too large for the memory (refused up front, or an allocator failure in the forward) is an
     InputError naming the image's flag with the CLI's fix. Outside the bag mode and without ``--quiet``, a
@@ -479,7 +493,8 @@ def check_sample(sample: Sample) -> None:
     api.check_frame(sample.image, sample.sparse, sample.K)
 
 
-def complete_batch(model: CRFDepth, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+def complete_batch_with_cli_advice(model: CRFDepth, batch: Batch, return_std: bool
+                                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`crfdepth.api.complete_batch` of a batch of frames checked by :func:`check_sample`, on the
     model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. A memory refusal
     advises the CLI's options."""
@@ -562,7 +577,7 @@ def frame_batches(dataset: Dataset, batch_size: int, workers: int,
     iteration: the frames before it are yielded first, then its exception is raised with
     the type and message it had where it was read, so the error reads the same for any
     ``workers`` and ``batch_size``. Results do not depend on how the frames are batched
-    beyond :func:`complete_batch`'s solver tolerance.
+    beyond :func:`complete_batch_with_cli_advice`'s solver tolerance.
     """
     loader = DataLoader(_CheckedFrames(dataset, check), batch_size=None, shuffle=False, num_workers=workers,
                         collate_fn=_as_is)

@@ -121,10 +121,9 @@ from crfdepth.cli.common import (
     write_frame,
     add_model_arguments,
     build_model,
-    check_output_file,
     check_output_folders,
     check_sample,
-    complete_batch,
+    complete_batch_with_cli_advice,
     frame_batches,
     make_output_dir,
     output_folders,
@@ -135,6 +134,7 @@ from crfdepth.data.kitti import open_completion_folder
 from crfdepth.checks import SPARSE_UNITS, check_intrinsics, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
+from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
 from crfdepth.io.pointcloud import read_points
 from crfdepth.memory import check_image_file, cli_advice
@@ -231,8 +231,8 @@ def _check_frame(sample, index: int, *, total: int, positions: list[int] | None 
 
 def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
     """``--out`` / ``--out-std`` checked before anything is read: PNG names in writable folders, not inputs."""
-    out = check_output_file(args.out, "--out")
-    out_std = check_output_file(args.out_std, "--out-std") if args.out_std is not None else None
+    out = check_output_file(args.out, "--out", suffix=".png")
+    out_std = check_output_file(args.out_std, "--out-std", suffix=".png") if args.out_std is not None else None
     if out_std is not None and same_file(out, out_std):
         raise InputError(f"--out-std: must differ from --out, got {out_std} for both")
     for flag, path in ((f, p) for f, p in (("--out", out), ("--out-std", out_std)) if p is not None):
@@ -412,7 +412,7 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
             if len(batch) > 1:
                 where = (f"frames {positions[written] + 1}-{positions[written + len(batch) - 1] + 1}/{total} "
                          f"({', '.join(batch.names)})")
-            depth, std = complete_batch(model, batch, with_std)
+            depth, std = complete_batch_with_cli_advice(model, batch, with_std)
             depth = depth.double().cpu().numpy()
             std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
             for name, frame_depth, frame_std in zip(batch.names, depth, std):

@@ -47,7 +47,7 @@ import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
-from crfdepth.cli.common import model_line, vis_range_type, write_rgb_png
+from crfdepth.cli.common import int_at_least, model_line, vis_range_type, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import write_depth_png
@@ -68,22 +68,6 @@ MAX_BEAMS = 128
 
 
 # --------------------------------------------------------------------------- flag parsing
-
-
-def _int_at_least(low: int, high: int | None = None):
-    """argparse ``type=``: an integer in [low, high]."""
-    bounds = f">= {low}" if high is None else f"in [{low}, {high}]"
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}") from None
-        if value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {text!r}")
-        return value
-
-    return parse
 
 
 class _VisRange(argparse.Action):
@@ -111,9 +95,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--out-dir", default="crfdepth_demo", metavar="DIR",
                         help=f"folder for the pictures, created if missing; the depth data go to "
                              f"DIR/{DATA_FOLDER}/ (default: ./crfdepth_demo)")
-    parser.add_argument("--seed", type=_int_at_least(0), default=0,
+    parser.add_argument("--seed", type=int_at_least(0), default=0,
                         help="seed of the synthetic scene, >= 0 (default 0)")
-    parser.add_argument("--beams", type=_int_at_least(1, MAX_BEAMS), default=64,
+    parser.add_argument("--beams", type=int_at_least(1, MAX_BEAMS), default=64,
                         help=f"beams of the simulated LiDAR, 1 to {MAX_BEAMS} (default 64)")
     own = ", ".join(f"{name}: {own_structure(name)['mode']}" for name in WEIGHTS)
     parser.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
@@ -121,7 +105,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
                         help=f"shipped weight set: kitti (learned on KITTI) or paper (hand-set); "
                              f"default: {DEFAULT_WEIGHTS}")
-    parser.add_argument("--max-frames", type=_int_at_least(1), default=2,
+    parser.add_argument("--max-frames", type=int_at_least(1), default=2,
                         help="KITTI frames to run, >= 1 (default 2)")
     parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=_VisRange, default=None,
                         metavar=("MIN", "MAX"),

@@ -85,8 +85,8 @@ import torch
 from torch.utils.data import Subset
 from tqdm import tqdm
 
-from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model, complete_batch,
-                                 frame_batches, int_at_least, output_folders)
+from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model,
+                                 complete_batch_with_cli_advice, fraction, frame_batches, int_at_least, output_folders)
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -119,16 +119,6 @@ _DATASET_OPTIONS = {
 }
 
 
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}")
-    return value
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register the ``evaluate`` sub-command on ``subparsers`` (sets ``func=run``)."""
     parser = subparsers.add_parser(
@@ -152,7 +142,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                            "are the ground truth; --data is the raw root holding <date>/<drive>/")
     data.add_argument("--holdout", choices=("fraction", "rings"), default=None,
                       help="raw / object: how LiDAR points are held out as targets (default: fraction)")
-    data.add_argument("--holdout-fraction", type=_fraction, default=None, metavar="F",
+    data.add_argument("--holdout-fraction", type=fraction(include_one=False), default=None, metavar="F",
                       help="raw / object with --holdout fraction: share of points held out (default 0.2)")
     data.add_argument("--keep-every-ring", type=int_at_least(1), default=None, metavar="N",
                       help="raw / object with --holdout rings: keep every N-th laser ring as input "
@@ -287,9 +277,9 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
 def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
     (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.cli.common.complete_batch`, the batched ``complete_depth``)."""
+    (:func:`crfdepth.cli.common.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
     try:
-        depth, std = complete_batch(model, batch, return_std)
+        depth, std = complete_batch_with_cli_advice(model, batch, return_std)
     except InputError as exc:
         raise InputError(f"{where}: {exc}") from None
     if return_std and std is None:

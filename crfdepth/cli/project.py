@@ -25,6 +25,7 @@ import os
 from pathlib import Path
 
 from crfdepth.checks import check_intrinsics
+from crfdepth.cli.common import fraction, int_at_least
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RIG_SUFFIXES, load_calibration
 from crfdepth.io.files import check_output_file
@@ -32,28 +33,6 @@ from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
 from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 
 logger = logging.getLogger(__name__)
-
-
-def _ring_step(text: str) -> int:
-    """``--keep-every-ring`` value: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1 (keep one laser ring in K), got {text!r}")
-    return value
-
-
-def _fraction(text: str) -> float:
-    """``--keep-fraction`` value: a number in (0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value <= 1:  # also refuses nan
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1] (the share of points kept), got {text!r}")
-    return value
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -76,9 +55,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="output depth PNG (its folder must exist)")
     parser.add_argument("--camera", type=int, default=2, choices=(0, 1, 2, 3),
                         help="KITTI camera index (default: 2, left colour)")
-    parser.add_argument("--keep-every-ring", type=_ring_step, default=None, metavar="K",
+    parser.add_argument("--keep-every-ring", type=int_at_least(1, meaning="keep one laser ring in K"), default=None, metavar="K",
                         help="keep one laser ring in K (rings recovered from the scan order)")
-    parser.add_argument("--keep-fraction", type=_fraction, default=None, metavar="F",
+    parser.add_argument("--keep-fraction", type=fraction(include_one=True, meaning="the share of points kept"), default=None, metavar="F",
                         help="keep a random fraction F in (0, 1] of the points")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
                         help="seed of --keep-fraction (default: 0)")
@@ -90,10 +69,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _check_out(args: argparse.Namespace) -> Path:
     """``--out``, checked before any input is read: a .png name, creatable, not an input."""
-    out = Path(args.out)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"--out: expected a file name ending in .png, got {out}")
-    out = check_output_file(out, "--out")
+    out = check_output_file(args.out, "--out", suffix=".png")
     for flag in ("--velodyne", "--calib", "--image"):
         source = getattr(args, flag[2:])
         if os.path.realpath(source) == os.path.realpath(out):

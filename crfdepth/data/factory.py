@@ -7,6 +7,7 @@ from typing import Literal
 
 from torch.utils.data import Dataset
 
+from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 
 Layout = Literal["depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence"]
@@ -30,8 +31,7 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
 
     if layout == "synthetic":
         return synthetic.SyntheticScenes(**options)
-    if layout not in LAYOUTS:
-        raise InputError(f"layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
+    check_choice("layout", layout, LAYOUTS)
     if root is None:
         raise InputError(f"root: a data folder is needed for layout {layout!r}")
     if layout == "depth_completion":

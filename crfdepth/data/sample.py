@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from crfdepth.checks import describe
 from crfdepth.errors import InputError
 
 
@@ -59,34 +60,34 @@ class Sample:
     def __post_init__(self) -> None:
         image = self.image
         if not isinstance(image, torch.Tensor) or image.ndim != 3 or image.shape[0] != 3:
-            raise InputError(f"Sample.image: expected a (3, H, W) tensor, got {_describe(image)}")
+            raise InputError(f"Sample.image: expected a (3, H, W) tensor, got {describe(image)}")
         hw = tuple(image.shape[1:])
         for field_name in ("sparse", "target"):
             value = getattr(self, field_name)
             if not isinstance(value, torch.Tensor) or tuple(value.shape) != (1, *hw):
                 raise InputError(
                     f"Sample.{field_name}: expected a (1, {hw[0]}, {hw[1]}) tensor (the size of "
-                    f"image), got {_describe(value)} for {self.name!r}"
+                    f"image), got {describe(value)} for {self.name!r}"
                 )
         if not isinstance(self.K, torch.Tensor) or tuple(self.K.shape) != (3, 3):
-            raise InputError(f"Sample.K: expected a (3, 3) tensor, got {_describe(self.K)}")
+            raise InputError(f"Sample.K: expected a (3, 3) tensor, got {describe(self.K)}")
         for field_name in ("image", "sparse", "target", "K"):
             value = getattr(self, field_name)
             if not value.is_floating_point():
                 raise InputError(f"Sample.{field_name}: expected a floating-point tensor, got {value.dtype}")
         if (self.neighbours is None) != (self.poses is None):
             raise InputError(f"Sample.poses: expected poses exactly when neighbours are given, got neighbours "
-                             f"{_describe(self.neighbours)} and poses {_describe(self.poses)} for {self.name!r}")
+                             f"{describe(self.neighbours)} and poses {describe(self.poses)} for {self.name!r}")
         if self.neighbours is not None:
             n = self.neighbours
             if (not isinstance(n, torch.Tensor) or n.ndim != 4 or tuple(n.shape[1:]) != (3, *hw)
                     or not n.is_floating_point()):
                 raise InputError(f"Sample.neighbours: expected a floating-point (S, 3, {hw[0]}, {hw[1]}) tensor "
-                                 f"(the size of image), got {_describe(n)} for {self.name!r}")
+                                 f"(the size of image), got {describe(n)} for {self.name!r}")
             p = self.poses
             if not isinstance(p, torch.Tensor) or tuple(p.shape) != (n.shape[0], 4, 4) or not p.is_floating_point():
                 raise InputError(f"Sample.poses: expected a floating-point ({n.shape[0]}, 4, 4) tensor (one "
-                                 f"T_cam(s)<-cam(t) per neighbour), got {_describe(p)} for {self.name!r}")
+                                 f"T_cam(s)<-cam(t) per neighbour), got {describe(p)} for {self.name!r}")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -198,8 +199,3 @@ def collate_samples(samples: list[Sample]) -> Batch:
         poses=poses,
     )
 
-
-def _describe(value: object) -> str:
-    if isinstance(value, torch.Tensor):
-        return f"shape {tuple(value.shape)} ({value.dtype})"
-    return f"{type(value).__name__}"

@@ -56,10 +56,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from crfdepth.geometry import projection
-from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_root
+from crfdepth.data.kitti.loading import (
+    FrameDataset, PathLike, Transform, load_sample, no_frames, require_root, rgb_tensor,
+)
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
@@ -103,7 +104,7 @@ class _Frame:
     poses: np.ndarray  # (S, 4, 4) T_cam(s)<-cam(t)
 
 
-class SequenceFrames(Dataset):
+class SequenceFrames(FrameDataset):
     """Frames of KITTI raw drives with camera-view targets, neighbouring images and poses.
 
     Layout: ``root/<date>/<drive>/image_0X/data/<frame>.png``,
@@ -292,14 +293,6 @@ class SequenceFrames(Dataset):
         return calib
 
     # -- items -----------------------------------------------------------------------------
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    @property
-    def names(self) -> list[str]:
-        """Sample names in dataset order."""
-        return [f.name for f in self._frames]
-
     def _rng(self, name: str) -> np.random.Generator:
         if self.seed is None:
             return np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
@@ -348,7 +341,7 @@ class SequenceFrames(Dataset):
             if image.shape != rgb.shape:
                 raise InputError(f"{f.name}: neighbouring image {path} is {image.shape[0]}x{image.shape[1]} (HxW), "
                                  f"the frame's {f.image} is {rgb.shape[0]}x{rgb.shape[1]}")
-            neighbours.append(torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))))
-        sample = dataclasses.replace(sample, neighbours=torch.stack(neighbours).to(torch.float32) / 255.0,
+            neighbours.append(rgb_tensor(image))
+        sample = dataclasses.replace(sample, neighbours=torch.stack(neighbours),
                                      poses=torch.from_numpy(f.poses).to(torch.float32))
         return self.transform(sample) if self.transform is not None else sample

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import bilateral_blur, gaussian_blur2d, median_blur
 
-from crfdepth.checks import check_depth_frames, check_number
+from crfdepth.checks import check_choice, check_depth_frames, check_number
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
 
@@ -92,9 +92,8 @@ def ip_basic_fill(sparse: torch.Tensor, *, config: Config = "fast", max_depth: f
             or with a frame without any return above 0.1 m (named by its batch index);
             ``config`` unknown; ``max_depth`` not a number above the largest return plus 0.1 m.
     """
-    frames = _check_sparse(sparse)
-    if not isinstance(config, str) or config not in CONFIGS:
-        raise InputError(f"config: expected one of {', '.join(map(repr, CONFIGS))}, got {config!r}")
+    frames = check_depth_frames(sparse, above=MIN_DEPTH_M)
+    check_choice("config", config, CONFIGS)
     check_number("max_depth", max_depth, low=MIN_DEPTH_M)
     deepest = float(frames.max())
     if deepest >= max_depth - MIN_DEPTH_M:
@@ -105,11 +104,6 @@ def ip_basic_fill(sparse: torch.Tensor, *, config: Config = "fast", max_depth: f
     returns = _invert(work, max_depth)
     inverted = _fast(returns) if config == "fast" else _multiscale(returns, max_depth)
     return _invert(inverted, max_depth).to(sparse.dtype).reshape(sparse.shape)
-
-
-def _check_sparse(sparse: object) -> torch.Tensor:
-    """``sparse`` as a detached (B, 1, H, W) view, or an InputError naming it."""
-    return check_depth_frames(sparse, above=MIN_DEPTH_M)
 
 
 # --------------------------------------------------------------------------- the two configurations

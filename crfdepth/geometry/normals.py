@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_3d_v2
 
+from crfdepth.checks import check_depth_values, describe
 from crfdepth.errors import InputError
 
 __all__ = ["aggregate_normals", "camera_points", "dense_normals", "lidar_normals", "smallest_eigenvector"]
@@ -34,33 +35,23 @@ _COL = [0, 1, 2, 1, 2, 2]
 _SYM = [[0, 1, 2], [1, 3, 4], [2, 4, 5]]
 
 
-def _describe(value: object) -> str:
-    if isinstance(value, torch.Tensor):
-        return f"shape {tuple(value.shape)} ({value.dtype})"
-    return type(value).__name__
-
 
 def _as_batch(depth: torch.Tensor, K: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor, tuple[int, ...]]:
     """(B, H, W) depth and (B, 3, 3) K from the accepted layouts; checks values."""
     if not isinstance(depth, torch.Tensor) or not (
         depth.ndim == 2 or (depth.ndim == 3 and depth.shape[0] == 1) or (depth.ndim == 4 and depth.shape[1] == 1)
     ):
-        raise InputError(f"{name}: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {_describe(depth)}")
-    if not depth.is_floating_point():
-        raise InputError(f"{name}: expected floating-point depth in metres, got dtype {depth.dtype}")
-    if not bool(torch.isfinite(depth).all()):
-        raise InputError(f"{name}: expected finite depth in metres (0 = missing), got NaN or inf")
-    if bool((depth < 0).any()):
-        raise InputError(f"{name}: expected depth >= 0 metres (0 = missing), got minimum {float(depth.min()):.4g}")
+        raise InputError(f"{name}: expected a (B, 1, H, W), (1, H, W) or (H, W) depth tensor, got {describe(depth)}")
+    check_depth_values(name, depth, zero="missing")
     h, w = depth.shape[-2:]
     if h < 2 or w < 2:
-        raise InputError(f"{name}: expected H >= 2 and W >= 2, got {_describe(depth)}")
+        raise InputError(f"{name}: expected H >= 2 and W >= 2, got {describe(depth)}")
     batch = depth.reshape(-1, h, w)
     b = batch.shape[0]
     if not isinstance(K, torch.Tensor) or K.shape not in ((3, 3), (b, 3, 3)) or (depth.ndim < 4 and K.ndim != 2):
         want = "(3, 3)" if depth.ndim < 4 else f"(3, 3) or ({b}, 3, 3)"
         raise InputError(
-            f"K: expected a {want} intrinsics tensor for {name} of shape {tuple(depth.shape)}, got {_describe(K)}"
+            f"K: expected a {want} intrinsics tensor for {name} of shape {tuple(depth.shape)}, got {describe(K)}"
         )
     if not bool(torch.isfinite(K).all()) or bool((K[..., 0, 0] <= 0).any()) or bool((K[..., 1, 1] <= 0).any()):
         raise InputError("K: expected finite intrinsics with fx > 0 and fy > 0")
@@ -343,14 +334,14 @@ def aggregate_normals(
         ``node_normals`` (S, 3) unit vectors (0 where invalid) and ``node_valid`` (S,) bool.
     """
     if not isinstance(normals, torch.Tensor) or normals.ndim != 3 or normals.shape[0] != 3:
-        raise InputError(f"normals: expected a (3, H, W) tensor, got {_describe(normals)}")
+        raise InputError(f"normals: expected a (3, H, W) tensor, got {describe(normals)}")
     hw = tuple(normals.shape[1:])
     if isinstance(valid, torch.Tensor) and valid.ndim == 3 and valid.shape[0] == 1:
         valid = valid[0]
     if not isinstance(valid, torch.Tensor) or tuple(valid.shape) != hw or valid.dtype != torch.bool:
-        raise InputError(f"valid: expected an {hw} or (1, {hw[0]}, {hw[1]}) bool tensor, got {_describe(valid)}")
+        raise InputError(f"valid: expected an {hw} or (1, {hw[0]}, {hw[1]}) bool tensor, got {describe(valid)}")
     if not isinstance(labels, torch.Tensor) or tuple(labels.shape) != hw or labels.dtype != torch.int64:
-        raise InputError(f"labels: expected an {hw} int64 tensor, got {_describe(labels)}")
+        raise InputError(f"labels: expected an {hw} int64 tensor, got {describe(labels)}")
     if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= num_nodes):
         raise InputError(
             f"labels: expected values in [0, {num_nodes - 1}] (num_nodes={num_nodes}), "

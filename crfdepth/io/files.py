@@ -56,7 +56,7 @@ def check_input_file(path: str | os.PathLike, name: str = "path") -> Path:
     return file
 
 
-def check_output_file(path: str | os.PathLike, name: str = "path") -> Path:
+def check_output_file(path: str | os.PathLike, name: str = "path", *, suffix: str | None = None) -> Path:
     """``path`` as a Path, checked as a file to create or replace.
 
     Besides the folder's existence, a file is actually created there and removed again
@@ -64,12 +64,18 @@ def check_output_file(path: str | os.PathLike, name: str = "path") -> Path:
     whatever ``os.access`` says), so an unwritable folder fails here, before any work,
     rather than at the final write.
 
+    Args:
+        suffix: when given (``".png"``), the file name must end in it (any case).
+
     Raises:
-        InputError: ``path`` is a folder (the message names the argument ``name``).
+        InputError: ``path`` is a folder, or does not end in ``suffix`` (the message names
+            the argument ``name``).
         FileNotFoundError: its folder does not exist.
         PermissionError: no file can be created in its folder.
     """
     file = Path(path)
+    if suffix is not None and file.suffix.lower() != suffix:
+        raise InputError(f"{name}: expected a file name ending in {suffix}, got {file}")
     if file.is_dir():
         raise InputError(f"{name}: expected a file name, got a folder: {file}")
     if not file.parent.is_dir():

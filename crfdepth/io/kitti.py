@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_input_file, read_text
 
@@ -63,8 +64,7 @@ def read_depth_png(path: PathLike, units: str = "kitti") -> np.ndarray:
         FileNotFoundError: ``path`` does not exist.
         InputError: the file is not a 16-bit single-channel image, or ``units`` is unknown.
     """
-    if units not in _UNIT_SCALES:
-        raise InputError(f"units: expected one of {', '.join(_UNIT_SCALES)}, got {units!r}")
+    check_choice("units", units, tuple(_UNIT_SCALES))
     image = _decode_image(path, "depth png")
     if image.dtype != np.uint16 or image.ndim != 2:
         channels = 1 if image.ndim == 2 else image.shape[2]

@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 from crfdepth.linalg.adjoint import (
     _METHODS,
@@ -73,8 +74,7 @@ def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | N
 
 def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol=GRAD_RTOL,
                     preconditioner="auto") -> SolverSettings:
-    if method not in _METHODS:
-        raise InputError(f"method: expected one of {sorted(_METHODS)}, got {method!r}")
+    check_choice("method", method, sorted(_METHODS))
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise InputError(f"rtol: expected a number in (0, 1), got {rtol!r}")
     if not (isinstance(grad_rtol, (int, float)) and 0 < grad_rtol < 1):

@@ -35,8 +35,9 @@ from typing import Literal
 import numpy as np
 import torch
 
+from crfdepth.checks import check_depth_values, describe
 from crfdepth.errors import InputError
-from crfdepth.superpixels.segments import _describe, _image_tensor, _labels_tensor, slic_batch
+from crfdepth.superpixels.segments import _image_tensor, _labels_tensor, slic_batch
 
 __all__ = [
     "DIRECTIONS_DEG",
@@ -65,20 +66,15 @@ def _sparse_tensor(sparse: torch.Tensor, size: tuple[int, int], name: str = "spa
     """(H, W) view of a (1, H, W) or (H, W) depth tensor, checked finite and >= 0."""
     h, w = size
     if not isinstance(sparse, torch.Tensor):
-        raise InputError(f"{name}: expected a (1, {h}, {w}) or ({h}, {w}) tensor, got {_describe(sparse)}")
+        raise InputError(f"{name}: expected a (1, {h}, {w}) or ({h}, {w}) tensor, got {describe(sparse)}")
     if sparse.ndim == 3 and sparse.shape[0] == 1:
         sparse = sparse[0]
     if tuple(sparse.shape) != (h, w):
         raise InputError(
             f"{name}: expected a (1, {h}, {w}) or ({h}, {w}) depth tensor (the image size), "
-            f"got {_describe(sparse)}"
+            f"got {describe(sparse)}"
         )
-    if not sparse.is_floating_point():
-        raise InputError(f"{name}: expected floating-point depth in metres, got dtype {sparse.dtype}")
-    if not bool(torch.isfinite(sparse).all()):
-        raise InputError(f"{name}: expected finite depth in metres (0 = no LiDAR), got NaN or inf")
-    if bool((sparse < 0).any()):
-        raise InputError(f"{name}: expected depth >= 0 metres (0 = no LiDAR), got minimum {float(sparse.min()):.4g}")
+    check_depth_values(name, sparse)
     return sparse
 
 
@@ -415,12 +411,12 @@ def build_superpixel_graphs(
         as one block-diagonal graph.
     """
     if not isinstance(image, torch.Tensor) or image.ndim != 4 or image.shape[1] != 3:
-        raise InputError(f"image: expected a (B, 3, H, W) tensor, got {_describe(image)}")
+        raise InputError(f"image: expected a (B, 3, H, W) tensor, got {describe(image)}")
     b, _, h, w = image.shape
     if not isinstance(sparse, torch.Tensor) or tuple(sparse.shape) != (b, 1, h, w):
-        raise InputError(f"sparse: expected a ({b}, 1, {h}, {w}) tensor (the image size), got {_describe(sparse)}")
+        raise InputError(f"sparse: expected a ({b}, 1, {h}, {w}) tensor (the image size), got {describe(sparse)}")
     if labels is not None and (not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w)):
-        raise InputError(f"labels: expected a ({b}, {h}, {w}) integer tensor, got {_describe(labels)}")
+        raise InputError(f"labels: expected a ({b}, {h}, {w}) integer tensor, got {describe(labels)}")
     if aggregate not in ("mean", "median"):
         raise InputError(f"aggregate: expected 'mean' or 'median', got {aggregate!r}")
     for k in range(b):  # the per-frame checks, with their messages

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from skimage.segmentation import relabel_sequential, slic
 
+from crfdepth.checks import check_choice, describe
 from crfdepth.errors import InputError
 from crfdepth.superpixels.slic import slic_torch
 
@@ -30,31 +31,22 @@ _BACKENDS = ("auto", "torch", "skimage")
 _CPU_BACKEND = "torch"
 
 
-
-
-
-def _describe(value: object) -> str:
-    if isinstance(value, (torch.Tensor, np.ndarray)):
-        return f"shape {tuple(value.shape)} ({value.dtype})"
-    return type(value).__name__
-
-
 def _image_tensor(image: torch.Tensor | np.ndarray, name: str = "image") -> torch.Tensor:
     """(3, H, W) tensor from a (3, H, W) tensor or an (H, W, 3) array; checked finite, [0, 1]."""
     if isinstance(image, np.ndarray):
         if image.ndim != 3 or image.shape[2] != 3:
-            raise InputError(f"{name}: expected an (H, W, 3) RGB array in [0, 1], got {_describe(image)}")
+            raise InputError(f"{name}: expected an (H, W, 3) RGB array in [0, 1], got {describe(image)}")
         tensor = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
     elif isinstance(image, torch.Tensor):
         if image.ndim != 3 or image.shape[0] != 3:
-            raise InputError(f"{name}: expected a (3, H, W) RGB tensor in [0, 1], got {_describe(image)}")
+            raise InputError(f"{name}: expected a (3, H, W) RGB tensor in [0, 1], got {describe(image)}")
         tensor = image
     else:
-        raise InputError(f"{name}: expected a (3, H, W) tensor or an (H, W, 3) array, got {_describe(image)}")
+        raise InputError(f"{name}: expected a (3, H, W) tensor or an (H, W, 3) array, got {describe(image)}")
     if not tensor.is_floating_point():
         raise InputError(f"{name}: expected floating-point RGB in [0, 1], got dtype {tensor.dtype}")
     if tensor.shape[1] < 1 or tensor.shape[2] < 1:
-        raise InputError(f"{name}: expected a non-empty image, got {_describe(image)}")
+        raise InputError(f"{name}: expected a non-empty image, got {describe(image)}")
     if not bool(torch.isfinite(tensor).all()):
         raise InputError(f"{name}: expected finite RGB values in [0, 1], got NaN or inf")
     lo, hi = float(tensor.min()), float(tensor.max())
@@ -76,13 +68,13 @@ def _labels_tensor(
     if isinstance(labels, np.ndarray):
         labels = torch.from_numpy(np.ascontiguousarray(labels))
     if not isinstance(labels, torch.Tensor) or labels.ndim != 2:
-        raise InputError(f"{name}: expected an (H, W) integer tensor, got {_describe(labels)}")
+        raise InputError(f"{name}: expected an (H, W) integer tensor, got {describe(labels)}")
     if size is not None and tuple(labels.shape) != tuple(size):
-        raise InputError(f"{name}: expected shape {tuple(size)} (the image size), got {_describe(labels)}")
+        raise InputError(f"{name}: expected shape {tuple(size)} (the image size), got {describe(labels)}")
     if labels.dtype.is_floating_point or labels.dtype == torch.bool or labels.is_complex():
         raise InputError(f"{name}: expected an integer tensor, got dtype {labels.dtype}")
     if labels.numel() == 0:
-        raise InputError(f"{name}: expected a non-empty label map, got {_describe(labels)}")
+        raise InputError(f"{name}: expected a non-empty label map, got {describe(labels)}")
     labels = labels.to(torch.int64)
     if int(labels.min()) < 0:
         raise InputError(f"{name}: expected labels >= 0, got minimum {int(labels.min())}")
@@ -97,8 +89,7 @@ def _labels_tensor(
 
 def _resolve_backend(backend: object, device: torch.device) -> str:
     """``"torch"`` or ``"skimage"`` for ``backend`` on ``device`` (``"auto"``: see :func:`slic_segments`)."""
-    if not isinstance(backend, str) or backend not in _BACKENDS:
-        raise InputError(f"backend: expected one of {', '.join(map(repr, _BACKENDS))}, got {backend!r}")
+    check_choice("backend", backend, _BACKENDS)
     if backend != "auto":
         return backend
     return _CPU_BACKEND if device.type == "cpu" else "torch"
@@ -209,7 +200,7 @@ def slic_batch(images: torch.Tensor, n_segments: int = 5500, *, compactness: flo
     labels ``0 .. S_k-1`` per frame. The torch backend runs the whole batch at once on the images'
     device (:func:`crfdepth.superpixels.slic.slic_torch`); scikit-image one frame after another."""
     if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[1] != 3:
-        raise InputError(f"image: expected a (B, 3, H, W) RGB tensor, got {_describe(images)}")
+        raise InputError(f"image: expected a (B, 3, H, W) RGB tensor, got {describe(images)}")
     settings = dict(compactness=compactness, sigma=sigma, max_num_iter=max_num_iter, convert2lab=convert2lab)
     if _resolve_backend(backend, images.device) == "torch":
         return slic_torch(images.detach(), _check_n_segments(n_segments), **settings)
@@ -251,9 +242,9 @@ def paint(node_values: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         (H, W), or (C, H, W) for (S, C) input: ``out[..., r, c] = node_values[labels[r, c]]``.
     """
     if not isinstance(node_values, torch.Tensor) or node_values.ndim not in (1, 2):
-        raise InputError(f"node_values: expected an (S,) or (S, C) tensor, got {_describe(node_values)}")
+        raise InputError(f"node_values: expected an (S,) or (S, C) tensor, got {describe(node_values)}")
     if not isinstance(labels, torch.Tensor) or labels.ndim != 2 or labels.dtype != torch.int64:
-        raise InputError(f"labels: expected an (H, W) int64 tensor, got {_describe(labels)}")
+        raise InputError(f"labels: expected an (H, W) int64 tensor, got {describe(labels)}")
     s = node_values.shape[0]
     if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= s):
         raise InputError(

@@ -55,6 +55,7 @@ from numbers import Integral, Real
 import torch
 from kornia.color import rgb_to_lab
 
+from crfdepth.checks import describe
 from crfdepth.errors import InputError
 
 __all__ = ["slic_torch"]
@@ -73,22 +74,17 @@ _FAR = 1.0e30
 _RADIUS = 1
 
 
-def _describe(value: object) -> str:
-    if isinstance(value, torch.Tensor):
-        return f"shape {tuple(value.shape)} ({value.dtype})"
-    return type(value).__name__
-
 
 def _check_image(image: object) -> tuple[torch.Tensor, bool]:
     """(B, 3, H, W) detached float32 version of ``image`` (checked) and whether it was batched."""
     if not isinstance(image, torch.Tensor) or image.ndim not in (3, 4) or image.shape[-3] != 3:
         raise InputError(
-            f"image: expected a (B, 3, H, W) or (3, H, W) RGB tensor in [0, 1], got {_describe(image)}"
+            f"image: expected a (B, 3, H, W) or (3, H, W) RGB tensor in [0, 1], got {describe(image)}"
         )
     if not image.is_floating_point():
         raise InputError(f"image: expected floating-point RGB in [0, 1], got dtype {image.dtype}")
     if image.shape[-1] < 1 or image.shape[-2] < 1 or (image.ndim == 4 and image.shape[0] < 1):
-        raise InputError(f"image: expected a non-empty image, got {_describe(image)}")
+        raise InputError(f"image: expected a non-empty image, got {describe(image)}")
     batched = image.ndim == 4
     x = (image if batched else image.unsqueeze(0)).detach().to(torch.float32)
     lo, hi = torch.aminmax(x)

@@ -1,5 +1,5 @@
 """Batched folder inference: ``--batch-size`` and ``--workers`` of ``crfdepth complete
---input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.common.frame_batches and complete_batch).
+--input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.common.frame_batches and complete_batch_with_cli_advice).
 
 The frames are built-in synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) of two sizes, written to ``tmp_path`` in the ``val_selection_cropped`` layout so

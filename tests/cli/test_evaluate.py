@@ -26,7 +26,7 @@ import torch
 
 from crfdepth import cli
 from crfdepth.api import complete_depth
-from crfdepth.cli.common import complete_batch
+from crfdepth.cli.common import complete_batch_with_cli_advice
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
@@ -279,10 +279,10 @@ def test_std_metrics_match_a_direct_computation(std_run):
 
 def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, monkeypatch):
     def no_std(model, batch, return_std):
-        depth, _ = complete_batch(model, batch, False)
+        depth, _ = complete_batch_with_cli_advice(model, batch, False)
         return depth, None
 
-    monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch", no_std)
+    monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch_with_cli_advice", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
     assert code == 2 and stdout.startswith("model: kitti weights, superpixel graph (800 segments)")

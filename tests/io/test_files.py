@@ -36,6 +36,9 @@ def test_output_path_checks_name_the_argument(tmp_path):
         check_output_file(tmp_path, "out")
     with pytest.raises(FileNotFoundError, match="path: the folder of"):
         check_output_file(tmp_path / "missing" / "a.json")
+    assert check_output_file(tmp_path / "a.PNG", "--out", suffix=".png") == tmp_path / "a.PNG"
+    with pytest.raises(InputError, match=r"^--out: expected a file name ending in \.png, got .*a\.jpg$"):
+        check_output_file(tmp_path / "a.jpg", "--out", suffix=".png")
 
 
 def test_output_check_creates_nothing_and_refuses_a_folder_that_takes_no_files(tmp_path):

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from torch.utils.data import Dataset
-
-from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_dir, require_root
+from crfdepth.data.kitti.loading import (
+    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+)
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop
 from crfdepth.errors import InputError
@@ -53,7 +53,7 @@ class _CompletionFrame:
         return f"{self.drive}_velodyne_raw_{self.frame}_{self.camera}"
 
 
-class KittiDepthCompletion(Dataset):
+class KittiDepthCompletion(FrameDataset):
     """KITTI depth completion, official layout (``data_depth_velodyne`` + ``data_depth_annotated``).
 
     Frames are the ``velodyne_raw`` PNGs
@@ -155,9 +155,6 @@ class KittiDepthCompletion(Dataset):
             self._calibrations[key] = read_raw_calibration(f.day_dir, camera=key[1])
         return self._calibrations[key]
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
         return load_sample(
@@ -169,9 +166,3 @@ class KittiDepthCompletion(Dataset):
             files={"image": f.image, "sparse": f.sparse, "target": f.target},
             transform=self.transform,
         )
-
-    @property
-    def names(self) -> list[str]:
-        """Sample names in dataset order."""
-        return [f.name for f in self._frames]
-

@@ -15,14 +15,30 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import Dataset
 
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 
-__all__ = ["PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root"]
+__all__ = ["FrameDataset", "PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
 
 PathLike = str | os.PathLike
 Transform = Callable[[Sample], Sample]
+
+
+class FrameDataset(Dataset):
+    """A dataset of the frames its constructor lists in ``self._frames`` (each with a ``name``), in
+    that order: their count and names."""
+
+    _frames: list
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def names(self) -> list[str]:
+        """Sample names in dataset order."""
+        return [f.name for f in self._frames]
 
 
 def load_sample(
@@ -58,7 +74,7 @@ def load_sample(
                 f"{name}: RGB and depth sizes differ: image {files.get('image')} is {h}x{w} (HxW) "
                 f"but {key} {files.get(key)} is {array.shape[0]}x{array.shape[1]}"
             )
-    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).to(torch.float32) / 255.0
+    image_t = rgb_tensor(rgb)
     sparse_t = torch.from_numpy(np.ascontiguousarray(sparse, dtype=np.float32))[None]
     if target is None:
         target_t = torch.zeros_like(sparse_t)
@@ -73,6 +89,11 @@ def load_sample(
         has_target=target is not None,
     )
     return transform(sample) if transform is not None else sample
+
+
+def rgb_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (3, H, W) float32 in [0, 1], the layout of :attr:`Sample.image`."""
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).to(torch.float32) / 255.0
 
 
 def require_root(root: PathLike, what: str = "root") -> Path:

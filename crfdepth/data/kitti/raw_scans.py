@@ -35,10 +35,11 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from crfdepth.geometry import projection
-from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_dir, require_root
+from crfdepth.data.kitti.loading import (
+    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+)
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
@@ -85,7 +86,7 @@ class _ScanFrame:
     calib: Path  # day folder (raw) or calibration file (object)
 
 
-class KittiRawScans(Dataset):
+class KittiRawScans(FrameDataset):
     """Frames with full Velodyne scans; input and target are disjoint parts of one scan.
 
     Layouts:
@@ -254,9 +255,6 @@ class KittiRawScans(Dataset):
             self._calibrations[f.calib] = calib
         return calib
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def split_points(self, points: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
         """Split one scan into (input, target) boolean point masks, per this dataset's options.
 
@@ -304,8 +302,3 @@ class KittiRawScans(Dataset):
             files={"image": f.image, "sparse": f.velodyne, "target": f.velodyne},
             transform=self.transform,
         )
-
-    @property
-    def names(self) -> list[str]:
-        """Sample names in dataset order."""
-        return [f.name for f in self._frames]

@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from torch.utils.data import Dataset
-
-from crfdepth.data.kitti.loading import PathLike, Transform, load_sample, no_frames, require_dir, require_root
+from crfdepth.data.kitti.loading import (
+    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+)
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
@@ -36,7 +36,7 @@ class _SelectionFrame:
     intrinsics: Path
 
 
-class _SelectionDataset(Dataset):
+class _SelectionDataset(FrameDataset):
     """Shared code of the two ``depth_selection`` layouts (already cropped, K per file)."""
 
     _layout = ""
@@ -67,9 +67,6 @@ class _SelectionDataset(Dataset):
     def _frame(self, sparse: Path, image_dir: Path, target_dir: Path | None, intrinsics_dir: Path) -> _SelectionFrame:
         raise NotImplementedError
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
         return load_sample(
@@ -81,11 +78,6 @@ class _SelectionDataset(Dataset):
             files={"image": f.image, "sparse": f.sparse, "target": f.target},
             transform=self.transform,
         )
-
-    @property
-    def names(self) -> list[str]:
-        """Sample names in dataset order."""
-        return [f.name for f in self._frames]
 
 
 class KittiValSelection(_SelectionDataset):

@@ -86,6 +86,20 @@ class SyntheticScene:
         return target
 
 
+def check_frame_options(height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
+                        image_noise_std) -> None:
+    """The checks of the camera and LiDAR arguments that :func:`make_scene` and
+    :func:`~.sequence.make_sequence` share (ranges in :func:`make_scene`'s docstring)."""
+    check_int("height", height, 1, 16384)
+    check_int("width", width, 1, 16384)
+    check_int("beams", beams, 1, 128)
+    check_real("azimuth_step_deg", azimuth_step_deg, 0.0, 10.0, low_open=True)
+    check_real("max_range", max_range, MIN_RANGE_M, None, low_open=True)
+    check_real("range_noise_std", range_noise_std, 0.0, None)
+    check_real("dropout", dropout, 0.0, 1.0, high_open=True)
+    check_real("image_noise_std", image_noise_std, 0.0, None)
+
+
 def make_scene(
     seed: int = 0,
     height: int = 352,
@@ -124,14 +138,8 @@ def make_scene(
         InputError: an argument is of the wrong type or out of range.
     """
     check_int("seed", seed, 0, None)
-    check_int("height", height, 1, 16384)
-    check_int("width", width, 1, 16384)
-    check_int("beams", beams, 1, 128)
-    check_real("azimuth_step_deg", azimuth_step_deg, 0.0, 10.0, low_open=True)
-    check_real("max_range", max_range, MIN_RANGE_M, None, low_open=True)
-    check_real("range_noise_std", range_noise_std, 0.0, None)
-    check_real("dropout", dropout, 0.0, 1.0, high_open=True)
-    check_real("image_noise_std", image_noise_std, 0.0, None)
+    check_frame_options(height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
+                        image_noise_std)
     seed, height, width, beams = int(seed), int(height), int(width), int(beams)
 
     rng = np.random.default_rng(seed)

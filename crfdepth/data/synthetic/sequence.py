@@ -39,8 +39,8 @@ import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int, check_real
 from crfdepth.data.synthetic.camera import camera_intrinsics, render_camera
-from crfdepth.data.synthetic.lidar_sim import MIN_RANGE_M, lidar_to_camera, scan_lidar
-from crfdepth.data.synthetic.scene import SyntheticScene
+from crfdepth.data.synthetic.lidar_sim import lidar_to_camera, scan_lidar
+from crfdepth.data.synthetic.scene import SyntheticScene, check_frame_options
 from crfdepth.data.synthetic.world import CAR_BODY, World, build_world
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import project_to_depth
@@ -257,14 +257,8 @@ def make_sequence(
     check_real("speed", speed, 0.0, 60.0)
     check_real("rate", rate, 0.0, 1000.0, low_open=True)
     check_real("yaw_rate", yaw_rate, -90.0, 90.0)
-    check_int("height", height, 1, 16384)
-    check_int("width", width, 1, 16384)
-    check_int("beams", beams, 1, 128)
-    check_real("azimuth_step_deg", azimuth_step_deg, 0.0, 10.0, low_open=True)
-    check_real("max_range", max_range, MIN_RANGE_M, None, low_open=True)
-    check_real("range_noise_std", range_noise_std, 0.0, None)
-    check_real("dropout", dropout, 0.0, 1.0, high_open=True)
-    check_real("image_noise_std", image_noise_std, 0.0, None)
+    check_frame_options(height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
+                        image_noise_std)
     n_frames, seed, height, width, beams = int(n_frames), int(seed), int(height), int(width), int(beams)
     speed, rate, yaw_rate = float(speed), float(rate), float(yaw_rate)
 
