@@ -32,4 +32,5 @@ __all__ = [
     "save_weights",
     "solve_grid_laplacian",
     "solve_laplacian",
+    "__version__",
 ]

@@ -9,7 +9,6 @@ pytest.importorskip("rosbags")
 
 from crfdepth.io.ros.bag import Recording  # noqa: E402
 from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud, stamp_ns  # noqa: E402
-from crfdepth.io.ros.tf import TransformTree  # noqa: E402
 from crfdepth.io.ros.writer import BagWriter  # noqa: E402
 
 STAMP = 1_700_000_000_123_456_789
