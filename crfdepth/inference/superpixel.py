@@ -82,20 +82,16 @@ def superpixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tenso
         scales = model.scales()
         terms = graph_terms(model, nodes, normals, scales)
     infos: list[SolveInfo] = []
-
-    def solve(x0: torch.Tensor) -> torch.Tensor:
-        x, info = solve_system(graph_system(terms, nodes.ptr), x0, model.solver)
-        infos.append(info)
-        return x
-
     with stage("solve"):
-        x = solve(nodes.prior)
+        x, info = solve_system(graph_system(terms, nodes.ptr), nodes.prior, model.solver)
+        infos.append(info)
     if "normal" in model.potentials or "distance" in model.potentials:
         for _ in range(model.rounds):
             with stage("potentials"):
                 refit_geometry(model, terms, x, nodes, K, normals, scales[3])
             with stage("solve"):
-                x = solve(x)
+                x, info = solve_system(graph_system(terms, nodes.ptr), x, model.solver)
+                infos.append(info)
     with stage("painting"):
         x = to_depth(x, model.variable)  # node depths in metres from here on
         node_of_pixel = nodes.labels(graphs)

@@ -159,11 +159,16 @@ class _LaplacianSolve(torch.autograd.Function):
         if differentiable and settings.grad_rtol < settings.rtol:
             forward_settings = dataclasses.replace(settings, rtol=settings.grad_rtol)
         with torch.no_grad():
-            x, info, solver_state = _forward_solve(structure, forward_settings, differentiable,
-                                                   None if x0 is None else x0.to(work), b.to(work), d.to(work),
-                                                   [w.to(work) for w in weights])
+            matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, forward_settings, differentiable,
+                                                                       d.to(work), [w.to(work) for w in weights])
+            x0_rows = None if x0 is None else structure.to_rows(x0.to(work))
+            x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(b.to(work)), x0_rows,
+                                         forward_settings, precondition)
+            _report(info, forward_settings, "solve")
+            x = structure.from_rows(x_rows)
         info_box.append(info)
-        ctx.settings, ctx.info, ctx.solver_state = settings, info, solver_state
+        ctx.settings, ctx.info = settings, info
+        ctx.solver_state = (structure, matvec, s_rows, diag_rows, precondition)
         ctx.save_for_backward(x)  # in the working precision
         ctx.num_weights = len(weights)
         ctx.dtype = b.dtype
@@ -223,7 +228,9 @@ def _use_multigrid(structure, settings: SolverSettings, differentiable: bool) ->
     return differentiable or structure.height * structure.width >= MULTIGRID_MIN_PIXELS
 
 
-def _forward_solve(structure, settings, differentiable, x0, b, d, weights):
+def _scaled_operator(structure, settings, differentiable, d, weights):
+    """``(matvec, s_rows, diag_rows, precondition)``: the Jacobi-scaled ``M = D^-1/2 A D^-1/2`` and its
+    preconditioner, which the forward solve and the adjoint solve share."""
     precondition = None
     if isinstance(structure, PixelGrid):
         weight_h, weight_v = weights
@@ -237,13 +244,7 @@ def _forward_solve(structure, settings, differentiable, x0, b, d, weights):
         diag = d + structure.degree(edge_weight)
         s = diag.rsqrt()
         matvec = structure.scaled_matvec(edge_weight, s)
-    s_rows = structure.to_rows(s, fill=1.0)
-    diag_rows = structure.to_rows(diag, fill=1.0)
-    b_rows = structure.to_rows(b)
-    x0_rows = None if x0 is None else structure.to_rows(x0)
-    x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, b_rows, x0_rows, settings, precondition)
-    _report(info, settings, "solve")
-    return structure.from_rows(x_rows), info, (structure, matvec, s_rows, diag_rows, precondition)
+    return matvec, structure.to_rows(s, fill=1.0), structure.to_rows(diag, fill=1.0), precondition
 
 
 def _scaled_multigrid(cycle: GridMultigrid, sqrt_diag_rows: torch.Tensor):
