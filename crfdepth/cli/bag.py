@@ -43,7 +43,7 @@ Ctrl-C stops the run: the frames before it stay (each file is written atomically
 index lists exactly them, the message says how many, and no ``--out-bag`` is left.
 
 The output folders are locked for the run (``.crfdepth.lock``,
-:func:`crfdepth.cli.common.output_folders`): a second run into them is refused naming the
+:func:`crfdepth.cli.outputs.output_folders`): a second run into them is refused naming the
 first. An ``--out-dir`` holding the ``index.csv`` of an earlier run is refused unless
 ``--overwrite``, so that ``index.csv`` lists exactly the PNGs of one run.
 """
@@ -63,20 +63,18 @@ import numpy as np
 from tqdm import tqdm
 
 from crfdepth.api import points_to_sparse
-from crfdepth.cli.common import (
-    BAD_INPUT,
-    build_model,
+from crfdepth.cli.arguments import BAD_INPUT, positive_number
+from crfdepth.cli.completion import complete_frame, flag_names
+from crfdepth.cli.model_options import build_model
+from crfdepth.cli.outputs import (
     check_output_folders,
     check_writable_dir,
-    complete_frame,
-    flag_names,
     output_folders,
-    positive_number,
-    skipped_frames,
     write_frame,
-    write_skipped,
 )
+from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.errors import InputError
+from crfdepth.geometry.projection import count_in_image
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.ros.bag import (
@@ -91,7 +89,6 @@ from crfdepth.io.ros.bag import (
 )
 from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
 from crfdepth.io.ros.tf import TransformTree
-from crfdepth.geometry.projection import count_in_image
 
 __all__ = ["DEFAULT_MAX_DT_S", "Plan", "add_arguments", "decode_frame", "paired_frames", "plan_frames", "run_bag"]
 

@@ -25,7 +25,7 @@ A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous``
 Folder mode reads the frames with a ``torch.utils.data.DataLoader``: ``--workers N``
 processes (default 0: this process) read, decode and check frames ahead of the model, and
 up to ``--batch-size B`` (default 1) consecutive frames of the same size are completed by
-one model call (a size change starts a new batch; :func:`crfdepth.cli.common.frame_batches`).
+one model call (a size change starts a new batch; :func:`crfdepth.cli.batches.frame_batches`).
 A batch's CG solves run together, each frozen once converged, so depths differ from batch 1
 by the solver tolerance only: at most one unit (1/256 m) of the depth PNG, measured on the
 two KITTI validation frames and on synthetic frames of two sizes (the std PNG: one unit
@@ -108,30 +108,27 @@ import numpy as np
 from torch.utils.data import Subset
 from tqdm import tqdm
 
+from crfdepth.checks import SPARSE_UNITS, check_intrinsics, check_sparse_plausible
+from crfdepth.cli.arguments import BAD_INPUT, vis_range_type
 from crfdepth.cli.bag import BAG_ONLY, run_bag
 from crfdepth.cli.bag import add_arguments as add_bag_arguments
-from crfdepth.cli.common import (
-    BAD_INPUT,
-    add_batch_arguments,
-    bad_frames,
-    skipped_frames,
-    write_skipped,
-    complete_frame,
-    flag_names,
-    write_frame,
-    add_model_arguments,
-    build_model,
-    check_output_folders,
+from crfdepth.cli.batches import add_batch_arguments, bad_frames, frame_batches
+from crfdepth.cli.completion import (
     check_sample,
     complete_batch_with_cli_advice,
-    frame_batches,
+    complete_frame,
+    flag_names,
+)
+from crfdepth.cli.model_options import add_model_arguments, build_model
+from crfdepth.cli.outputs import (
+    check_output_folders,
     make_output_dir,
     output_folders,
     same_file,
-    vis_range_type,
+    write_frame,
 )
+from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.data.kitti import open_completion_folder
-from crfdepth.checks import SPARSE_UNITS, check_intrinsics, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import check_output_file
@@ -218,7 +215,7 @@ def _where(index: int, total: int, name: str) -> str:
 
 
 def _check_frame(sample, index: int, *, total: int, positions: list[int] | None = None) -> None:
-    """:func:`~crfdepth.cli.common.check_sample` in the DataLoader workers, naming the frame's files
+    """:func:`~crfdepth.cli.completion.check_sample` in the DataLoader workers, naming the frame's files
     as the one-frame path names its flags (``frame 2/5 <name> (velodyne_raw/<name>.png): ...``);
     ``positions[index]`` is the frame's place in the folder when the run leaves frames out (--skip-bad)."""
     try:
@@ -331,7 +328,7 @@ def _open_folder(path: str):
 
 
 def _check_frames(dataset, args, total: int) -> list[tuple[int, type[BaseException], str]]:
-    """Pass 1 of folder mode: every frame read and checked (:func:`~crfdepth.cli.common.bad_frames`); each
+    """Pass 1 of folder mode: every frame read and checked (:func:`~crfdepth.cli.batches.bad_frames`); each
     message names its frame (``frame 3/6 <name>: ...``; a check names the file too)."""
     progress = tqdm(total=total, unit="frame", desc="check", disable=args.quiet or not sys.stderr.isatty())
     checked = []

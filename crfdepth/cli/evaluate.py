@@ -19,7 +19,7 @@ prediction is evaluated before PNG quantisation (1/256 m).
 
 ``--workers N`` DataLoader processes (default 0: this one; every layout's dataset pickles)
 read and check the frames; up to ``--batch-size B`` (default 1) consecutive frames of one
-size share a model call (:func:`crfdepth.cli.common.frame_batches`). Per-frame metrics
+size share a model call (:func:`crfdepth.cli.batches.frame_batches`). Per-frame metrics
 differ from batch 1 by the solver tolerance only (measured: within 1.1e-6 relative,
 delta1 equal). A frame that cannot be read or checked stops the run with its own one-line
 message, the same for any ``--workers``.
@@ -56,7 +56,7 @@ of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and
 Every check that needs no computation comes first (options, data folder and layout,
 output folder, checkpoint), so bad input exits with status 2 and a one-line message
 before anything is written. The output folder is locked for the run (``.crfdepth.lock``,
-:func:`crfdepth.cli.common.output_folders`): a second run into it is refused naming the
+:func:`crfdepth.cli.outputs.output_folders`): a second run into it is refused naming the
 first. The CSV and JSON are written atomically at the end, so a run
 that fails midway leaves neither (PNGs written before the failure stay). Frames with
 ground truth but no ground-truth pixel (possible after a crop) are skipped with a
@@ -85,16 +85,25 @@ import torch
 from torch.utils.data import Subset
 from tqdm import tqdm
 
-from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model,
-                                 complete_batch_with_cli_advice, fraction, frame_batches, int_at_least, output_folders)
+from crfdepth.checkpoints import describe
+from crfdepth.cli.arguments import BAD_INPUT, fraction, int_at_least
+from crfdepth.cli.batches import add_batch_arguments, frame_batches
+from crfdepth.cli.completion import complete_batch_with_cli_advice
+from crfdepth.cli.model_options import add_model_arguments, build_model
+from crfdepth.cli.outputs import output_folders
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import write_depth_png
-from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
-                              uncertainty_metrics)
+from crfdepth.metrics import (
+    METRICS,
+    UNCERTAINTY_METRICS,
+    UNITS,
+    average_uncertainty,
+    depth_metrics,
+    uncertainty_metrics,
+)
 from crfdepth.weights import DEFAULT_WEIGHTS
-from crfdepth.checkpoints import describe
 
 logger = logging.getLogger(__name__)
 
@@ -277,7 +286,7 @@ def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str
 def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
     (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.cli.common.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
+    (:func:`crfdepth.cli.completion.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
     try:
         depth, std = complete_batch_with_cli_advice(model, batch, return_std)
     except InputError as exc:
@@ -303,7 +312,7 @@ def _frame_uncertainty(depth: torch.Tensor, std: torch.Tensor, target: torch.Ten
 
 
 def _batches(batches, dataset):
-    """The batches of :func:`~crfdepth.cli.common.frame_batches`; a frame that fails to read
+    """The batches of :func:`~crfdepth.cli.batches.frame_batches`; a frame that fails to read
     or check (in a worker or here) is named in its one-line error."""
     total, names, done = len(dataset), _names(dataset), 0
     while True:

@@ -57,20 +57,15 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crfdepth.sequences import odometry
 from crfdepth.cli import targets_bag
-from crfdepth.cli.common import (
-    BAD_INPUT,
-    check_output_folders,
-    int_at_least,
-    output_folders,
-    write_rgb_png,
-)
+from crfdepth.cli.arguments import BAD_INPUT, int_at_least
+from crfdepth.cli.outputs import check_output_folders, output_folders, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import read_velodyne, write_depth_png
 from crfdepth.pictures.figures import targets_picture
+from crfdepth.sequences import odometry
 from crfdepth.sequences.targets import (
     MOVED,
     OCCLUDED,

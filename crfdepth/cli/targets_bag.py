@@ -52,7 +52,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crfdepth.sequences import odometry
+from crfdepth.cli.arguments import BAD_INPUT, positive_number
 from crfdepth.cli.bag import (
     DEFAULT_MAX_DT_S,
     Plan,
@@ -60,15 +60,11 @@ from crfdepth.cli.bag import (
     paired_frames,
     plan_frames,
 )
-from crfdepth.cli.common import (
-    BAD_INPUT,
-    check_output_folders,
-    output_folders,
-    positive_number,
-)
+from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration
 from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording
+from crfdepth.sequences import odometry
 
 __all__ = ["GAP_FACTOR", "add_arguments", "check_drive_flags", "run_bag"]
 

@@ -1,5 +1,5 @@
 """Batched folder inference: ``--batch-size`` and ``--workers`` of ``crfdepth complete
---input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.common.frame_batches and complete_batch_with_cli_advice).
+--input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.batches.frame_batches and complete_batch_with_cli_advice).
 
 The frames are built-in synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) of two sizes, written to ``tmp_path`` in the ``val_selection_cropped`` layout so
@@ -22,7 +22,8 @@ from torch.utils.data import Dataset, Subset
 
 from crfdepth.api import complete_depth
 from crfdepth.cli import complete as complete_cli
-from crfdepth.cli.common import _CheckedFrames, check_sample, frame_batches
+from crfdepth.cli.batches import _CheckedFrames, frame_batches
+from crfdepth.cli.completion import check_sample
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.sample import Sample

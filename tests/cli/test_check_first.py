@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from crfdepth.cli import complete as complete_cli
-from crfdepth.cli.common import LISTED_BAD
+from crfdepth.cli.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
 
@@ -59,7 +59,7 @@ def test_every_bad_frame_is_listed(tmp_path):
 
 
 def test_at_most_listed_bad_frames_are_listed(tmp_path, monkeypatch):
-    monkeypatch.setattr("crfdepth.cli.common.LISTED_BAD", 2)
+    monkeypatch.setattr("crfdepth.cli.skip_bad.LISTED_BAD", 2)
     data = write_folder(tmp_path / "val_selection_cropped", 4, bad={i: "zero sparse" for i in range(4)})
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", tmp_path / "out", *FAST])
     lines = err.splitlines()

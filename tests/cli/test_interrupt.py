@@ -10,7 +10,7 @@ import pytest
 
 from crfdepth.cli import bag as bag_cli
 from crfdepth.cli import complete as complete_cli
-from crfdepth.cli import common
+from crfdepth.cli import outputs
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 
@@ -110,7 +110,7 @@ def test_bag_run_interrupted_while_checking_writes_nothing(bag, tmp_path, monkey
 def test_output_folders_release_on_interrupt(tmp_path):
     """The context manager itself: lock removed and the created (empty) folder removed on Ctrl-C."""
     with pytest.raises(KeyboardInterrupt):
-        with common.output_folders([("--out-dir", str(tmp_path / "a")), ("--out-std-dir", None)]) as folders:
+        with outputs.output_folders([("--out-dir", str(tmp_path / "a")), ("--out-std-dir", None)]) as folders:
             assert folders[1] is None and (folders[0] / ".crfdepth.lock").is_file()
             raise KeyboardInterrupt
     assert list(tmp_path.iterdir()) == []

@@ -1,5 +1,5 @@
 """Output folders are locked by the run that writes them (crfdepth.io.files.lock_folder,
-crfdepth.cli.common.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
+crfdepth.cli.outputs.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
 another run is writing is refused naming that run; a lock left by a run that is gone is taken
 over; the lock is removed when the run ends, whatever the reason.
 
