@@ -6,7 +6,7 @@
         [--camera-info-topic T] [--calib FILE] [--max-dt S] [--poses auto|tf|odometry|FILE]
         [-k K] [--frames A:B] [--vis [DIR]]
 
-The bag is read as ``crfdepth complete --bag`` reads it (:mod:`crfdepth.cli.bag`: topics and
+The bag is read as ``crfdepth complete --bag`` reads it (:mod:`crfdepth.cli.bag_frames`: topics and
 their types, the CameraInfo, the LiDAR -> camera transform from ``/tf_static`` + ``/tf`` or
 ``--calib``, images paired with the cloud nearest in ``header.stamp`` within ``--max-dt``).
 A topic left out is the bag's only topic of its type. A cloud paired with several images
@@ -54,7 +54,7 @@ import numpy as np
 
 from crfdepth.cli import targets_drive
 from crfdepth.cli.arguments import BAD_INPUT, positive_number
-from crfdepth.cli.bag import (
+from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
     Plan,
     decode_frame,
@@ -119,7 +119,7 @@ def _only_topic(bag: Recording, types: tuple[str, ...], flag: str, what: str) ->
 
 
 def _namespace(args, bag: Recording) -> argparse.Namespace:
-    """What :func:`crfdepth.cli.bag.plan_frames` reads, with the topics chosen."""
+    """What :func:`crfdepth.cli.bag_frames.plan_frames` reads, with the topics chosen."""
     image = args.image_topic or _only_topic(bag, IMAGE_TYPES, "--image-topic", "camera image")
     points = args.points_topic or _only_topic(bag, (CLOUD_TYPE,), "--points-topic", "point cloud")
     return argparse.Namespace(image_topic=image, points_topic=points, camera_info_topic=args.camera_info_topic,

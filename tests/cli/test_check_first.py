@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.cli import complete as complete_cli
+from crfdepth.cli import complete_folder, complete_one
 from crfdepth.cli.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
@@ -27,8 +27,9 @@ def no_model(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the model was used before the output was checked")
 
-    monkeypatch.setattr(complete_cli, "build_model", refuse)
-    monkeypatch.setattr(complete_cli, "complete_frame", refuse)
+    monkeypatch.setattr(complete_one, "build_model", refuse)
+    monkeypatch.setattr(complete_one, "complete_frame", refuse)
+    monkeypatch.setattr(complete_folder, "build_model", refuse)
 
 
 def test_a_bad_frame_in_the_middle_writes_nothing(tmp_path):
