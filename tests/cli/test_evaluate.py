@@ -289,7 +289,7 @@ def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, m
         depth, _ = complete_batch_with_cli_advice(model, batch, False)
         return depth, None
 
-    monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch_with_cli_advice", no_std)
+    monkeypatch.setattr("crfdepth.cli.evaluate_frames.complete_batch_with_cli_advice", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
     assert code == 2 and stdout.startswith("model: kitti weights, superpixel graph (800 segments)")

@@ -171,17 +171,17 @@ def test_evaluate_out_dir_is_locked(folder, tmp_path, sleeper):
 
 
 def test_evaluate_holds_and_releases_its_lock(folder, tmp_path, monkeypatch):
-    from crfdepth.cli import evaluate as evaluate_cli
+    from crfdepth.cli import evaluate_frames
 
     out = tmp_path / "evaluation"
     seen = []
-    real = evaluate_cli.complete_batch_with_cli_advice
+    real = evaluate_frames.complete_batch_with_cli_advice
 
     def looking(model, batch, with_std):
         seen.append((out / LOCK_NAME).is_file())
         return real(model, batch, with_std)
 
-    monkeypatch.setattr(evaluate_cli, "complete_batch_with_cli_advice", looking)
+    monkeypatch.setattr(evaluate_frames, "complete_batch_with_cli_advice", looking)
     code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", out,
                         "--potentials", "colour", "--quiet"])
     assert code == 0, err
