@@ -46,16 +46,18 @@ import numpy as np
 import torch
 
 from crfdepth.api import complete_depth
+from crfdepth.checkpoints import load_pretrained, own_structure
+from crfdepth.cli.arguments import int_at_least, vis_range_type
+from crfdepth.cli.model_options import model_line
+from crfdepth.cli.outputs import write_rgb_png
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
-from crfdepth.cli.common import int_at_least, model_line, vis_range_type, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
-from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
-from crfdepth.checkpoints import load_pretrained, own_structure
-from crfdepth.pictures.figures import depth_picture, std_picture
 from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
+from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ prediction is evaluated before PNG quantisation (1/256 m).
 
 ``--workers N`` DataLoader processes (default 0: this one; every layout's dataset pickles)
 read and check the frames; up to ``--batch-size B`` (default 1) consecutive frames of one
-size share a model call (:func:`crfdepth.cli.common.frame_batches`). Per-frame metrics
+size share a model call (:func:`crfdepth.cli.batches.frame_batches`). Per-frame metrics
 differ from batch 1 by the solver tolerance only (measured: within 1.1e-6 relative,
 delta1 equal). A frame that cannot be read or checked stops the run with its own one-line
 message, the same for any ``--workers``.
@@ -56,7 +56,7 @@ of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and
 Every check that needs no computation comes first (options, data folder and layout,
 output folder, checkpoint), so bad input exits with status 2 and a one-line message
 before anything is written. The output folder is locked for the run (``.crfdepth.lock``,
-:func:`crfdepth.cli.common.output_folders`): a second run into it is refused naming the
+:func:`crfdepth.cli.outputs.output_folders`): a second run into it is refused naming the
 first. The CSV and JSON are written atomically at the end, so a run
 that fails midway leaves neither (PNGs written before the failure stay). Frames with
 ground truth but no ground-truth pixel (possible after a crop) are skipped with a
@@ -69,44 +69,39 @@ Needs no Lightning: a machine with the crfdepth library alone can evaluate a ``.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import logging
-import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch.utils.data import Subset
-from tqdm import tqdm
 
-from crfdepth.cli.common import (BAD_INPUT, add_batch_arguments, add_model_arguments, build_model,
-                                 complete_batch_with_cli_advice, fraction, frame_batches, int_at_least, output_folders)
+from crfdepth.checkpoints import describe
+from crfdepth.cli.arguments import fraction, int_at_least
+from crfdepth.cli.batches import add_batch_arguments
+from crfdepth.cli.evaluate_frames import evaluate_frames
+from crfdepth.cli.evaluate_report import (
+    UNCERTAINTY_UNITS,
+    csv_text,
+    format_table,
+    summarize,
+)
+from crfdepth.cli.model_options import add_model_arguments, build_model
+from crfdepth.cli.outputs import output_folders
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
-from crfdepth.io.kitti import write_depth_png
-from crfdepth.metrics import (METRICS, UNCERTAINTY_METRICS, UNITS, average_uncertainty, depth_metrics,
-                              uncertainty_metrics)
+from crfdepth.metrics import UNITS
 from crfdepth.weights import DEFAULT_WEIGHTS
-from crfdepth.checkpoints import describe
 
 logger = logging.getLogger(__name__)
 
 CSV_NAME = "per_frame.csv"
 JSON_NAME = "summary.json"
 PNG_FOLDER = "depth"
-_MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
-_LABELS = {"rmse": "RMSE", "mae": "MAE", "irmse": "iRMSE", "imae": "iMAE", "rel": "REL", "delta1": "d<1.25"}
-_DECIMALS = {"rmse": 2, "mae": 2, "irmse": 3, "imae": 3, "rel": 4, "delta1": 4}
-# Units of the --std columns: errors and std in metres, AUSE scaled to mm like RMSE.
-UNCERTAINTY_UNITS = {"ause": "mm", "ause_random": "mm", "ause_ratio": "", "spearman": "", "coverage_1": "",
-                     "coverage_2": "", "nll": "nats (errors in metres)", "nll_laplace": "nats (errors in metres)"}
 
 # Dataset options: command-line flag -> (build_dataset keyword, layouts that take it).
 _DATASET_OPTIONS = {
@@ -224,167 +219,8 @@ def _check_out_dir(args: argparse.Namespace, root: Path | None) -> Path:
     return out_dir
 
 
-# --------------------------------------------------------------------------- evaluation
-
-
-def _evaluate(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
-    """Per-frame metrics rows (in dataset order) and the names of skipped frames."""
-    batches = frame_batches(dataset, args.batch_size, args.workers)
-    rows: list[dict[str, Any]] = []
-    skipped: list[str] = []
-    progress = tqdm(total=len(dataset), unit="frame", desc="evaluate",
-                    disable=args.quiet or not sys.stderr.isatty())
-    done = 0
-    try:
-        with torch.no_grad():
-            for batch in _batches(batches, dataset):
-                where = f"frame(s) {done + 1}-{done + len(batch)} of {len(dataset)} ({', '.join(batch.names)})"
-                if not bool(batch.has_target.all()):
-                    missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
-                    raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
-                                     f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
-                depth, std = _predict(model, batch, where, args.std)
-                batch = batch.to(device=depth.device, dtype=depth.dtype)
-                counts = (batch.target > 0).flatten(1).sum(1)
-                keep = counts > 0
-                for name in (n for n, k in zip(batch.names, keep.tolist()) if not k):
-                    logger.warning("%s has no ground-truth pixel (> 0); skipped", name)
-                    skipped.append(name)
-                if bool(keep.any()):
-                    try:
-                        per_frame = depth_metrics(depth[keep], batch.target[keep])
-                    except InputError as exc:
-                        raise InputError(f"{where}: {exc}") from None
-                    frames = [i for i, k in enumerate(keep.tolist()) if k]
-                    for j, i in enumerate(frames):
-                        row: dict[str, Any] = {"name": batch.names[i]}
-                        row.update({m: float(per_frame[m][j]) for m in METRICS})
-                        row["pixels"] = int(per_frame["pixels"][j])
-                        if std is not None:
-                            row.update(_frame_uncertainty(depth[i, 0], std[i, 0], batch.target[i, 0],
-                                                          f"{where}, {batch.names[i]}"))
-                        rows.append(row)
-                if png_dir is not None:
-                    _write_pngs(depth, batch.names, png_dir, where)
-                done += len(batch)
-                progress.update(len(batch))
-    finally:
-        batches.close()  # stops the DataLoader workers
-        progress.close()
-    return rows, skipped
-
-
-def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
-    (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.cli.common.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
-    try:
-        depth, std = complete_batch_with_cli_advice(model, batch, return_std)
-    except InputError as exc:
-        raise InputError(f"{where}: {exc}") from None
-    if return_std and std is None:
-        raise InputError(f"--std: expected the model to return a standard deviation, got none for {where}")
-    dtype = next(model.parameters()).dtype
-    return depth[:, None].to(dtype), (std[:, None].to(dtype) if return_std else None)
-
-
-def _frame_uncertainty(depth: torch.Tensor, std: torch.Tensor, target: torch.Tensor, where: str) -> dict[str, float]:
-    """:func:`crfdepth.metrics.uncertainty_metrics` of one (H, W) frame over its ground-truth
-    pixels (target > 0), errors and std in metres; ``ause`` and ``ause_random`` in mm."""
-    valid = target > 0
-    error = (depth.double() - target.double())[valid].cpu().numpy()
-    try:
-        metrics = uncertainty_metrics(error, std.double()[valid].cpu().numpy())
-    except InputError as exc:
-        raise InputError(f"{where}: --std: {exc}") from None
-    metrics["ause"] *= 1000.0  # linear in the unit of the errors and std; the ratio is unitless
-    metrics["ause_random"] *= 1000.0
-    return metrics
-
-
-def _batches(batches, dataset):
-    """The batches of :func:`~crfdepth.cli.common.frame_batches`; a frame that fails to read
-    or check (in a worker or here) is named in its one-line error."""
-    total, names, done = len(dataset), _names(dataset), 0
-    while True:
-        try:
-            batch = next(batches, None)
-        except BAD_INPUT as exc:
-            name = f" ({names[done]})" if names is not None else ""
-            raise type(exc)(f"frame {done + 1} of {total}{name}: {exc}") from None
-        if batch is None:
-            return
-        done += len(batch)
-        yield batch
-
-
-def _names(dataset) -> list[str] | None:
-    """The frame names of ``dataset`` (a ``Subset`` for ``--limit`` included), if it has them."""
-    if isinstance(dataset, Subset):
-        names = _names(dataset.dataset)
-        return None if names is None else [names[i] for i in dataset.indices]
-    return getattr(dataset, "names", None)
-
-
-def _write_pngs(depth: torch.Tensor, names: list[str], png_dir: Path, where: str) -> None:
-    for name, frame in zip(names, depth[:, 0].double().cpu().numpy()):
-        if not np.all(np.isfinite(frame)):
-            raise InputError(f"{where}: the model returned {int(np.sum(~np.isfinite(frame)))} non-finite "
-                             f"depth value(s) for {name}; PNG not written")
-        write_depth_png(png_dir / f"{name}.png", np.maximum(frame, _MIN_DEPTH))
-
-
-# --------------------------------------------------------------------------- output
-
-
-def _summary(rows: list[dict[str, Any]], with_std: bool) -> dict[str, Any]:
-    means = {m: float(np.mean([r[m] for r in rows])) for m in METRICS}
-    summary = {"metrics": means, "frames": len(rows), "pixels": int(sum(r["pixels"] for r in rows))}
-    if with_std:
-        means = average_uncertainty([{m: r[m] for m in UNCERTAINTY_METRICS} for r in rows])
-        summary["uncertainty"] = {m: _json_number(v) for m, v in means.items()}
-    return summary
-
-
-def _json_number(value: float) -> float | None:
-    """``value``, or None (JSON null) for nan: strict JSON has no NaN."""
-    return None if math.isnan(value) else value
-
-
-def format_table(summary: dict[str, Any]) -> str:
-    """The stdout table: one line per metric (per-frame mean, KITTI units), frames, pixels;
-    then, when ``summary`` has an ``uncertainty`` block, one line per uncertainty metric."""
-    lines = [f"KITTI depth-completion metrics, mean over {summary['frames']} frame(s) "
-             f"(per-frame metrics over {summary['pixels']:,} ground-truth pixels):"]
-    for m in METRICS:
-        value = summary["metrics"][m]
-        lines.append(f"  {_LABELS[m]:<7}{value:>12.{_DECIMALS[m]}f}  {UNITS[m]}".rstrip())
-    if "uncertainty" in summary:
-        u = {k: (math.nan if v is None else v) for k, v in summary["uncertainty"].items()}
-        lines += [
-            f"Uncertainty of the predicted std, mean over {summary['frames']} frame(s):",
-            f"  {'AUSE':<22}{u['ause']:>10.2f}  mm ({u['ause_ratio']:.2f} x random, {u['ause_random']:.2f} mm)",
-            f"  {'Spearman(std, |err|)':<22}{u['spearman']:>10.4f}",
-            f"  {'within 1 std':<22}{u['coverage_1']:>10.4f}  (Gaussian 0.683)",
-            f"  {'within 2 std':<22}{u['coverage_2']:>10.4f}  (Gaussian 0.954)",
-            f"  {'NLL Gaussian':<22}{u['nll']:>10.4f}  nats (errors in metres)",
-            f"  {'NLL Laplace':<22}{u['nll_laplace']:>10.4f}  nats (errors in metres)",
-        ]
-    return "\n".join(lines)
-
-
 def _atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def _csv_text(rows: list[dict[str, Any]], with_std: bool) -> str:
-    buffer = io.StringIO()
-    fields = ["name", *METRICS, "pixels", *(UNCERTAINTY_METRICS if with_std else ())]
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
-    return buffer.getvalue()
 
 
 # --------------------------------------------------------------------------- entry point
@@ -413,12 +249,12 @@ def _evaluate_and_write(args: argparse.Namespace, options: dict, dataset, root: 
         png_dir.mkdir(parents=True, exist_ok=True)
 
     start = time.perf_counter()
-    rows, skipped = _evaluate(model, dataset, args, png_dir)
+    rows, skipped = evaluate_frames(model, dataset, args, png_dir)
     seconds = time.perf_counter() - start
     if not rows:
         raise InputError(f"none of the {len(dataset)} frame(s) has a ground-truth pixel; nothing to evaluate")
 
-    summary = _summary(rows, args.std)
+    summary = summarize(rows, args.std)
     with torch.no_grad():  # plain numbers (no autograd warning from float() of a parameter)
         weights = model.weights()
     summary.update({
@@ -440,7 +276,7 @@ def _evaluate_and_write(args: argparse.Namespace, options: dict, dataset, root: 
         "png_dir": str(png_dir.resolve()) if png_dir is not None else None,
     })
     out_dir.mkdir(parents=True, exist_ok=True)
-    _atomic_write_text(out_dir / CSV_NAME, _csv_text(rows, args.std))
+    _atomic_write_text(out_dir / CSV_NAME, csv_text(rows, args.std))
     _atomic_write_text(out_dir / JSON_NAME, json.dumps(summary, indent=2) + "\n")
 
     source = args.checkpoint if args.checkpoint is not None else f"{args.weights or DEFAULT_WEIGHTS} weights"

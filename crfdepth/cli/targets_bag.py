@@ -6,7 +6,7 @@
         [--camera-info-topic T] [--calib FILE] [--max-dt S] [--poses auto|tf|odometry|FILE]
         [-k K] [--frames A:B] [--vis [DIR]]
 
-The bag is read as ``crfdepth complete --bag`` reads it (:mod:`crfdepth.cli.bag`: topics and
+The bag is read as ``crfdepth complete --bag`` reads it (:mod:`crfdepth.cli.bag_frames`: topics and
 their types, the CameraInfo, the LiDAR -> camera transform from ``/tf_static`` + ``/tf`` or
 ``--calib``, images paired with the cloud nearest in ``header.stamp`` within ``--max-dt``).
 A topic left out is the bag's only topic of its type. A cloud paired with several images
@@ -22,7 +22,7 @@ in the LiDAR frame), with the day calibration ``OUT/<date>/calib_{cam_to_cam,vel
 (``P_rect_02 = [K | 0]``, ``R_rect_00 = I``, velo_to_cam = ``T_cam<-lidar``: what
 :func:`crfdepth.io.calibration.read_raw_calibration` reads back); ``<date>`` is the first
 frame's image stamp, UTC, ``YYYY_MM_DD``. The targets are then made from that drive by the
-drive code path (:func:`crfdepth.cli.targets.run`): ``OUT/<bag name>_sync/proj_depth/...``,
+drive code path (:func:`crfdepth.cli.targets_drive.run_drive`): ``OUT/<bag name>_sync/proj_depth/...``,
 ``poses.txt``, ``index_image_02.csv``. So ``SequenceFrames(OUT, targets_root=OUT)`` (layout
 ``"sequence"``, ``root`` and ``targets_root`` both OUT) reads it; several bags can go into one OUT.
 
@@ -52,23 +52,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crfdepth.sequences import odometry
-from crfdepth.cli.bag import (
+from crfdepth.cli import targets_drive
+from crfdepth.cli.arguments import BAD_INPUT, positive_number
+from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
     Plan,
     decode_frame,
     paired_frames,
     plan_frames,
 )
-from crfdepth.cli.common import (
-    BAD_INPUT,
-    check_output_folders,
-    output_folders,
-    positive_number,
-)
+from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration
 from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording
+from crfdepth.sequences import odometry
 
 __all__ = ["GAP_FACTOR", "add_arguments", "check_drive_flags", "run_bag"]
 
@@ -122,7 +119,7 @@ def _only_topic(bag: Recording, types: tuple[str, ...], flag: str, what: str) ->
 
 
 def _namespace(args, bag: Recording) -> argparse.Namespace:
-    """What :func:`crfdepth.cli.bag.plan_frames` reads, with the topics chosen."""
+    """What :func:`crfdepth.cli.bag_frames.plan_frames` reads, with the topics chosen."""
     image = args.image_topic or _only_topic(bag, IMAGE_TYPES, "--image-topic", "camera image")
     points = args.points_topic or _only_topic(bag, (CLOUD_TYPE,), "--points-topic", "point cloud")
     return argparse.Namespace(image_topic=image, points_topic=points, camera_info_topic=args.camera_info_topic,
@@ -238,8 +235,6 @@ def _poses_file_lines(args, count: int, positions: list[int]) -> list[str]:
 
 def _pose_plan(args, bag, plan, frames, used_positions, period, numbers) -> tuple[str, list[str] | None, str]:
     """How the drive path gets its poses: ``(--poses value or "FILE", lines of the file to write, source)``."""
-    from crfdepth.cli import targets as drive
-
     mode = args.poses
     if mode == "oxts":
         raise InputError("--poses oxts: expected auto, tf, odometry or a poses file with --bag (a bag has no oxts), "
@@ -254,7 +249,7 @@ def _pose_plan(args, bag, plan, frames, used_positions, period, numbers) -> tupl
             return "FILE", [_matrix_text(P[:3, :]) for P in cams], source
         mode = "odometry"
     if mode == "odometry":
-        if not drive._kiss_installed():
+        if not targets_drive.kiss_installed():
             why = "the bag has no odometry on /tf, and " if args.poses == "auto" else ""
             raise InputError(f"--poses {args.poses}: {why}LiDAR odometry needs the kiss-icp package, not installed; "
                              f"{odometry.EXTRA_HINT}, or give --poses FILE")
@@ -306,8 +301,6 @@ def _write_drive(bag, ns, plan, frames, used_positions, numbers, calib, drive: P
 
 def run_bag(args: argparse.Namespace) -> int:
     """``targets --bag``: see the module docstring. Bad input raises ``BAD_INPUT`` naming the flag."""
-    from crfdepth.cli import targets as drive_targets
-
     if args.camera != 2:
         raise InputError(f"--camera {args.camera}: cannot be combined with --bag (a bag's camera is written as "
                          f"image_02)")
@@ -319,7 +312,7 @@ def run_bag(args: argparse.Namespace) -> int:
         frames = _one_per_cloud(plan)
         stamps = np.array([plan.clouds.stamps_ns[plan.pairing.cloud[i]] for i in frames], dtype=np.int64)
         numbers, period = _numbers(args, stamps)
-        chosen, used = drive_targets.select_frames(args, numbers, _WIDTH, f"--bag {args.bag}")
+        chosen, used = targets_drive.select_frames(args, numbers, _WIDTH, f"--bag {args.bag}")
         position = {n: p for p, n in enumerate(numbers)}
         used_positions = [position[n] for n in used]
         calib = _calibration(plan, frames)
@@ -348,7 +341,7 @@ def run_bag(args: argparse.Namespace) -> int:
                     out_dir=str(staging / "targets"), vis=None if vis_dir is None else str(staging / "vis"),
                     quiet=True, out_std_dir=None, **{key: None for key in _BAG_FLAGS})
                 try:
-                    drive_targets.run(run)
+                    targets_drive.run_drive(run)
                 except BAD_INPUT as exc:
                     text = str(exc).replace(f"--drive {drive}", f"--bag {args.bag}")
                     raise type(exc)(text.replace(f"--poses {poses}", f"--poses {args.poses}")) from None

@@ -1,5 +1,5 @@
 """Batched folder inference: ``--batch-size`` and ``--workers`` of ``crfdepth complete
---input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.common.frame_batches and complete_batch_with_cli_advice).
+--input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.batches.frame_batches and complete_batch_with_cli_advice).
 
 The frames are built-in synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) of two sizes, written to ``tmp_path`` in the ``val_selection_cropped`` layout so
@@ -21,8 +21,9 @@ import torch
 from torch.utils.data import Dataset, Subset
 
 from crfdepth.api import complete_depth
-from crfdepth.cli import complete as complete_cli
-from crfdepth.cli.common import _CheckedFrames, check_sample, frame_batches
+from crfdepth.cli import complete_folder
+from crfdepth.cli.batches import _CheckedFrames, frame_batches
+from crfdepth.cli.completion import check_sample
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.sample import Sample
@@ -312,7 +313,7 @@ def test_datasets_of_the_workers_pickle(folder):
     pickled: the wrapped dataset, the complete command's check and evaluate's --limit Subset."""
     dataset = KittiValSelection(folder)
     wrapped = _CheckedFrames(Subset(dataset, range(3)),
-                             functools.partial(complete_cli._check_frame, total=3))
+                             functools.partial(complete_folder._check_frame, total=3))
     _same_items(wrapped, pickle.loads(pickle.dumps(wrapped)))
     synthetic = build_dataset("synthetic", None, count=2, seed=5)
     copy = pickle.loads(pickle.dumps(synthetic))

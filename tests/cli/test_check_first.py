@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.cli import complete as complete_cli
-from crfdepth.cli.common import LISTED_BAD
+from crfdepth.cli import complete_folder, complete_one
+from crfdepth.cli.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
 
@@ -27,8 +27,9 @@ def no_model(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the model was used before the output was checked")
 
-    monkeypatch.setattr(complete_cli, "build_model", refuse)
-    monkeypatch.setattr(complete_cli, "complete_frame", refuse)
+    monkeypatch.setattr(complete_one, "build_model", refuse)
+    monkeypatch.setattr(complete_one, "complete_frame", refuse)
+    monkeypatch.setattr(complete_folder, "build_model", refuse)
 
 
 def test_a_bad_frame_in_the_middle_writes_nothing(tmp_path):
@@ -59,7 +60,7 @@ def test_every_bad_frame_is_listed(tmp_path):
 
 
 def test_at_most_listed_bad_frames_are_listed(tmp_path, monkeypatch):
-    monkeypatch.setattr("crfdepth.cli.common.LISTED_BAD", 2)
+    monkeypatch.setattr("crfdepth.cli.skip_bad.LISTED_BAD", 2)
     data = write_folder(tmp_path / "val_selection_cropped", 4, bad={i: "zero sparse" for i in range(4)})
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", tmp_path / "out", *FAST])
     lines = err.splitlines()

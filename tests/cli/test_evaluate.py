@@ -26,13 +26,20 @@ import torch
 
 from crfdepth import cli
 from crfdepth.api import complete_depth
-from crfdepth.cli.common import complete_batch_with_cli_advice
+from crfdepth.checkpoints import save_model
+from crfdepth.cli.completion import complete_batch_with_cli_advice
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
-from crfdepth.metrics import METRICS, UNCERTAINTY_METRICS, UNITS, average_metrics, depth_metrics, uncertainty_metrics
+from crfdepth.metrics import (
+    METRICS,
+    UNCERTAINTY_METRICS,
+    UNITS,
+    average_metrics,
+    depth_metrics,
+    uncertainty_metrics,
+)
 from crfdepth.model import CRFDepth
-from crfdepth.checkpoints import save_model
 
 COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
 
@@ -282,7 +289,7 @@ def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, m
         depth, _ = complete_batch_with_cli_advice(model, batch, False)
         return depth, None
 
-    monkeypatch.setattr("crfdepth.cli.evaluate.complete_batch_with_cli_advice", no_std)
+    monkeypatch.setattr("crfdepth.cli.evaluate_frames.complete_batch_with_cli_advice", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
     assert code == 2 and stdout.startswith("model: kitti weights, superpixel graph (800 segments)")

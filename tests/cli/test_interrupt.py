@@ -8,9 +8,7 @@ import csv
 
 import pytest
 
-from crfdepth.cli import bag as bag_cli
-from crfdepth.cli import complete as complete_cli
-from crfdepth.cli import common
+from crfdepth.cli import complete_bag, complete_folder, outputs
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 
@@ -31,7 +29,7 @@ def _interrupt_after(monkeypatch, module, name: str, calls: int) -> None:
 def test_folder_run_reports_the_frames_written(tmp_path, monkeypatch, batch_size):
     data = write_folder(tmp_path / "val_selection_cropped", 5)
     out = tmp_path / "out"
-    _interrupt_after(monkeypatch, complete_cli, "complete_batch_with_cli_advice", 2)  # in the 3rd model call
+    _interrupt_after(monkeypatch, complete_folder, "complete_batch_with_cli_advice", 2)  # in the 3rd model call
     code, stdout, err = run(["complete", "--input-dir", data, "--out-dir", out, "--batch-size", batch_size, *FAST])
     written = 2 * batch_size
     assert code == 130 and stdout == ""
@@ -41,7 +39,7 @@ def test_folder_run_reports_the_frames_written(tmp_path, monkeypatch, batch_size
 
 def test_folder_run_interrupted_while_checking_writes_nothing(tmp_path, monkeypatch):
     data = write_folder(tmp_path / "val_selection_cropped", 3)
-    _interrupt_after(monkeypatch, complete_cli, "_check_frame", 1)
+    _interrupt_after(monkeypatch, complete_folder, "_check_frame", 1)
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", tmp_path / "out", *FAST])
     assert code == 130
     assert err == "crfdepth complete: interrupted while checking the frames (1 of 3 checked); nothing written\n"
@@ -52,7 +50,7 @@ def test_folder_run_interrupted_before_its_first_frame_leaves_no_folder(tmp_path
     data = write_folder(tmp_path / "val_selection_cropped", 2)
     out = tmp_path / "new" / "out"
     (tmp_path / "new").mkdir()
-    _interrupt_after(monkeypatch, complete_cli, "complete_batch_with_cli_advice", 0)
+    _interrupt_after(monkeypatch, complete_folder, "complete_batch_with_cli_advice", 0)
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", out, "--vis", *FAST])
     assert code == 130 and err == f"crfdepth complete: interrupted after 0 of 2 frame(s) written to {out}\n"
     assert list((tmp_path / "new").iterdir()) == []  # the empty folders it had created (out, out_vis) are gone
@@ -75,7 +73,7 @@ def _bag_argv(recorded, out, *extra) -> list:
 
 def test_bag_run_leaves_an_index_of_the_frames_written(bag, tmp_path, monkeypatch):
     out = tmp_path / "d"
-    _interrupt_after(monkeypatch, bag_cli, "complete_frame", 2)
+    _interrupt_after(monkeypatch, complete_bag, "complete_frame", 2)
     code, _, err = run(_bag_argv(bag, out, "--out-std-dir", tmp_path / "std", "--out-bag", tmp_path / "out"))
     assert code == 130
     assert err == (f"crfdepth complete: interrupted after 2 of 4 frame(s) written to {out} and listed in its "
@@ -91,7 +89,7 @@ def test_bag_run_leaves_an_index_of_the_frames_written(bag, tmp_path, monkeypatc
 def test_bag_frame_cut_short_is_not_indexed(bag, tmp_path, monkeypatch):
     """Ctrl-C inside the 2nd frame's writing, before its depth PNG lands: index.csv lists frame 1 only."""
     out = tmp_path / "d"
-    _interrupt_after(monkeypatch, bag_cli, "write_frame", 1)
+    _interrupt_after(monkeypatch, complete_bag, "write_frame", 1)
     code, _, err = run(_bag_argv(bag, out))
     assert code == 130 and "interrupted after 1 of 4 frame(s) written" in err
     with open(out / "index.csv", newline="") as handle:
@@ -100,7 +98,7 @@ def test_bag_frame_cut_short_is_not_indexed(bag, tmp_path, monkeypatch):
 
 
 def test_bag_run_interrupted_while_checking_writes_nothing(bag, tmp_path, monkeypatch):
-    _interrupt_after(monkeypatch, bag_cli, "points_to_sparse", 1)
+    _interrupt_after(monkeypatch, complete_bag, "points_to_sparse", 1)
     code, _, err = run(_bag_argv(bag, tmp_path / "d"))
     assert code == 130
     assert err == "crfdepth complete: interrupted while checking the frames (1 of 4 checked); nothing written\n"
@@ -110,7 +108,7 @@ def test_bag_run_interrupted_while_checking_writes_nothing(bag, tmp_path, monkey
 def test_output_folders_release_on_interrupt(tmp_path):
     """The context manager itself: lock removed and the created (empty) folder removed on Ctrl-C."""
     with pytest.raises(KeyboardInterrupt):
-        with common.output_folders([("--out-dir", str(tmp_path / "a")), ("--out-std-dir", None)]) as folders:
+        with outputs.output_folders([("--out-dir", str(tmp_path / "a")), ("--out-std-dir", None)]) as folders:
             assert folders[1] is None and (folders[0] / ".crfdepth.lock").is_file()
             raise KeyboardInterrupt
     assert list(tmp_path.iterdir()) == []

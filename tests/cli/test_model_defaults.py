@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-import crfdepth.cli.common as common
 import crfdepth.cli.demo as demo
+import crfdepth.cli.model_options as model_options
 from crfdepth import cli
+from crfdepth.checkpoints import load_pretrained, save_model
 from crfdepth.data.synthetic import make_scene
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.model import CRFDepth
 from crfdepth.weights import WEIGHTS
-from crfdepth.checkpoints import load_pretrained, save_model
 
 KITTI_LINE = "model: kitti weights, pixel grid, log depth, occlusion gate"
 PAPER_LINE = "model: paper weights, superpixel graph (5500 segments) + pixel refinement, depth, no gate"
@@ -43,7 +43,7 @@ def built(monkeypatch) -> list[CRFDepth]:
         models.append(model)
         return model
 
-    monkeypatch.setattr(common, "load_pretrained", spy)
+    monkeypatch.setattr(model_options, "load_pretrained", spy)
     monkeypatch.setattr(demo, "load_pretrained", spy)
     return models
 

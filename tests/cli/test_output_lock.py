@@ -1,5 +1,5 @@
 """Output folders are locked by the run that writes them (crfdepth.io.files.lock_folder,
-crfdepth.cli.common.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
+crfdepth.cli.outputs.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
 another run is writing is refused naming that run; a lock left by a run that is gone is taken
 over; the lock is removed when the run ends, whatever the reason.
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.cli import complete as complete_cli
+from crfdepth.cli import complete_folder
 from crfdepth.io.files import LOCK_NAME, FolderLockedError, lock_folder
 from tests.cli.frames import FAST, files, png, run, write_folder
 
@@ -56,7 +56,7 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["/usr/bin/crfdepth", "complete", "--input-dir", "A", "--out-dir", "B"])
     inner = {}
-    real = complete_cli.complete_batch_with_cli_advice
+    real = complete_folder.complete_batch_with_cli_advice
 
     def first_run_computing(model, batch, with_std):
         if not inner:  # once, while run 1 holds its folders
@@ -65,7 +65,7 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
             inner["files"] = files(out)
         return real(model, batch, with_std)
 
-    monkeypatch.setattr(complete_cli, "complete_batch_with_cli_advice", first_run_computing)
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", first_run_computing)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", out, *FAST])
     assert code == 0, err
     second_code, second_out, second_err = inner["result"]
@@ -144,7 +144,7 @@ def test_lock_folder_is_exclusive_and_released(tmp_path):
 
 def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path, monkeypatch):
     """A failure while writing (here a non-finite model output in frame 2) releases the lock."""
-    real = complete_cli.complete_batch_with_cli_advice
+    real = complete_folder.complete_batch_with_cli_advice
     calls = []
 
     def nan_second(model, batch, with_std):
@@ -152,7 +152,7 @@ def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path
         depth, std = real(model, batch, with_std)
         return (depth * float("nan"), std) if len(calls) == 2 else (depth, std)
 
-    monkeypatch.setattr(complete_cli, "complete_batch_with_cli_advice", nan_second)
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", nan_second)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])
     assert code == 2 and "non-finite" in err and "1 of 3 frame(s) written" in err
     assert files(tmp_path / "out") == [png(0)]  # no lock left
@@ -171,17 +171,17 @@ def test_evaluate_out_dir_is_locked(folder, tmp_path, sleeper):
 
 
 def test_evaluate_holds_and_releases_its_lock(folder, tmp_path, monkeypatch):
-    from crfdepth.cli import evaluate as evaluate_cli
+    from crfdepth.cli import evaluate_frames
 
     out = tmp_path / "evaluation"
     seen = []
-    real = evaluate_cli.complete_batch_with_cli_advice
+    real = evaluate_frames.complete_batch_with_cli_advice
 
     def looking(model, batch, with_std):
         seen.append((out / LOCK_NAME).is_file())
         return real(model, batch, with_std)
 
-    monkeypatch.setattr(evaluate_cli, "complete_batch_with_cli_advice", looking)
+    monkeypatch.setattr(evaluate_frames, "complete_batch_with_cli_advice", looking)
     code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", out,
                         "--potentials", "colour", "--quiet"])
     assert code == 0, err

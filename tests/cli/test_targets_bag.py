@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crfdepth.cli import main
-from crfdepth.cli import targets as targets_cli
+from crfdepth.cli import main, targets_drive
 from crfdepth.data.sequences import SequenceFrames
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.calibration import read_raw_calibration
@@ -287,7 +286,7 @@ def test_tf_poses_demanded_without_tf(sequence, tmp_path, capsys, monkeypatch):
              "crfdepth targets: error: --poses tf: expected odometry on /tf (a transform from a fixed frame such as "
              "odom or map to the LiDAR frame 'velodyne' that changes over time), got no transform above it; use "
              "--poses odometry or --poses FILE")
-    monkeypatch.setattr(targets_cli, "_kiss_installed", lambda: False)
+    monkeypatch.setattr(targets_drive, "kiss_installed", lambda: False)
     _refused(["targets", "--bag", bag, "--out-dir", out], capsys, out,
              "crfdepth targets: error: --poses auto: the bag has no odometry on /tf, and LiDAR odometry needs the "
              "kiss-icp package, not installed; pip install \"crfdepth[odometry]\", or give --poses FILE")

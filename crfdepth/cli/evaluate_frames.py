@@ -1,0 +1,135 @@
+"""``crfdepth evaluate``'s pass over the frames: each batch completed, scored against its ground truth
+(per-frame metrics, with ``--std`` the uncertainty metrics), and with ``--save-png`` written
+(see :mod:`crfdepth.cli.evaluate`)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Subset
+from tqdm import tqdm
+
+from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.cli.batches import frame_batches
+from crfdepth.cli.completion import complete_batch_with_cli_advice
+from crfdepth.errors import InputError
+from crfdepth.io.kitti import write_depth_png
+from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
+
+logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
+
+__all__ = ["evaluate_frames"]
+
+_MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
+
+
+def evaluate_frames(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
+    """Per-frame metrics rows (in dataset order) and the names of skipped frames."""
+    batches = frame_batches(dataset, args.batch_size, args.workers)
+    rows: list[dict[str, Any]] = []
+    skipped: list[str] = []
+    progress = tqdm(total=len(dataset), unit="frame", desc="evaluate",
+                    disable=args.quiet or not sys.stderr.isatty())
+    done = 0
+    try:
+        with torch.no_grad():
+            for batch in _batches(batches, dataset):
+                where = f"frame(s) {done + 1}-{done + len(batch)} of {len(dataset)} ({', '.join(batch.names)})"
+                if not bool(batch.has_target.all()):
+                    missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
+                    raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
+                                     f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
+                depth, std = _predict(model, batch, where, args.std)
+                batch = batch.to(device=depth.device, dtype=depth.dtype)
+                counts = (batch.target > 0).flatten(1).sum(1)
+                keep = counts > 0
+                for name in (n for n, k in zip(batch.names, keep.tolist()) if not k):
+                    logger.warning("%s has no ground-truth pixel (> 0); skipped", name)
+                    skipped.append(name)
+                if bool(keep.any()):
+                    try:
+                        per_frame = depth_metrics(depth[keep], batch.target[keep])
+                    except InputError as exc:
+                        raise InputError(f"{where}: {exc}") from None
+                    frames = [i for i, k in enumerate(keep.tolist()) if k]
+                    for j, i in enumerate(frames):
+                        row: dict[str, Any] = {"name": batch.names[i]}
+                        row.update({m: float(per_frame[m][j]) for m in METRICS})
+                        row["pixels"] = int(per_frame["pixels"][j])
+                        if std is not None:
+                            row.update(_frame_uncertainty(depth[i, 0], std[i, 0], batch.target[i, 0],
+                                                          f"{where}, {batch.names[i]}"))
+                        rows.append(row)
+                if png_dir is not None:
+                    _write_pngs(depth, batch.names, png_dir, where)
+                done += len(batch)
+                progress.update(len(batch))
+    finally:
+        batches.close()  # stops the DataLoader workers
+        progress.close()
+    return rows, skipped
+
+
+def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
+    (else None), in the model's dtype: one model call for the batch
+    (:func:`crfdepth.cli.completion.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
+    try:
+        depth, std = complete_batch_with_cli_advice(model, batch, return_std)
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
+    if return_std and std is None:
+        raise InputError(f"--std: expected the model to return a standard deviation, got none for {where}")
+    dtype = next(model.parameters()).dtype
+    return depth[:, None].to(dtype), (std[:, None].to(dtype) if return_std else None)
+
+
+def _frame_uncertainty(depth: torch.Tensor, std: torch.Tensor, target: torch.Tensor, where: str) -> dict[str, float]:
+    """:func:`crfdepth.metrics.uncertainty_metrics` of one (H, W) frame over its ground-truth
+    pixels (target > 0), errors and std in metres; ``ause`` and ``ause_random`` in mm."""
+    valid = target > 0
+    error = (depth.double() - target.double())[valid].cpu().numpy()
+    try:
+        metrics = uncertainty_metrics(error, std.double()[valid].cpu().numpy())
+    except InputError as exc:
+        raise InputError(f"{where}: --std: {exc}") from None
+    metrics["ause"] *= 1000.0  # linear in the unit of the errors and std; the ratio is unitless
+    metrics["ause_random"] *= 1000.0
+    return metrics
+
+
+def _batches(batches, dataset):
+    """The batches of :func:`~crfdepth.cli.batches.frame_batches`; a frame that fails to read
+    or check (in a worker or here) is named in its one-line error."""
+    total, names, done = len(dataset), _names(dataset), 0
+    while True:
+        try:
+            batch = next(batches, None)
+        except BAD_INPUT as exc:
+            name = f" ({names[done]})" if names is not None else ""
+            raise type(exc)(f"frame {done + 1} of {total}{name}: {exc}") from None
+        if batch is None:
+            return
+        done += len(batch)
+        yield batch
+
+
+def _names(dataset) -> list[str] | None:
+    """The frame names of ``dataset`` (a ``Subset`` for ``--limit`` included), if it has them."""
+    if isinstance(dataset, Subset):
+        names = _names(dataset.dataset)
+        return None if names is None else [names[i] for i in dataset.indices]
+    return getattr(dataset, "names", None)
+
+
+def _write_pngs(depth: torch.Tensor, names: list[str], png_dir: Path, where: str) -> None:
+    for name, frame in zip(names, depth[:, 0].double().cpu().numpy()):
+        if not np.all(np.isfinite(frame)):
+            raise InputError(f"{where}: the model returned {int(np.sum(~np.isfinite(frame)))} non-finite "
+                             f"depth value(s) for {name}; PNG not written")
+        write_depth_png(png_dir / f"{name}.png", np.maximum(frame, _MIN_DEPTH))
