@@ -15,7 +15,7 @@ projected with that same ``K`` and no distortion.
 Every input is checked here, at the public boundary, and refused with an
 :class:`~crfdepth.errors.InputError` naming the argument (docs/design.md section 8):
 besides shapes and ranges, a ``K`` that does not fit the image, a sparse map that is
-not in metres (:func:`crfdepth.checks.check_sparse_plausible`) and a ``T_cam_lidar`` that
+not in metres (:func:`crfdepth.plausibility.check_sparse_plausible`) and a ``T_cam_lidar`` that
 looks inverted (unless ``trust_transform=True``, :func:`points_to_sparse`).
 """
 
@@ -30,12 +30,18 @@ import numpy as np
 import torch
 
 from crfdepth.checkpoints import load_pretrained
-from crfdepth.checks import MAX_LIDAR_DEPTH_M, check_intrinsics, check_rigid, check_sparse_plausible
+from crfdepth.checks import check_intrinsics, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.io.calibration import Calibration, RigCalibration
-from crfdepth.memory import (check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory,
-                              out_of_memory)
 from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, project_points
+from crfdepth.io.calibration import Calibration, RigCalibration
+from crfdepth.memory import (
+    check_frame_size,
+    check_model_memory,
+    estimate_bytes,
+    is_out_of_memory,
+    out_of_memory,
+)
+from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_plausible
 
 __all__ = ["check_frame", "complete_batch", "complete_depth", "no_points_message", "points_to_sparse", "prepare_points"]
 
@@ -84,7 +90,7 @@ def _image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
 
 def _sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
     """``sparse`` as an (H, W) float32 map in metres, checked (with ``K``, the image's intrinsics,
-    for the plausibility check :func:`crfdepth.checks.check_sparse_plausible`)."""
+    for the plausibility check :func:`crfdepth.plausibility.check_sparse_plausible`)."""
     array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
     if array.ndim == 3 and array.shape[0] == 1:
         array = array[0]
@@ -107,7 +113,7 @@ def check_frame(image, sparse, K) -> None:
     with its checks, messages and order: RGB not (3, H, W) / (H, W, 3) in [0, 1]; K not the
     intrinsics of an image of this size (:func:`crfdepth.checks.check_intrinsics`); sparse depth
     not finite, >= 0, with a return, or not plausibly metres of a LiDAR scene seen with this K
-    (:func:`crfdepth.checks.check_sparse_plausible`: the hints say what to divide by)."""
+    (:func:`crfdepth.plausibility.check_sparse_plausible`: the hints say what to divide by)."""
     rgb, _, _ = _image_to_numpy(image)
     Kn = check_intrinsics(K, "K", rgb.shape[:2])
     _sparse_to_numpy(sparse, rgb.shape[:2], Kn)
@@ -316,7 +322,7 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             tensor (3, H, W) / (H, W, 3) of the same kinds. Any size.
         sparse: (H, W) sparse z-depth in metres (0 = no point), numpy or tensor, any
             real dtype. A map that is not plausibly metres of a LiDAR scene seen with ``K``
-            is refused with the likely unit (:func:`crfdepth.checks.check_sparse_plausible`):
+            is refused with the likely unit (:func:`crfdepth.plausibility.check_sparse_plausible`):
             the raw codes of a KITTI PNG (``cv2.imread(path, -1)``, metres * 256; use
             :func:`crfdepth.io.kitti.read_depth_png`), millimetres, centimetres, or a
             millimetre / whole-metre PNG read as metres * 256.

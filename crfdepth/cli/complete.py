@@ -131,7 +131,8 @@ from crfdepth.cli.common import (
     vis_range_type,
 )
 from crfdepth.data.kitti import open_completion_folder
-from crfdepth.checks import SPARSE_UNITS, check_intrinsics, check_sparse_plausible
+from crfdepth.checks import check_intrinsics
+from crfdepth.plausibility import SPARSE_UNITS, check_sparse_plausible
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import check_output_file
