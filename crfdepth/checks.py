@@ -303,7 +303,7 @@ def check_rigid(T: object, what: str = "T_cam_lidar", tolerance: float = RIGID_T
     Requires finite values, last row 0 0 0 1, ``R^T R = I`` (max abs deviation <=
     ``tolerance``) and ``det R > 0`` (a rotation, not a reflection). A scaled rotation
     (e.g. a transform meant for millimetre points) fails the orthonormality test; the
-    direction of the transform is not checked here (see :func:`crfdepth.api.points_to_sparse`).
+    direction of the transform is not checked here (see :func:`crfdepth.inputs.points_to_sparse`).
     """
     T = _as_matrix(T, (4, 4), what, allow_flat=False)
     if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:

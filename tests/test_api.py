@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.api import complete_depth, points_to_sparse
+from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
@@ -38,6 +38,7 @@ from crfdepth.geometry.projection import (
     project_velodyne,
     ring_mask,
 )
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import (
     RigCalibration,
     load_any_calibration,

@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from crfdepth.api import points_to_sparse
+from crfdepth.inputs import points_to_sparse
 from crfdepth.cli.common import (
     BAD_INPUT,
     build_model,
