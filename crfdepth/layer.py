@@ -43,11 +43,11 @@ from torch import nn
 
 from crfdepth.checks import check_map, check_scalar_tensor, describe
 from crfdepth.errors import InputError
-from crfdepth.superpixels.graph import boundary_pairs
 from crfdepth.linalg import SolveInfo, System, solve_system, solver_settings
-from crfdepth.uncertainty.posterior import posterior_std
 from crfdepth.potentials.energy import unary_system
+from crfdepth.superpixels.edges import boundary_pairs
 from crfdepth.superpixels.segments import batch_segments, slic_batch
+from crfdepth.uncertainty.posterior import posterior_std
 
 __all__ = ["CRFRefine", "RefineOutput", "crf_refine"]
 

@@ -1,4 +1,4 @@
-"""Tests of the checks added to crfdepth.checks for the camera and the LiDAR: K against the
+"""Tests of crfdepth.checks and crfdepth.plausibility for the camera and the LiDAR: K against the
 image, rigid transforms, and the units of a sparse depth map (oracle: the real KITTI
 sparse maps, in metres once divided by 256, and hand-made maps in other units)."""
 
@@ -10,13 +10,12 @@ import pytest
 import torch
 
 from crfdepth.checks import (
-    MAX_LIDAR_DEPTH_M,
     check_choice,
     check_intrinsics,
     check_rigid,
-    check_sparse_units,
 )
 from crfdepth.errors import InputError
+from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_units
 
 KITTI_K = [[721.5377, 0.0, 596.5593], [0.0, 721.5377, 149.854], [0.0, 0.0, 1.0]]
 

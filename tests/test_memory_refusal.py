@@ -129,7 +129,7 @@ def test_complete_depth_refuses_from_memory_limit_gb_before_any_check(monkeypatc
     def converted(*args, **kwargs):  # pragma: no cover - must not be reached
         raise AssertionError("the image was converted before the memory check")
 
-    monkeypatch.setattr(api, "_image_to_numpy", converted)
+    monkeypatch.setattr(api, "image_to_numpy", converted)
     rgb, sparse = _scene()
     model = CRFDepth(mode="pixel", memory_limit_gb=0.1)  # below the fixed overhead of any frame
     with pytest.raises(MemoryRefusal, match=r"^image: a frame of 64x48 pixels needs about 0\.3 GB .*more than "

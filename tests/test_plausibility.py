@@ -1,7 +1,7 @@
 """Issue 25 through the Python API: the plausibility of sparse maps (units) against the image and
 K, K's field of view and the inverted-transform test (oracle: the synthetic street, the docs/example
 rig and, where present, the shared KITTI frames, whose statistics are in the docstrings of
-crfdepth.checks.check_sparse_plausible and crfdepth.api.points_to_sparse)."""
+crfdepth.plausibility.check_sparse_plausible and crfdepth.inputs.points_to_sparse)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.api import check_frame, complete_depth, points_to_sparse
-from crfdepth.checks import check_intrinsics, check_sparse_plausible
+from crfdepth.api import check_frame, complete_depth
+from crfdepth.checks import check_intrinsics
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
+from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, keep_every_ring
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.kitti import read_velodyne
-from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, keep_every_ring
+from crfdepth.plausibility import check_sparse_plausible
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ One frame from a raw point cloud and a calibration (instead of --sparse/--intrin
 ``CLOUD`` is a ``.bin`` (KITTI), ``.npy``, ``.ply`` or ``.pcd`` file
 (:func:`crfdepth.io.pointcloud.read_points`); ``CALIB`` a rig YAML/JSON file or any KITTI
 calibration (:func:`crfdepth.io.calibration.load_any_calibration`; ``--camera`` picks the KITTI
-camera). The cloud is projected by :func:`crfdepth.api.points_to_sparse` (KITTI: the
+camera). The cloud is projected by :func:`crfdepth.inputs.points_to_sparse` (KITTI: the
 exact KITTI projection) and the image undistorted when the calibration has
 ``distortion`` (:mod:`crfdepth.api`).
 
@@ -98,7 +98,7 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.checks import SPARSE_UNITS
+from crfdepth.plausibility import SPARSE_UNITS
 from crfdepth.cli.arguments import vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag

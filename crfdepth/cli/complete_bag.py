@@ -34,7 +34,7 @@ Everything the run needs is checked before anything is written: topics and their
 every image encoding and cloud layout, the CameraInfo, the transform of every frame
 pair, that some image pairs with a cloud, then (a second read of the bag) every paired
 frame as it will be completed: its image decoded, its cloud read, its points projected
-with its calibration (:func:`crfdepth.api.points_to_sparse`: points in the image, not
+with its calibration (:func:`crfdepth.inputs.points_to_sparse`: points in the image, not
 millimetres, transform not inverted). Bad input is one line and exit status 2; bad
 frames are listed (the first on the error's first line) and nothing is written, unless
 ``--skip-bad`` leaves them out (``<out-dir>/skipped.csv``: frame stamp and reason; exit
@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from crfdepth.api import points_to_sparse
+from crfdepth.inputs import points_to_sparse
 from crfdepth.cli.arguments import BAD_INPUT, positive_number
 from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
@@ -176,7 +176,7 @@ def _check_index(out_dir: str, overwrite: bool) -> None:
 
 def _check_pairs(bag: Recording, args, plan: Plan) -> list[tuple[int, type[BaseException], str]]:
     """Pass 1b: every paired frame decoded and checked as :func:`_one` will (image, cloud, projection with its
-    calibration: :func:`crfdepth.api.points_to_sparse`), nothing kept: ``(image index, error type, message)``
+    calibration: :func:`crfdepth.inputs.points_to_sparse`), nothing kept: ``(image index, error type, message)``
     of each bad frame."""
     bad, checked = [], 0
     progress = tqdm(total=plan.pairing.paired, unit="frame", desc="check",

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crfdepth.checks import check_intrinsics, check_sparse_plausible
+from crfdepth.checks import check_intrinsics
+from crfdepth.plausibility import check_sparse_plausible
 from crfdepth.cli.completion import complete_frame
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import make_output_dir, same_file, write_frame

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
-from crfdepth.geometry.normals import aggregate_normals, lidar_normals
+from crfdepth.geometry.node_normals import aggregate_normals
+from crfdepth.geometry.normals import lidar_normals
 from crfdepth.potentials.data_term import node_lidar
 from crfdepth.potentials.energy import Variable, to_unknown
 from crfdepth.superpixels.graph import SuperpixelGraph

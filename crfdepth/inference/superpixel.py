@@ -13,13 +13,22 @@ from typing import TYPE_CHECKING
 import torch
 from kornia.geometry.camera import unproject_points
 
-from crfdepth.geometry.normals import graph_normals
-from crfdepth.inference.nodes import Nodes, gather_normals, gather_nodes
+from crfdepth.geometry.node_normals import graph_normals
+from crfdepth.inference.nodes import Nodes, gather_nodes, gather_normals
 from crfdepth.inference.pixel import evidence, pixel_solve, predictive_std
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
-from crfdepth.potentials.energy import (EnergyTerms, colour_affinity, data_confidence, distance_affinity,
-                                        graph_system, grid_system, normal_affinity, std_in_metres, to_depth)
+from crfdepth.potentials.energy import (
+    EnergyTerms,
+    colour_affinity,
+    data_confidence,
+    distance_affinity,
+    graph_system,
+    grid_system,
+    normal_affinity,
+    std_in_metres,
+    to_depth,
+)
 from crfdepth.superpixels.graph import build_superpixel_graphs
 from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.count import node_count_uncertainty

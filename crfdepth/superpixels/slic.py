@@ -28,15 +28,12 @@ step, in tensor operations over the whole batch instead of a loop over pixels:
    pixel's own ``|f|^2`` drops out of the argmin; ties go to the smaller seed index, as
    in scikit-image); the centre update is one ``index_add_``. A centre that loses all
    its pixels is dropped, as in scikit-image.
-4. **Connectivity**: 4-connected components of the k-means labels (union-find over the
-   horizontal runs of equal label: hooking to the smaller root and pointer jumping), then
-   every component smaller than ``int(0.5 H W / n_seeds)`` pixels joins the largest
-   adjacent component if that one is larger (ties: the one that starts first in raster
-   order). scikit-image's breadth-first pass merges such a fragment into the adjacent
-   segment met last instead, and cuts components above ``3 H W / n_seeds`` pixels
-   (which SLIC at KITTI's size does not produce); so the labels are not identical to
-   scikit-image's, but the segments are of the same kind (tests/test_slic.py compares
-   count, boundary recall and undersegmentation error on the real frames).
+4. **Connectivity** (:mod:`crfdepth.superpixels.connectivity`): 4-connected components of
+   the k-means labels; every component smaller than ``int(0.5 H W / n_seeds)`` pixels
+   joins the largest adjacent component if that one is larger. The labels are not
+   identical to scikit-image's, but the segments are of the same kind
+   (tests/superpixels/test_slic.py compares count, boundary recall and undersegmentation
+   error on the real frames).
 5. Labels renumbered ``0 .. S-1`` per image in raster order of the segments' first pixels
    (of the component that kept its label).
 
@@ -57,6 +54,7 @@ from kornia.color import rgb_to_lab
 
 from crfdepth.checks import describe
 from crfdepth.errors import InputError
+from crfdepth.superpixels.connectivity import connected_segments
 
 __all__ = ["slic_torch"]
 
@@ -279,90 +277,6 @@ def _kmeans(
     return labels[:, :h, :w]
 
 
-def _union_find(parent: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Roots of the graph with edges ``(a, b)``: each node's smallest connected node index.
-
-    ``parent`` (N,) int64 starts as ``arange(N)``. Hooking roots to the smaller root
-    (scatter-min) and full pointer jumping, repeated until every edge has equal roots.
-    """
-    while True:
-        ra, rb = parent[a], parent[b]
-        differ = ra != rb
-        if not bool(differ.any()):
-            return parent
-        ra, rb = ra[differ], rb[differ]
-        parent.scatter_reduce_(0, torch.maximum(ra, rb), torch.minimum(ra, rb), reduce="amin")
-        while True:
-            jumped = parent[parent]
-            if torch.equal(jumped, parent):
-                break
-            parent = jumped
-
-
-def _connected_segments(labels: torch.Tensor, min_size: int) -> torch.Tensor:
-    """(B, H, W) k-means labels -> (B, H, W) int64 connected segments ``0 .. S-1`` per image.
-
-    Works on the horizontal runs of equal label (every row's maximal stretches), so the
-    union-find has about a fifth as many nodes as there are pixels.
-    """
-    b, h, w = labels.shape
-    device = labels.device
-    # Runs: a new one starts at column 0 and wherever the label changes along the row.
-    start = torch.ones(b, h, w, dtype=torch.bool, device=device)
-    torch.ne(labels[:, :, 1:], labels[:, :, :-1], out=start[:, :, 1:])
-    first_pixel = torch.nonzero(start.view(-1)).view(-1)  # (R,) first pixel of each run
-    n_runs = first_pixel.numel()
-    run = torch.cumsum(start.view(-1), 0).sub_(1).view(b, h, w)  # run index of each pixel
-    run_label = labels.reshape(-1)[first_pixel]  # (R,)
-    run_length = torch.diff(first_pixel, append=first_pixel.new_tensor([b * h * w]))
-
-    # Vertical contacts between runs of consecutive rows, once per pair of runs.
-    top, bottom = run[:, :-1, :], run[:, 1:, :]
-    new_pair = torch.ones_like(top, dtype=torch.bool)
-    new_pair[:, :, 1:] = (top[:, :, 1:] != top[:, :, :-1]) | (bottom[:, :, 1:] != bottom[:, :, :-1])
-    pair = torch.nonzero(new_pair.view(-1)).view(-1)
-    top, bottom = top.reshape(-1)[pair], bottom.reshape(-1)[pair]
-    same = run_label[top] == run_label[bottom]
-
-    # 1. Connected components: union-find on the runs over the same-label contacts.
-    root = _union_find(torch.arange(n_runs, device=device), top[same], bottom[same])
-
-    # 2. Merge small components into their largest neighbour, if that one is larger.
-    size = torch.zeros(n_runs, dtype=torch.int64, device=device).index_add_(0, root, run_length)
-    # Horizontal neighbours: consecutive runs of a row; vertical: the other contacts.
-    row_first = torch.zeros(n_runs, dtype=torch.bool, device=device)
-    row_first[run[:, :, 0].reshape(-1)] = True
-    left = torch.nonzero(~row_first[1:]).view(-1)  # run `left` touches run `left + 1`
-    differ = ~same
-    ca = torch.cat([root[left], root[top[differ]]])
-    cb = torch.cat([root[left + 1], root[bottom[differ]]])
-    u, v = torch.cat([ca, cb]), torch.cat([cb, ca])  # both directions: u's candidate is v
-    ids = torch.arange(n_runs, device=device)
-    key = size * n_runs + (n_runs - 1 - ids)  # larger first, then the one starting first
-    best = torch.full((n_runs,), -1, dtype=torch.int64, device=device)
-    best.scatter_reduce_(0, u, key[v], reduce="amax")
-    merge = (size < min_size) & (best > key)  # only roots have size > 0
-    target = torch.where(merge, n_runs - 1 - best % n_runs, ids)
-    while True:  # follow chains small -> larger -> ...; keys increase, so no cycles
-        jumped = target[target]
-        if torch.equal(jumped, target):
-            break
-        target = jumped
-    final = target[root]  # (R,) the root run of each run's segment
-
-    # 3. Consecutive numbers per image, in the order of the segments' root runs.
-    present = torch.zeros(n_runs, dtype=torch.bool, device=device)
-    present[final] = True
-    number = torch.cumsum(present, 0)  # 1 + index of each present root among all frames
-    frame_first = run[:, 0, 0]  # first run of each frame
-    frame_of_run = torch.zeros(n_runs, dtype=torch.int64, device=device)
-    frame_of_run[frame_first[1:]] = 1
-    frame_of_run = torch.cumsum(frame_of_run, 0)
-    before = number[frame_first] - present[frame_first].to(torch.int64)  # roots of earlier frames
-    run_number = number[final] - 1 - before[frame_of_run]
-    return run_number[run]
-
-
 def slic_torch(
     image: torch.Tensor,
     n_segments: int = 5500,
@@ -418,5 +332,5 @@ def slic_torch(
         labels = _kmeans(colour, grid, max_num_iter)
         n_seeds = len(range(grid[0][0], h, grid[0][1])) * len(range(grid[1][0], w, grid[1][1]))
         min_size = int(MIN_SIZE_FACTOR * (h * w) / n_seeds)
-        segments = _connected_segments(labels, min_size)
+        segments = connected_segments(labels, min_size)
     return segments if batched else segments[0]

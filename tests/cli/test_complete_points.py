@@ -13,15 +13,16 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.api import complete_depth, points_to_sparse
+from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import make_scene
 from crfdepth.fill.nearest import nearest_fill
+from crfdepth.geometry.projection import ring_mask
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import load_any_calibration, load_calibration
 from crfdepth.io.kitti import read_depth_png, read_rgb, read_velodyne
 from crfdepth.io.pointcloud import write_pcd, write_ply
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.geometry.projection import ring_mask
 
 DRIVE = "raw/2011_09_26/2011_09_26_drive_0001_sync"
 SCAN = f"{DRIVE}/velodyne_points/data/0000000005.bin"

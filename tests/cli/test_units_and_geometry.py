@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import yaml
 
-from crfdepth.api import points_to_sparse
-from crfdepth.checks import check_sparse_plausible
 from crfdepth.cli import main
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.io.pointcloud import read_points
+from crfdepth.plausibility import check_sparse_plausible
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs" / "example"
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.api import points_to_sparse
 from crfdepth.data.example import EXAMPLE_SIZE, example_scene, main, write_example
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.io.pointcloud import read_points

@@ -1,4 +1,4 @@
-"""Tests for crfdepth.geometry.normals: LiDAR plane-fit normals, dense-depth normals, per-node means."""
+"""Tests for crfdepth.geometry.normals and .node_normals: LiDAR plane-fit normals, dense-depth normals, per-node means."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.geometry.normals import aggregate_normals, dense_normals, graph_normals, lidar_normals, smallest_eigenvector
+from crfdepth.geometry.node_normals import aggregate_normals, graph_normals
+from crfdepth.geometry.normals import dense_normals, lidar_normals, smallest_eigenvector
 
 H, W = 352, 1216
 # KITTI val_selection_cropped-like intrinsics (fx, fy, cx, cy in pixels).

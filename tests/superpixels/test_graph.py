@@ -1,4 +1,4 @@
-"""Tests for crfdepth.superpixels.graph: SLIC segments, node features and the paper's 4-neighbour edges."""
+"""Tests for crfdepth.superpixels.graph and .edges: SLIC segments, node features and the paper's 4-neighbour edges."""
 
 from __future__ import annotations
 
@@ -11,16 +11,18 @@ from skimage.graph import rag_mean_color
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
-from crfdepth.superpixels.segments import slic_segments
-from crfdepth.superpixels.graph import (
+from crfdepth.superpixels.edges import (
     DIRECTIONS_DEG,
-    batch_edge_index,
-    build_superpixel_graph,
-    build_superpixel_graphs,
     four_neighbour_picks,
     region_adjacency,
     undirected_edges,
 )
+from crfdepth.superpixels.graph import (
+    batch_edge_index,
+    build_superpixel_graph,
+    build_superpixel_graphs,
+)
+from crfdepth.superpixels.segments import slic_segments
 
 RIGHT, DOWN, LEFT, UP = range(4)  # columns of four_neighbour_picks (y points down)
 

@@ -1,4 +1,4 @@
-"""Tests of crfdepth.superpixels.slic: the torch SLIC against scikit-image's, on synthetic and real frames."""
+"""Tests of the torch SLIC (crfdepth.superpixels.slic, .connectivity) against scikit-image's, on synthetic and real frames."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from skimage.util import regular_grid
 
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
-from crfdepth.superpixels.slic import _connected_segments, _gaussian_blur, _kmeans, _regular_grid, slic_torch
+from crfdepth.superpixels.connectivity import connected_segments
 from crfdepth.superpixels.segments import _CPU_BACKEND, slic_segments
+from crfdepth.superpixels.slic import _gaussian_blur, _kmeans, _regular_grid, slic_torch
 
 SLIC = dict(compactness=20.0, sigma=1.0, max_num_iter=5, convert2lab=True)  # slic_segments' defaults
 
@@ -124,7 +125,7 @@ def test_gaussian_blur_is_scipys_reflect_filter(size, sigma):
 def test_connected_components_match_scipy_label():
     gen = torch.Generator().manual_seed(2)
     labels = torch.randint(0, 4, (3, 31, 45), generator=gen)
-    segments = _connected_segments(labels, min_size=0).numpy()
+    segments = connected_segments(labels, min_size=0).numpy()
     for frame, seg in zip(labels.numpy(), segments):
         assert is_consecutive(seg)
         ref = connected_components(frame + 1, connectivity=1, background=0)
@@ -141,7 +142,7 @@ def test_small_fragment_joins_its_largest_neighbour():
                            [1, 1, 1, 1, 2],
                            [1, 1, 1, 7, 2],
                            [7, 1, 1, 1, 1]])
-    segments = _connected_segments(labels[None], min_size=2)[0]
+    segments = connected_segments(labels[None], min_size=2)[0]
     assert segments.tolist() == [[0, 0, 0, 0, 1],
                                  [0, 0, 0, 0, 1],
                                  [0, 0, 0, 0, 1],
