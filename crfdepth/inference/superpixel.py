@@ -29,7 +29,7 @@ from crfdepth.potentials.energy import (
     std_in_metres,
     to_depth,
 )
-from crfdepth.superpixels.graph import build_superpixel_graphs
+from crfdepth.superpixels.graph import build_checked_graphs
 from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.count import node_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
@@ -81,7 +81,7 @@ def superpixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tenso
     with stage("slic"):
         labels = slic_batch(image.detach(), model.segments_for(h, w))  # (B, H, W), the whole batch at once
     with stage("graph"):
-        graphs = build_superpixel_graphs(image.detach(), kept.detach(), aggregate=model.aggregate, labels=labels)
+        graphs = build_checked_graphs(image.detach(), kept.detach()[:, 0], labels, model.aggregate)
         nodes = gather_nodes(graphs, image, sparse, fill, gate, model.variable)
     normals = None
     if "normal" in model.potentials:

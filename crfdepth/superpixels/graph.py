@@ -194,8 +194,11 @@ def build_superpixel_graph(
                                    sigma=sigma, max_num_iter=max_num_iter)[0]
 
 
-def _build(image: torch.Tensor, depth: torch.Tensor, seg: torch.Tensor, aggregate: str) -> list[SuperpixelGraph]:
-    """The graphs of a checked batch: (B, 3, H, W) image, (B, H, W) depth and consecutive labels.
+def build_checked_graphs(image: torch.Tensor, depth: torch.Tensor, seg: torch.Tensor,
+                         aggregate: str) -> list[SuperpixelGraph]:
+    """The graphs of a checked batch: (B, 3, H, W) image, (B, H, W) depth and consecutive labels,
+    all on one device (the model calls this on inputs it has checked once; the public builders
+    check theirs first).
 
     All frames at once: frame ``k``'s labels are offset by the nodes of the frames before
     it, so every per-node sum, the adjacency and the neighbour picks run over the whole
@@ -297,7 +300,7 @@ def build_superpixel_graphs(
         _sparse_tensor(sparse[k], (h, w))
     seg = slic_batch(image, n_segments, compactness=compactness, sigma=sigma, max_num_iter=max_num_iter) \
         if labels is None else torch.stack([_labels_tensor(labels[k], (h, w)) for k in range(b)])
-    return _build(image, sparse[:, 0].to(image.device), seg.to(image.device), aggregate)
+    return build_checked_graphs(image, sparse[:, 0].to(image.device), seg.to(image.device), aggregate)
 
 
 def batch_edge_index(graphs: list[SuperpixelGraph]) -> tuple[torch.Tensor, torch.Tensor]:
