@@ -28,6 +28,7 @@ import numpy as np
 from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
 from crfdepth.io.files import check_input_file, read_text
+from crfdepth.io.key_values import entry_array, read_key_values
 
 __all__ = [
     "Alignment",
@@ -733,14 +734,12 @@ def oxts_to_pose(packet: np.ndarray, scale: float) -> np.ndarray:
 
 def read_imu_to_velo(day_dir) -> np.ndarray:
     """(4, 4) ``T_velo_imu`` (IMU -> Velodyne) from a KITTI raw day's ``calib_imu_to_velo.txt``."""
-    from crfdepth.io.calibration import _matrix, _read_key_values
-
     day_dir = Path(day_dir)
     path = check_input_file(day_dir / "calib_imu_to_velo.txt" if day_dir.is_dir() else day_dir, "calibration")
-    entries = _read_key_values(path, "calibration")
+    entries = read_key_values(path, "calibration")
     T = np.eye(4)
-    T[:3, :3] = _matrix(entries, "R", (3, 3), path)
-    T[:3, 3] = _matrix(entries, "T", (3,), path)
+    T[:3, :3] = entry_array(entries, "R", (3, 3), path)
+    T[:3, 3] = entry_array(entries, "T", (3,), path)
     return check_rigid(T, f"calibration: keys 'R', 'T' in {path}")
 
 
