@@ -77,6 +77,7 @@ from crfdepth.cli.common import (
     write_skipped,
 )
 from crfdepth.errors import InputError
+from crfdepth.geometry.projection import count_in_image
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.ros.bag import (
@@ -89,9 +90,9 @@ from crfdepth.io.ros.bag import (
     camera_info_topic,
     pair_nearest,
 )
-from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
+from crfdepth.io.ros.images import decode_image
+from crfdepth.io.ros.messages import camera_from_info, points_from_cloud
 from crfdepth.io.ros.tf import TransformTree
-from crfdepth.geometry.projection import count_in_image
 
 __all__ = ["DEFAULT_MAX_DT_S", "Plan", "add_arguments", "decode_frame", "paired_frames", "plan_frames", "run_bag"]
 
