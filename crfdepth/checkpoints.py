@@ -51,7 +51,8 @@ friendly. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by th
 tensors; the structural options (``mode``, ``potentials``, ``refine``, solver settings)
 define the model the weights run in.
 
-The file formats themselves are in :mod:`crfdepth.weights.files` and the loading step every
+The file formats themselves are in :mod:`crfdepth.weights.files` (torch files:
+:mod:`crfdepth.weights.torch_files`) and the loading step every
 path ends in (tensors into the built model, every key checked) in
 :func:`crfdepth.weights.state.load_state`; neither imports the model, so
 ``CRFDepth.from_pretrained`` uses them directly and this module sits above the model, with no
@@ -74,10 +75,9 @@ from crfdepth.weights.files import (
     DEFAULT_WEIGHTS,
     pretrained_state,
     read_checkpoint,
-    write_model_file,
     write_weights,
 )
-
+from crfdepth.weights.torch_files import write_model_file
 
 __all__ = ["describe", "load_model", "load_pretrained", "own_structure", "save_model", "save_weights"]
 

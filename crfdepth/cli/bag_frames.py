@@ -27,7 +27,8 @@ from crfdepth.io.ros.bag import (
     camera_info_topic,
     pair_nearest,
 )
-from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud
+from crfdepth.io.ros.images import decode_image
+from crfdepth.io.ros.messages import camera_from_info, points_from_cloud
 from crfdepth.io.ros.tf import TransformTree
 
 __all__ = ["DEFAULT_MAX_DT_S", "Plan", "decode_frame", "paired_frames", "plan_frames"]

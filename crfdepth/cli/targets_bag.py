@@ -28,7 +28,7 @@ drive code path (:func:`crfdepth.cli.targets_drive.run_drive`): ``OUT/<bag name>
 
 Poses (``--poses``): ``tf``: the bag's odometry on /tf, the transform from the top of the
 LiDAR frame's tree (``odom``, ``map`` ...) to the LiDAR frame at each cloud's stamp, checked
-for jumps like LiDAR odometry (:func:`crfdepth.sequences.odometry.check_poses`, failures named by
+for jumps like LiDAR odometry (:func:`crfdepth.sequences.pose_checks.check_poses`, failures named by
 frame); ``odometry``: KISS-ICP (the drive path); ``auto``: ``tf`` when the LiDAR frame's
 tree changes over time, else ``odometry``; ``FILE``: camera poses, KITTI odometry format,
 one line per paired frame of the bag.
@@ -66,6 +66,8 @@ from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration
 from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording
 from crfdepth.sequences import odometry
+from crfdepth.sequences.pose_checks import check_poses
+from crfdepth.sequences.poses import read_kitti_poses
 
 __all__ = ["GAP_FACTOR", "add_arguments", "check_drive_flags", "run_bag"]
 
@@ -210,7 +212,7 @@ def _tf_poses(args, bag: Recording, plan: Plan, clouds: list[int], rate: float, 
                          f"{numbers[k]:0{_WIDTH}d} at {stamps[k] / 1e9:.3f} s); choose --frames within it")
     world = np.stack([tree.lookup(root, lidar, s) for s in stamps])
     poses = np.linalg.inv(world[0]) @ world
-    failures = odometry.check_poses(poses, rate=rate)
+    failures = check_poses(poses, rate=rate)
     if failures:
         listed = "; ".join(f"frame {numbers[k]:0{_WIDTH}d}: {why}" for k, why in failures[:5])
         more = f"; and {len(failures) - 5} more" if len(failures) > 5 else ""
@@ -223,7 +225,7 @@ def _tf_poses(args, bag: Recording, plan: Plan, clouds: list[int], rate: float, 
 def _poses_file_lines(args, count: int, positions: list[int]) -> list[str]:
     """``--poses FILE``: its lines for the frames used (one line per paired frame of the bag)."""
     try:
-        odometry.read_kitti_poses(args.poses)
+        read_kitti_poses(args.poses)
     except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         raise type(exc)(f"--poses {args.poses}: {str(exc).removeprefix('poses: ')}") from None
     lines = [line for line in Path(args.poses).read_text().splitlines() if line.strip()]

@@ -9,7 +9,7 @@ frame's own scan first).
 
 Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR
 odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked, the
-registration too (:func:`crfdepth.sequences.odometry.step_alignment`); when the registration slid it is
+registration too (:func:`crfdepth.sequences.registration.step_alignment`); when the registration slid it is
 retried without the ground (:func:`crfdepth.sequences.odometry.lidar_odometry_with_fallback`); a failed
 step is an error naming the frame, never accumulated), ``oxts``, or a KITTI odometry
 ``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
@@ -62,6 +62,7 @@ from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.kitti import read_velodyne, write_depth_png
 from crfdepth.pictures.figures import targets_picture
 from crfdepth.sequences import odometry
+from crfdepth.sequences.poses import read_imu_to_velo, read_kitti_poses, read_oxts
 from crfdepth.sequences.targets import (
     MOVED,
     OCCLUDED,
@@ -230,8 +231,8 @@ def _poses(args, drive: Path, frames: list[int], used: list[int], scans: list[np
         if not oxts.is_dir():
             raise InputError(f"--poses oxts: expected the drive's oxts/data folder, got no {oxts}")
         try:
-            T_velo_imu = odometry.read_imu_to_velo(drive.parent)
-            poses = odometry.read_oxts(oxts.parent, T_velo_imu)
+            T_velo_imu = read_imu_to_velo(drive.parent)
+            poses = read_oxts(oxts.parent, T_velo_imu)
         except (InputError, FileNotFoundError) as exc:
             raise type(exc)(f"--poses {args.poses}: {exc}") from None
         if len(poses) != len(frames):
@@ -242,7 +243,7 @@ def _poses(args, drive: Path, frames: list[int], used: list[int], scans: list[np
         if calib.kitti is None:  # pragma: no cover - the day folder is always a KITTI calibration
             raise InputError(f"--poses {mode}: expected a KITTI calibration to read camera-0 poses with")
         try:
-            poses = odometry.read_kitti_poses(mode, calib.kitti.velo_to_rect_cam())
+            poses = read_kitti_poses(mode, calib.kitti.velo_to_rect_cam())
         except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
             raise type(exc)(f"--poses {mode}: {str(exc).removeprefix('poses: ')}") from None
         if len(poses) != len(frames):

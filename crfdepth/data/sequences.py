@@ -57,16 +57,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from crfdepth.geometry import projection
 from crfdepth.data.kitti.loading import (
-    FrameDataset, PathLike, Transform, load_sample, no_frames, require_root, rgb_tensor,
+    FrameDataset,
+    PathLike,
+    Transform,
+    load_sample,
+    no_frames,
+    require_root,
+    rgb_tensor,
 )
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
+from crfdepth.geometry import projection
 from crfdepth.io.calibration import Calibration, read_raw_calibration
 from crfdepth.io.kitti import read_depth_png, read_rgb, read_velodyne
-from crfdepth.sequences.odometry import read_kitti_poses
+from crfdepth.sequences.poses import read_kitti_poses
 
 __all__ = ["FULL_BEAMS", "SequenceFrames", "colour_camera_poses"]
 

@@ -21,8 +21,9 @@
 
 :func:`load_any_calibration` reads either kind into a :class:`RigCalibration` (a KITTI
 one keeps its :class:`Calibration`), so callers need not care which they were given.
-Projecting points with either type is :mod:`crfdepth.geometry.projection`'s job; this module
-imports nothing above :mod:`crfdepth.checks` and :mod:`crfdepth.io.files`.
+Projecting points with either type is :mod:`crfdepth.geometry.projection`'s job; KITTI's
+``key: values`` text is parsed by :mod:`crfdepth.io.key_values`. This module imports nothing
+above :mod:`crfdepth.checks` and :mod:`crfdepth.io` (``files``, ``key_values``).
 
 Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` and
 :func:`~crfdepth.checks.check_rigid` (a transform in millimetres passes, its rotation being
@@ -45,6 +46,7 @@ import yaml
 from crfdepth.checks import check_intrinsics, check_rigid
 from crfdepth.errors import InputError
 from crfdepth.io.files import check_input_file, read_text
+from crfdepth.io.key_values import entry_array, read_key_values
 
 __all__ = [
     "Calibration",
@@ -213,36 +215,6 @@ def _check_camera(camera: int) -> int:
     return int(camera)
 
 
-def _read_key_values(path: Path, what: str) -> dict[str, str]:
-    """``key: values`` lines of a KITTI calibration file (values kept as text)."""
-    entries = {}
-    for line in read_text(path, what, "'key: values' lines (a KITTI calibration)").splitlines():
-        if line.lstrip().startswith("#"):  # a comment (e.g. of a rig YAML given by mistake)
-            continue
-        key, sep, value = line.partition(":")
-        if sep and key.strip():
-            entries[key.strip()] = value.strip()
-    if not entries:
-        raise InputError(f"{what}: expected 'key: values' lines in {path}, found none")
-    return entries
-
-
-def _matrix(entries: dict[str, str], key: str, shape: tuple[int, ...], path: Path) -> np.ndarray:
-    """Entry ``key`` of a calibration file as a float64 array of ``shape``."""
-    if key not in entries:
-        raise InputError(f"calibration: key '{key}' not found in {path} (keys present: "
-                         f"{', '.join(sorted(entries))})")
-    try:
-        values = np.array([float(token) for token in entries[key].split()], dtype=np.float64)
-    except ValueError:
-        raise InputError(f"calibration: key '{key}' in {path}: expected numbers, "
-                         f"got {entries[key][:60]!r}") from None
-    if values.size != int(np.prod(shape)):
-        raise InputError(f"calibration: key '{key}' in {path}: expected {int(np.prod(shape))} numbers "
-                         f"{shape}, got {values.size}")
-    return values.reshape(shape)
-
-
 def _pad_rotation(R: np.ndarray) -> np.ndarray:
     """(3, 3) -> (4, 4) with a 1 in the corner."""
     padded = np.eye(4)
@@ -280,17 +252,17 @@ def read_raw_calibration(day_dir: PathLike, camera: int = 2) -> Calibration:
         raise FileNotFoundError(f"calibration: no such directory: {day_dir}")
     cam_path = check_input_file(day_dir / _RAW_CAM_TO_CAM, "calibration")
     velo_path = check_input_file(day_dir / _RAW_VELO_TO_CAM, "calibration")
-    cam = _read_key_values(cam_path, "calibration")
-    velo = _read_key_values(velo_path, "calibration")
+    cam = read_key_values(cam_path, "calibration")
+    velo = read_key_values(velo_path, "calibration")
 
-    width, height = _matrix(cam, f"S_rect_0{camera}", (2,), cam_path)
+    width, height = entry_array(cam, f"S_rect_0{camera}", (2,), cam_path)
     T = np.eye(4)
-    T[:3, :3] = _matrix(velo, "R", (3, 3), velo_path)
-    T[:3, 3] = _matrix(velo, "T", (3,), velo_path)
+    T[:3, :3] = entry_array(velo, "R", (3, 3), velo_path)
+    T[:3, 3] = entry_array(velo, "T", (3,), velo_path)
     check_rigid(T, f"calibration: keys 'R', 'T' in {velo_path}")
     return Calibration(
-        P_rect=_matrix(cam, f"P_rect_0{camera}", (3, 4), cam_path),
-        R_rect=check_rigid(_pad_rotation(_matrix(cam, "R_rect_00", (3, 3), cam_path)),
+        P_rect=entry_array(cam, f"P_rect_0{camera}", (3, 4), cam_path),
+        R_rect=check_rigid(_pad_rotation(entry_array(cam, "R_rect_00", (3, 3), cam_path)),
                            f"calibration: key 'R_rect_00' in {cam_path}"),
         T_velo_to_cam=T,
         image_size=(int(round(height)), int(round(width))),
@@ -315,10 +287,10 @@ def read_object_calibration(path: PathLike, camera: int = 2) -> Calibration:
     """
     camera = _check_camera(camera)
     path = check_input_file(path, "calibration")
-    entries = _read_key_values(path, "calibration")
-    P_rect = _matrix(entries, f"P{camera}", (3, 4), path)
-    R_rect = check_rigid(_pad_rotation(_matrix(entries, "R0_rect", (3, 3), path)), f"calibration: key 'R0_rect' in {path}")
-    T = check_rigid(_pad_transform(_matrix(entries, "Tr_velo_to_cam", (3, 4), path)),
+    entries = read_key_values(path, "calibration")
+    P_rect = entry_array(entries, f"P{camera}", (3, 4), path)
+    R_rect = check_rigid(_pad_rotation(entry_array(entries, "R0_rect", (3, 3), path)), f"calibration: key 'R0_rect' in {path}")
+    T = check_rigid(_pad_transform(entry_array(entries, "Tr_velo_to_cam", (3, 4), path)),
                     f"calibration: key 'Tr_velo_to_cam' in {path}")
     return Calibration(P_rect=P_rect, R_rect=R_rect, T_velo_to_cam=T, image_size=None)
 
@@ -346,7 +318,7 @@ def load_calibration(path: PathLike, camera: int = 2) -> Calibration:
     path = check_input_file(path, "calibration")
     if path.name in (_RAW_CAM_TO_CAM, _RAW_VELO_TO_CAM):
         return read_raw_calibration(path.parent, camera)
-    keys = _read_key_values(path, "calibration").keys()
+    keys = read_key_values(path, "calibration").keys()
     if "R_rect_00" in keys or ({"R", "T"} <= keys and "Tr_velo_to_cam" not in keys):
         return read_raw_calibration(path.parent, camera)
     return read_object_calibration(path, camera)

@@ -7,10 +7,25 @@ on real KITTI frames; ``crfdepth/weights/README.md`` says how) and ``"paper"`` (
 values of ``CRFDepth()``, no file).
 """
 
-from crfdepth.weights.files import (BARE_STATE_DICT, DEFAULT_WEIGHTS, LEARNED, MODEL_FORMAT, MODEL_VERSION, WEIGHTS,
-                                    WEIGHTS_FORMAT, WEIGHTS_VERSION, pretrained_state, read_checkpoint, read_weights,
-                                    weights_path, write_model_file, write_weights)
+from crfdepth.weights.files import (
+    DEFAULT_WEIGHTS,
+    LEARNED,
+    WEIGHTS,
+    WEIGHTS_FORMAT,
+    WEIGHTS_VERSION,
+    pretrained_state,
+    read_checkpoint,
+    read_weights,
+    weights_path,
+    write_weights,
+)
 from crfdepth.weights.state import load_state
+from crfdepth.weights.torch_files import (
+    BARE_STATE_DICT,
+    MODEL_FORMAT,
+    MODEL_VERSION,
+    write_model_file,
+)
 
 __all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
            "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "load_state", "pretrained_state", "read_checkpoint", "read_weights",

@@ -8,11 +8,13 @@ section 8).
 
 - The shipped weight sets: :func:`weights_path`, :func:`pretrained_state`.
 - The JSON weights file: :func:`read_weights`, :func:`write_weights`.
-- crfdepth's own model file: :func:`write_model_file`.
 - Any checkpoint (the three kinds of the :mod:`crfdepth.checkpoints` docstring):
-  :func:`read_checkpoint`. Torch files are read with ``torch.load(weights_only=True)``;
-  every floating tensor must be finite. A bare ``state_dict()`` is refused
-  (:data:`BARE_STATE_DICT`): it does not say which structure its weights belong to.
+  :func:`read_checkpoint`, every floating tensor checked finite and old layouts brought up
+  to date. Torch files (crfdepth's own model file, the trainer's Lightning checkpoint) are
+  written and opened by :mod:`crfdepth.weights.torch_files`: read with
+  ``torch.load(weights_only=True)``, a bare ``state_dict()`` refused
+  (:data:`~crfdepth.weights.torch_files.BARE_STATE_DICT`): it does not say which structure
+  its weights belong to.
 """
 
 from __future__ import annotations
@@ -20,18 +22,22 @@ from __future__ import annotations
 import json
 import math
 import os
-import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write, atomic_write_bytes, check_output_file
+from crfdepth.io.files import atomic_write_bytes, check_output_file
+from crfdepth.weights.torch_files import (
+    check_device,
+    is_config,
+    load_torch_file,
+    unpack_torch_file,
+)
 
-__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
-           "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint", "read_weights", "weights_path",
-           "write_model_file", "write_weights"]
+__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state",
+           "read_checkpoint", "read_weights", "weights_path", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
@@ -41,10 +47,6 @@ WEIGHTS_FORMAT = "crfdepth-weights"
 """Value of the ``"format"`` key of a JSON weights file."""
 WEIGHTS_VERSION = 1
 """Version of the weights-file layout that this module reads and writes."""
-MODEL_FORMAT = "crfdepth"
-"""Value of the ``"format"`` key of a crfdepth model file (:func:`crfdepth.save_model`)."""
-MODEL_VERSION = 1
-"""Version of the model-file layout that this module reads and writes."""
 LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
            "std_scale")
 """The learnable values in a configuration (the keys of ``CRFDepth.weights()``)."""
@@ -52,16 +54,7 @@ LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "
 #: What a configuration written before these options existed meant: an old checkpoint is
 #: rebuilt as it was trained (docs/design.md section 3b).
 _OLD_DEFAULTS = {"variable": "depth", "gate": False, "head": False, "prior": "nearest", "uncertainty": "posterior"}
-
-BARE_STATE_DICT = (
-    "path: {file}: expected a complete model file, got a bare state dict: it holds weights but not the "
-    "model's structure (mode, variable, gate ...); load it into the model it came from and save that with "
-    "crfdepth.save_model(model, path), or give the trainer's Lightning .ckpt as it is")
-"""The refusal of a bare ``state_dict()`` (no configuration): run in another structure (the default
-one), the weights would give wrong depth without any error."""
-
 _FOLDER = Path(__file__).resolve().parent  # the shipped files lie beside this module
-_LIGHTNING_PREFIX = "model."  # the trainer's LightningModule stores the CRF as ``self.model``
 
 
 # --------------------------------------------------------------------------- shipped weight sets
@@ -171,29 +164,7 @@ def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Map
     return file
 
 
-# --------------------------------------------------------------------------- torch files
-
-
-def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: Mapping[str, torch.Tensor]) -> Path:
-    """Write a crfdepth model file ``{"format", "version", "config", "state_dict"}``, atomically.
-
-    Tuples of ``config`` are stored as lists and tensors are moved to the CPU (their dtype
-    is kept), so the file loads with ``torch.load(weights_only=True)``. The file is
-    written beside ``path`` and renamed over it: a failed write leaves no file behind.
-
-    Raises:
-        InputError: ``path`` is a folder.
-        FileNotFoundError: the folder of ``path`` does not exist.
-    """
-    file = check_output_file(path)
-    payload = {
-        "format": MODEL_FORMAT,
-        "version": MODEL_VERSION,
-        "config": _plain(dict(config)),
-        "state_dict": {k: v.detach().cpu().clone() for k, v in state.items()},
-    }
-    atomic_write(file, lambda temporary: torch.save(payload, temporary))
-    return file
+# --------------------------------------------------------------------------- any checkpoint
 
 
 def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu"
@@ -207,7 +178,7 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     brought to the current layout (the old buffer ``refine_prior`` becomes the parameter
     ``log_refine_prior``) and every floating tensor in it must be finite. A bare state dict
     (``torch.save(model.state_dict(), path)``) is refused: without its configuration the
-    weights would run in another structure (:data:`BARE_STATE_DICT`).
+    weights would run in another structure (:data:`~crfdepth.weights.torch_files.BARE_STATE_DICT`).
 
     Args:
         path: the checkpoint file.
@@ -231,12 +202,12 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise FileNotFoundError(f"no such checkpoint file: {file}")
     if file.is_dir():
         raise InputError(f"{file}: expected a checkpoint file, got a folder")
-    device = _check_device(map_location)
+    device = check_device(map_location)
     if _is_json(file):
         data = read_weights(file)
         state = _tensors(file, data.get("state", {}), device)
         return _upgrade_config(dict(data["config"]), state), state, "weights file"
-    config, state, kind = _unpack(file, _torch_load(file, device))
+    config, state, kind = unpack_torch_file(file, load_torch_file(file, device))
     _check_finite(file, state)
     state = _upgrade(file, state)
     return _upgrade_config(config, state), state, kind
@@ -245,99 +216,10 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 # --------------------------------------------------------------------------- helpers
 
 
-def _check_device(map_location: str | torch.device) -> torch.device:
-    try:
-        device = torch.device(map_location)
-    except (RuntimeError, TypeError):
-        raise InputError(f"map_location: expected a device such as 'cpu' or 'cuda', got {map_location!r}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"map_location: CUDA is not available on this machine/PyTorch installation, "
-                         f"got {map_location!r}; use 'cpu'")
-    return device
-
-
 def _is_json(file: Path) -> bool:
     """Whether ``file`` starts (after white space) with ``{``: a JSON weights file."""
     with open(file, "rb") as handle:
         return handle.read(64).lstrip()[:1] == b"{"
-
-
-def _torch_load(file: Path, map_location: torch.device) -> Any:
-    try:
-        with warnings.catch_warnings():  # e.g. "pickle protocol 4": the error below says it all
-            warnings.simplefilter("ignore", UserWarning)
-            return torch.load(file, weights_only=True, map_location=map_location)
-    except Exception as exc:  # unpickling errors come in many types; all mean "not a checkpoint"
-        with open(file, "rb") as handle:
-            head = handle.read(8)
-        if head.startswith(b"PK\x03\x04") or head.startswith(b"\x80"):  # zip archive / pickle >= 2
-            reason = f"torch.load with weights_only=True refused it: {_reason(exc)}"
-        else:
-            reason = f"neither a torch.save archive nor a pickle; it starts with {head!r}"
-        raise InputError(f"{file} is not a torch state dict, crfdepth model file or Lightning checkpoint "
-                         f"({reason})") from None
-
-
-def _reason(exc: Exception) -> str:
-    """The useful part of a ``torch.load`` error, on one line.
-
-    The weights-only unpickler's message is mostly advice to retry with
-    ``weights_only=False`` (which would run the file's code); only its
-    ``WeightsUnpickler error:`` part says what was found (e.g. ``Unsupported global:
-    GLOBAL posix.system``).
-    """
-    text = str(exc)
-    if "Weights only load failed" in text:
-        body = text.split("Check the documentation", 1)[0]
-        if "WeightsUnpickler error:" in body:
-            body = body.split("WeightsUnpickler error:", 1)[1]
-        else:  # drop the first paragraph (the advice)
-            body = body.split("\n", 1)[1] if "\n" in body else ""
-        body = " ".join(body.split()).split(" Please use", 1)[0]
-        return body[:200] or "the file holds objects other than tensors and plain containers"
-    words = " ".join(text.split())
-    return f"{type(exc).__name__}: {words}"[:200] if words else type(exc).__name__
-
-
-def _unpack(file: Path, loaded: Any) -> tuple[dict[str, Any], dict[str, torch.Tensor], str]:
-    """(configuration, state dict, kind of file) of a loaded torch file."""
-    if isinstance(loaded, dict) and loaded.get("format") == MODEL_FORMAT:
-        kind = "crfdepth model file"
-        if loaded.get("version") != MODEL_VERSION:
-            raise InputError(f"{file}: {kind} version {loaded.get('version')!r} is not supported "
-                             f"(this crfdepth reads version {MODEL_VERSION})")
-        config = loaded.get("config")
-        if not _is_config(config):
-            raise InputError(f"{file}: {kind} without a valid 'config' (a dict of CRFDepth keyword "
-                             f"arguments); got {type(config).__name__}")
-        return dict(config), _state_dict(file, loaded.get("state_dict"), kind), kind
-    if isinstance(loaded, dict) and "state_dict" in loaded:
-        kind = "Lightning checkpoint"
-        hparams = loaded.get("hyper_parameters")
-        config = hparams.get("crf") if isinstance(hparams, Mapping) else None
-        if not _is_config(config):
-            found = sorted(map(str, hparams)) if isinstance(hparams, Mapping) else f"{type(hparams).__name__}"
-            raise InputError(f"{file}: {kind} without the CRF configuration: expected "
-                             f"hyper_parameters['crf'] (a dict of CRFDepth keyword arguments), got "
-                             f"hyper_parameters {found}")
-        full = _state_dict(file, loaded["state_dict"], kind)
-        state = {k[len(_LIGHTNING_PREFIX):]: v for k, v in full.items() if k.startswith(_LIGHTNING_PREFIX)}
-        if not state:
-            raise InputError(f"{file}: {kind} has no '{_LIGHTNING_PREFIX}' keys in its state_dict (the CRF "
-                             f"is stored as the LightningModule's 'model'); got {some_keys(sorted(full))}")
-        return dict(config), state, kind
-    _state_dict(file, loaded, "file")  # not even a state dict: that is the message
-    raise InputError(BARE_STATE_DICT.format(file=file))
-
-
-def _state_dict(file: Path, value: Any, kind: str) -> dict[str, torch.Tensor]:
-    if not isinstance(value, dict) or not value or not all(
-            isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in value.items()):
-        what = type(value).__name__ if not isinstance(value, dict) else (
-            "an empty dict" if not value else "a dict holding other things than name -> tensor")
-        raise InputError(f"{file}: the {kind} does not hold a state dict (a mapping of parameter names "
-                         f"to tensors); got {what}")
-    return value
 
 
 def _check_finite(file: Path, state: Mapping[str, torch.Tensor]) -> None:
@@ -369,7 +251,7 @@ def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -
 
 def _tensors(file: Path, value: Any, device: torch.device) -> dict[str, torch.Tensor]:
     """The ``"state"`` of a weights file (name -> nested lists) as float32 tensors, checked finite."""
-    if not _is_config(value):
+    if not is_config(value):
         raise InputError(f"{file}: expected \"state\" to map parameter names to nested lists of numbers, "
                          f"got {type(value).__name__}")
     try:
@@ -391,20 +273,3 @@ def _upgrade(file: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tens
         state = dict(state)
         state["log_refine_prior"] = state.pop("refine_prior").log()
     return state
-
-
-def _is_config(value: Any) -> bool:
-    return isinstance(value, Mapping) and all(isinstance(k, str) for k in value)
-
-
-def some_keys(keys: list[str], n: int = 5) -> str:
-    return ", ".join(keys[:n]) + (" ..." if len(keys) > n else "")
-
-
-def _plain(value: Any) -> Any:
-    """Tuples as lists, recursively (the file stays loadable with ``weights_only=True``)."""
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value

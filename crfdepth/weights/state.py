@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.weights.files import some_keys
+from crfdepth.weights.torch_files import some_keys
 
 __all__ = ["load_state"]
 

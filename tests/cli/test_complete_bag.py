@@ -126,7 +126,7 @@ def test_compressed_images_and_pairing_with_jitter(main, model, tmp_path, capsys
     assert [int(r["timestamp_ns"]) for r in rows] == [recorded.image_ns[k] for k in (0, 1, 3)]
     assert [float(r["dt_ms"]) for r in rows] == [-27.0, 27.0, -5.0]
     for k in (0, 1, 3):  # the JPEG decoded as the CLI decodes it
-        from crfdepth.io.ros.messages import decode_image
+        from crfdepth.io.ros.images import decode_image
 
         builder = BagBuilder(tmp_path / f"scratch{k}", "mcap")
         rgb = decode_image(builder.image(recorded.images[k], 0, "jpeg"), "test")

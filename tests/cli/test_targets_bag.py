@@ -16,7 +16,7 @@ from crfdepth.data.sequences import SequenceFrames
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.calibration import read_raw_calibration
 from crfdepth.io.kitti import read_depth_png, read_velodyne
-from crfdepth.sequences.odometry import read_kitti_poses
+from crfdepth.sequences.poses import read_kitti_poses
 from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
 from tests.sequence_drive import stem as _stem
@@ -188,7 +188,7 @@ def test_kiss_icp_odometry_on_the_bag(recording, sequence, tmp_path, capsys):
     synthetic street (perfectly flat ground, a gentle turn, start from standstill) KISS-ICP with all
     points stays near zero motion (about 1 m short per 1 m step, smooth enough for the speed and jump
     checks), and so does the retry without the ground: the registration check
-    (crfdepth.sequences.odometry.step_alignment) names the frames that slid, for a bag as for a drive, and
+    (crfdepth.sequences.registration.step_alignment) names the frames that slid, for a bag as for a drive, and
     nothing is written."""
     pytest.importorskip("kiss_icp")
     from crfdepth.sequences.odometry import lidar_odometry_with_fallback

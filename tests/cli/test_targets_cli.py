@@ -17,7 +17,7 @@ from crfdepth.cli import targets_drive
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.files import LOCK_NAME
 from crfdepth.io.kitti import read_depth_png
-from crfdepth.sequences.odometry import read_kitti_poses
+from crfdepth.sequences.poses import read_kitti_poses
 from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
 from tests.sequence_drive import matrix_text as _matrix

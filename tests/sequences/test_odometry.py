@@ -1,5 +1,6 @@
-"""crfdepth.sequences.odometry: KISS-ICP LiDAR odometry checked against true poses, the failure check, and
-the readers of given poses (KITTI poses.txt, KITTI raw oxts)."""
+"""crfdepth.sequences odometry, pose_checks, registration and poses: KISS-ICP LiDAR odometry checked
+against true poses, the failure check, the registration check, and the readers of given poses (KITTI
+poses.txt, KITTI raw oxts)."""
 
 from __future__ import annotations
 
@@ -10,20 +11,17 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
-from crfdepth.sequences.odometry import (
-    _inv,
-    _rotation_deg,
+from crfdepth.sequences.odometry import lidar_odometry, lidar_odometry_with_fallback
+from crfdepth.sequences.pose_checks import check_poses
+from crfdepth.sequences.poses import (
     camera_relative_pose,
-    check_poses,
-    ground_plane,
-    lidar_odometry,
-    lidar_odometry_with_fallback,
+    invert_rigid,
     oxts_to_pose,
     read_kitti_poses,
     read_oxts,
-    scan_structure,
-    step_alignment,
+    rotation_deg,
 )
+from crfdepth.sequences.registration import ground_plane, scan_structure, step_alignment
 
 SPEED, RATE = 10.0, 10.0
 
@@ -39,9 +37,9 @@ def _step_errors(truth, estimate):
     """Per-step translation (m) and rotation (deg) errors of relative motions."""
     te, re = [], []
     for k in range(1, len(truth)):
-        d = _inv(_inv(truth[k - 1]) @ truth[k]) @ (_inv(estimate[k - 1]) @ estimate[k])
+        d = invert_rigid(invert_rigid(truth[k - 1]) @ truth[k]) @ (invert_rigid(estimate[k - 1]) @ estimate[k])
         te.append(float(np.linalg.norm(d[:3, 3])))
-        re.append(_rotation_deg(d[:3, :3]))
+        re.append(rotation_deg(d[:3, :3]))
     return np.array(te), np.array(re)
 
 
@@ -71,7 +69,7 @@ def test_kiss_icp_follows_the_true_poses(drive, first_step):
     # the camera's relative pose through the extrinsic equals the true one
     T = drive.T_cam_lidar
     est = odo.camera_relative(3, 8, T)
-    true = _inv(drive[3].T_w_cam) @ drive[8].T_w_cam
+    true = invert_rigid(drive[3].T_w_cam) @ drive[8].T_w_cam
     assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.2
     assert true[2, 3] == pytest.approx(5.0, abs=1e-9)  # camera 8 sits 5 m ahead (+z) of camera 3
 
@@ -140,7 +138,7 @@ def test_alignment_of_true_poses_and_of_injected_errors(drive):
     # the ground (and the 0.15 m sidewalks) out: measured 42-44 k of 125 k returns kept, none near the plane
     assert all(30000 < len(s) < 0.5 * len(f.points) for s, f in zip(structure, drive))
     assert all(np.mean(np.abs(s @ normal - height) < 0.2) < 0.01 for s in structure)
-    steps = [_inv(truth[k - 1]) @ truth[k] for k in range(1, len(truth))]
+    steps = [invert_rigid(truth[k - 1]) @ truth[k] for k in range(1, len(truth))]
     found = [step_alignment(structure[k - 1], structure[k], steps[k - 1]) for k in range(1, len(truth))]
     offsets = np.array([a.offset for a in found])
     assert np.abs(offsets[:, :2]).max() < 0.12 and np.abs(offsets[:, 2]).max() < 0.1
@@ -200,7 +198,7 @@ def test_camera_relative_pose_formula():
     p_lidar_t = np.array([5.0, 1.0, -1.0, 1.0])
     # the same point through the world: camera t -> camera s
     p_cam_t = T_cam_lidar @ p_lidar_t
-    p_cam_s = T_cam_lidar @ _inv(s) @ t @ p_lidar_t
+    p_cam_s = T_cam_lidar @ invert_rigid(s) @ t @ p_lidar_t
     np.testing.assert_allclose(rel @ p_cam_t, p_cam_s, atol=1e-12)
 
 
@@ -287,7 +285,7 @@ def test_oxts_devkit_conversion(tmp_path):
     np.testing.assert_allclose(lidar[1, :3, 3], [10, 0, 0], atol=1e-6)
     # a turn of the IMU shows as the same turn of the LiDAR
     P = oxts_to_pose(np.r_[lat0, lon0, 0.0, 0.0, 0.0, 0.3, np.zeros(24)], scale)
-    assert _rotation_deg(P[:3, :3]) == pytest.approx(math.degrees(0.3), abs=1e-9)
+    assert rotation_deg(P[:3, :3]) == pytest.approx(math.degrees(0.3), abs=1e-9)
 
 
 def test_oxts_bad_input(tmp_path):
@@ -331,7 +329,7 @@ def test_kiss_icp_on_the_real_drive(kitti_root):
     assert np.abs(odo.alignment[:, :2]).max() < 0.2 and np.abs(odo.alignment[:, 2]).max() < 0.2
     # a 1 m error injected into step 10 is found
     structure = [scan_structure(read_velodyne(f)) for f in files[9:11]]
-    step = _inv(odo.poses[9]) @ odo.poses[10]
+    step = invert_rigid(odo.poses[9]) @ odo.poses[10]
     assert step_alignment(*structure, step).failure() is None
     wrong = step_alignment(*structure, _with_error(step, 1.0, 0.0))
     assert wrong.offset[0] == pytest.approx(-1.0, abs=0.2) and wrong.failure() is not None

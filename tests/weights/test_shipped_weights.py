@@ -7,10 +7,18 @@ import pytest
 import torch
 
 from crfdepth import CRFDepth, complete_depth
+from crfdepth.checkpoints import load_pretrained
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
-from crfdepth.weights import LEARNED, WEIGHTS, files, pretrained_state, read_weights, weights_path
-from crfdepth.checkpoints import load_pretrained
+from crfdepth.weights import (
+    LEARNED,
+    WEIGHTS,
+    files,
+    pretrained_state,
+    read_weights,
+    torch_files,
+    weights_path,
+)
 
 
 def _close(a: dict[str, float], b: dict[str, float], rtol: float = 1e-5) -> bool:
@@ -112,7 +120,7 @@ def test_load_pretrained_and_from_pretrained_build_the_same_model(name, override
 def _shipped_torch_file(monkeypatch, tmp_path, state: dict[str, torch.Tensor], config: dict | None = None):
     """Let the "kitti" set be a crfdepth model file holding ``state`` and ``config`` (the shipped one is JSON)."""
     monkeypatch.setattr(files, "_FOLDER", tmp_path)
-    torch.save({"format": files.MODEL_FORMAT, "version": files.MODEL_VERSION,
+    torch.save({"format": torch_files.MODEL_FORMAT, "version": torch_files.MODEL_VERSION,
                 "config": CRFDepth().config if config is None else config, "state_dict": state},
                tmp_path / "kitti.json")  # a zip archive: read as a torch file, not JSON
     return tmp_path / "kitti.json"

@@ -8,11 +8,19 @@ import json
 import pytest
 import torch
 
+from crfdepth.checkpoints import (
+    describe,
+    load_model,
+    load_pretrained,
+    own_structure,
+    save_model,
+    save_weights,
+)
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights import LEARNED, files, weights_path
-from crfdepth.checkpoints import describe, load_model, load_pretrained, own_structure, save_model, save_weights
-from crfdepth.weights.files import BARE_STATE_DICT, read_checkpoint
+from crfdepth.weights.files import read_checkpoint
+from crfdepth.weights.torch_files import BARE_STATE_DICT
 
 KITTI_STRUCTURE = dict(mode="pixel", variable="log", gate=True)
 

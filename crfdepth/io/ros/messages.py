@@ -1,13 +1,12 @@
-"""ROS message contents as numpy arrays: camera images, camera calibration, point clouds.
+"""ROS message contents as numpy arrays: camera calibration, point clouds, time stamps, and a
+depth map as an image to write (docs/design.md section 11).
 
 The functions read ``sensor_msgs`` messages of ROS 1 or ROS 2 as deserialised by
 ``rosbags`` (``rosbags.highlevel.AnyReader``) by duck typing on their attributes, so it
-works with any object carrying the same field names (``types.SimpleNamespace`` in tests);
-only Bayer and YUV images need the optional extra (``rosbags-image``'s conversion).
+works with any object carrying the same field names (``types.SimpleNamespace`` in tests).
+Camera images are decoded by :mod:`crfdepth.io.ros.images`; the checked access to a
+message's fields both use is :mod:`crfdepth.io.ros.fields`.
 
-- :func:`decode_image`: ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``mono8``, ``rgba8``,
-  ``bgra8``; Bayer ``bayer_*8`` and YUV 4:2:2) or ``sensor_msgs/CompressedImage`` (JPEG /
-  PNG) -> (H, W, 3) uint8 RGB.
 - :func:`camera_from_info`: ``sensor_msgs/CameraInfo`` -> :class:`CameraModel` (K,
   OpenCV distortion, image size). ROS 2 spells the matrices ``k d r p``, ROS 1 ``K D R P``.
 - :func:`points_from_cloud`: ``sensor_msgs/PointCloud2`` -> (N, 3) float32 x y z (metres,
@@ -23,41 +22,30 @@ Bad message content raises :class:`~crfdepth.errors.InputError`, one line ``<whe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from types import SimpleNamespace
 
-import cv2
 import numpy as np
 
 from crfdepth.checks import check_intrinsics
 from crfdepth.errors import InputError
+from crfdepth.io.ros.fields import message_field, message_rows, message_size
 
 __all__ = [
-    "IMAGE_ENCODINGS",
     "CameraModel",
     "camera_from_info",
-    "decode_image",
     "depth_image_fields",
     "points_from_cloud",
     "stamp_ns",
 ]
 
-_CHANNELS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgba8": 4, "bgra8": 4}
-# Colour-filter and YUV encodings, converted by rosbags-image (the ros extra) with OpenCV:
-# encoding -> bytes per pixel.
-_CONVERTED = {"bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1, "bayer_grbg8": 1, "uyvy": 2, "yuv422": 2,
-              "yuyv": 2, "yuv422_yuy2": 2}
-IMAGE_ENCODINGS = (*_CHANNELS, *_CONVERTED)
-_DEPTH_ENCODINGS = ("16uc1", "32fc1")
 _DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)  # the lengths OpenCV accepts
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # sensor_msgs/PointField datatype -> (name, numpy type code without byte order)
 _POINT_TYPES = {1: ("INT8", "i1"), 2: ("UINT8", "u1"), 3: ("INT16", "i2"), 4: ("UINT16", "u2"),
                 5: ("INT32", "i4"), 6: ("UINT32", "u4"), 7: ("FLOAT32", "f4"), 8: ("FLOAT64", "f8")}
 _NS_PER_S = 1_000_000_000
 
 
-# --------------------------------------------------------------------------- shared helpers
+# --------------------------------------------------------------------------- time stamps
 
 
 def stamp_ns(header) -> int:
@@ -76,159 +64,6 @@ def stamp_ns(header) -> int:
     if not 0 <= int(nanosec) < _NS_PER_S:
         raise InputError(f"header.stamp.nanosec: expected 0 <= nanosec < 1e9, got {int(nanosec)}")
     return int(sec) * _NS_PER_S + int(nanosec)
-
-
-def _field(msg, name: str, where: str, kind: str):
-    """``msg.<name>``, or an InputError saying which ``kind`` of message lacks it."""
-    if not hasattr(msg, name):
-        raise InputError(f"{where}: expected a {kind} message with field '{name}', got "
-                         f"{type(msg).__name__} without it")
-    return getattr(msg, name)
-
-
-def _size(msg, name: str, where: str, kind: str, *, positive: bool = True) -> int:
-    """A non-negative (or positive) integer field such as ``height`` or ``step``."""
-    value = _field(msg, name, where, kind)
-    low = 1 if positive else 0
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise InputError(f"{where}: expected {name} an integer >= {low}, got {value!r}")
-    return int(value)
-
-
-def _byte_array(data, where: str) -> np.ndarray:
-    """``data`` (bytes or a 1-D uint8 array, as rosbags gives it) as a 1-D uint8 array, not copied."""
-    if isinstance(data, (bytes, bytearray, memoryview)):
-        return np.frombuffer(data, dtype=np.uint8)
-    array = np.asarray(data)
-    if array.dtype != np.uint8 or array.ndim != 1:
-        raise InputError(f"{where}: expected data as bytes or a 1-D uint8 array, got "
-                         f"{type(data).__name__} of shape {array.shape} {array.dtype}")
-    return array
-
-
-# --------------------------------------------------------------------------- images
-
-
-def _rows(msg, where: str, kind: str, sizes: tuple[int, int, int, int], names: tuple[str, str],
-          what: str) -> np.ndarray:
-    """The ``height * step`` bytes of ``msg.data`` holding ``height`` rows of ``width`` items of ``item`` bytes,
-    each row ``step`` bytes long (padding allowed); ``sizes`` = (height, width, item, step), ``names`` the
-    message's words for item and step. Refuses a step shorter than a row and data shorter than the rows."""
-    height, width, item, step = sizes
-    if step < width * item:
-        raise InputError(f"{where}: expected {names[1]} >= width * {names[0]} = {width} * {item} = {width * item} "
-                         f"bytes for a {width}x{height} {what}, got {names[1]} {step}")
-    data = _byte_array(_field(msg, "data", where, kind), where)
-    if data.size < height * step:
-        raise InputError(f"{where}: expected at least height * {names[1]} = {height} * {step} = {height * step} "
-                         f"bytes of {what} data, got {data.size}: truncated {what.split()[-1]}")
-    return data[:height * step]
-
-
-def decode_image(msg, where: str) -> np.ndarray:
-    """The (H, W, 3) uint8 RGB camera image of a ``sensor_msgs/Image`` or ``CompressedImage``.
-
-    A ``CompressedImage`` (it has ``format``) is decoded by OpenCV from JPEG or PNG; an
-    ``Image`` (it has ``encoding``) must be one of :data:`IMAGE_ENCODINGS`: ``mono8`` is
-    replicated to three channels, alpha dropped, BGR reordered to RGB, Bayer patterns and
-    YUV 4:2:2 converted by rosbags-image; padded rows (``step > width * channels``) are
-    honoured. The result is a new C-contiguous array.
-
-    Raises:
-        InputError: unsupported encoding (depth images named as such), truncated data,
-            inconsistent sizes, bytes that are not JPEG/PNG, 16-bit PNG.
-    """
-    if hasattr(msg, "format"):
-        return _decode_compressed(msg, where)
-    if hasattr(msg, "encoding"):
-        return _decode_raw(msg, where)
-    raise InputError(f"{where}: expected a sensor_msgs/Image (with 'encoding') or sensor_msgs/CompressedImage "
-                     f"(with 'format'), got {type(msg).__name__} with neither")
-
-
-def _check_encoding(encoding: str, where: str) -> str:
-    """The lower-case ``encoding`` when supported, else an InputError listing the supported ones."""
-    name = str(encoding).strip().lower()
-    if name in _CHANNELS or name in _CONVERTED:
-        return name
-    supported = ", ".join(IMAGE_ENCODINGS)
-    if name in _DEPTH_ENCODINGS:
-        raise InputError(f"{where}: expected an 8-bit camera image with encoding {supported}, got encoding "
-                         f"{encoding!r}, which looks like a depth image, not a camera image (check --image-topic)")
-    raise InputError(f"{where}: expected an 8-bit image with encoding {supported}, got unsupported encoding "
-                     f"{encoding!r} (use an 8-bit colour or mono topic, e.g. image_color or image_rect_color)")
-
-
-def _decode_raw(msg, where: str) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of a ``sensor_msgs/Image``."""
-    kind = "sensor_msgs/Image"
-    encoding = _check_encoding(_field(msg, "encoding", where, kind), where)
-    height, width = _size(msg, "height", where, kind), _size(msg, "width", where, kind)
-    step = _size(msg, "step", where, kind)
-    channels = _CHANNELS.get(encoding) or _CONVERTED[encoding]
-    data = _rows(msg, where, kind, (height, width, channels, step), ("channels", "step"), f"{encoding} image")
-    rows = data.reshape(height, step)[:, :width * channels]
-    pixels = rows.reshape(height, width, channels)
-    if encoding in _CONVERTED:
-        return _convert(np.ascontiguousarray(pixels[:, :, 0] if channels == 1 else pixels), encoding, where)
-    if encoding == "mono8":
-        pixels = np.repeat(pixels, 3, axis=2)
-    elif encoding.startswith("bgr"):
-        pixels = pixels[:, :, 2::-1]
-    else:
-        pixels = pixels[:, :, :3]
-    return np.array(pixels, dtype=np.uint8, order="C", copy=True)
-
-
-def _convert(pixels: np.ndarray, encoding: str, where: str) -> np.ndarray:
-    """RGB of a Bayer or YUV image (``pixels``: (H, W) or (H, W, 2), rows without padding) by rosbags-image's
-    conversion: OpenCV's, with the ROS names of the patterns (ROS's ``bayer_rggb8`` is OpenCV's ``BayerBG``)."""
-    try:
-        from rosbags.image import ImageError, image_to_cvimage
-    except ImportError:
-        raise InputError(f"{where}: {encoding} images are converted by the rosbags-image package, which is not "
-                         f"installed; install it with: pip install 'crfdepth[ros]'") from None
-    height, width = pixels.shape[:2]
-    unpadded = SimpleNamespace(encoding=encoding, height=height, width=width, is_bigendian=0, data=pixels.ravel())
-    try:
-        rgb = image_to_cvimage(unpadded, "rgb8")
-    except (ImageError, cv2.error) as exc:
-        raise InputError(f"{where}: could not convert the {encoding} image of {pixels.shape[1]}x{pixels.shape[0]} "
-                         f"pixels to RGB ({str(exc).strip().splitlines()[-1]})") from None
-    return np.array(rgb, dtype=np.uint8, order="C", copy=True)
-
-
-def _png_bit_depth(data: np.ndarray) -> int | None:
-    """The bit depth of a PNG from its IHDR chunk (byte 24), None when ``data`` is no PNG."""
-    if data.size < 25 or data[:8].tobytes() != _PNG_SIGNATURE:
-        return None
-    return int(data[24])
-
-
-def _decode_compressed(msg, where: str) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of a ``sensor_msgs/CompressedImage`` (JPEG or PNG)."""
-    kind = "sensor_msgs/CompressedImage"
-    fmt = str(_field(msg, "format", where, kind))
-    if "compresseddepth" in fmt.lower():
-        raise InputError(f"{where}: expected a compressed camera image (JPEG/PNG), got format {fmt!r}, "
-                         f"a compressed depth image, not a camera image (check --image-topic)")
-    data = _byte_array(_field(msg, "data", where, kind), where)
-    if data.size == 0:
-        raise InputError(f"{where}: expected JPEG/PNG bytes in a compressed image (format {fmt!r}), got 0 bytes")
-    depth = _png_bit_depth(data)
-    if depth is not None and depth > 8:
-        raise InputError(f"{where}: expected an 8-bit camera image, got a {depth}-bit PNG (format {fmt!r}), "
-                         f"not an 8-bit camera image (a depth or raw 16-bit image? check --image-topic)")
-    try:
-        bgr = cv2.imdecode(np.ascontiguousarray(data), cv2.IMREAD_COLOR)
-    except cv2.error as error:
-        bgr, reason = None, str(error).strip().splitlines()[-1]
-    else:
-        reason = "OpenCV returned no image"
-    if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
-        raise InputError(f"{where}: expected JPEG/PNG bytes (format {fmt!r}), got {data.size} bytes that "
-                         f"could not be decoded as JPEG/PNG ({reason})")
-    return np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
 
 
 # --------------------------------------------------------------------------- camera calibration
@@ -273,7 +108,7 @@ def _matrix(msg, name: str, where: str, size: int | None) -> np.ndarray:
 def _check_binning_and_roi(msg, where: str, height: int, width: int) -> None:
     """Refuse binning > 1 and a region of interest other than empty or the full image."""
     kind = "sensor_msgs/CameraInfo"
-    binning = [_size(msg, key, where, kind, positive=False) if hasattr(msg, key) else 0
+    binning = [message_size(msg, key, where, kind, positive=False) if hasattr(msg, key) else 0
                for key in ("binning_x", "binning_y")]
     if max(binning) > 1:
         raise InputError(f"{where}: expected binning_x and binning_y 0 or 1, got {binning[0]} and "
@@ -282,7 +117,7 @@ def _check_binning_and_roi(msg, where: str, height: int, width: int) -> None:
     roi = getattr(msg, "roi", None)
     if roi is None:
         return
-    box = tuple(_size(roi, key, where, f"{kind}.roi", positive=False)
+    box = tuple(message_size(roi, key, where, f"{kind}.roi", positive=False)
                 for key in ("x_offset", "y_offset", "height", "width"))
     if box not in ((0, 0, 0, 0), (0, 0, height, width)):
         raise InputError(f"{where}: expected an empty roi or the full {width}x{height} (WxH) image, got roi "
@@ -327,7 +162,7 @@ def camera_from_info(msg, where: str, *, rectified: bool = False) -> CameraModel
             distortion model (equidistant, fisheye, ...) when ``rectified`` is False.
     """
     kind = "sensor_msgs/CameraInfo"
-    height, width = _size(msg, "height", where, kind), _size(msg, "width", where, kind)
+    height, width = message_size(msg, "height", where, kind), message_size(msg, "width", where, kind)
     _check_binning_and_roi(msg, where, height, width)
     k, p = _matrix(msg, "k", where, 9), _matrix(msg, "p", where, 12)
     coefficients = _matrix(msg, "d", where, None)
@@ -361,7 +196,7 @@ def _describe_fields(fields) -> str:
 
 def _xyz_dtype(msg, where: str, point_step: int) -> np.dtype:
     """A structured dtype with fields x, y, z at their offsets and itemsize ``point_step``."""
-    fields = list(_field(msg, "fields", where, "sensor_msgs/PointCloud2"))
+    fields = list(message_field(msg, "fields", where, "sensor_msgs/PointCloud2"))
     by_name = {}
     for field in fields:
         by_name.setdefault(str(getattr(field, "name", "")), field)
@@ -409,14 +244,14 @@ def points_from_cloud(msg, where: str) -> np.ndarray:
             lists the fields found with their types and offsets.
     """
     kind = "sensor_msgs/PointCloud2"
-    height = _size(msg, "height", where, kind, positive=False)
-    width = _size(msg, "width", where, kind, positive=False)
+    height = message_size(msg, "height", where, kind, positive=False)
+    width = message_size(msg, "width", where, kind, positive=False)
     if height == 0 or width == 0:
         return np.zeros((0, 3), dtype=np.float32)
-    point_step = _size(msg, "point_step", where, kind)
-    row_step = _size(msg, "row_step", where, kind, positive=False)
+    point_step = message_size(msg, "point_step", where, kind)
+    row_step = message_size(msg, "row_step", where, kind, positive=False)
     dtype = _xyz_dtype(msg, where, point_step)
-    data = _rows(msg, where, kind, (height, width, point_step, row_step), ("point_step", "row_step"), "cloud")
+    data = message_rows(msg, where, kind, (height, width, point_step, row_step), ("point_step", "row_step"), "cloud")
     records = np.ndarray(shape=(height, width), dtype=dtype, buffer=np.ascontiguousarray(data),
                          strides=(row_step, point_step))
     points = np.empty((height * width, 3), dtype=np.float32)

@@ -2,7 +2,8 @@
 
 :class:`BagWriter` writes a new bag with ``rosbags``' writers: a name ending in ``.bag``
 gives a ROS 1 bag, any other name a ROS 2 bag folder (``storage`` mcap or sqlite3). It
-builds the messages crfdepth writes, the inverse of :mod:`crfdepth.io.ros.messages`:
+builds the messages crfdepth writes, the inverse of :mod:`crfdepth.io.ros.images` and
+:mod:`crfdepth.io.ros.messages`:
 
 - :meth:`~BagWriter.image`: ``sensor_msgs/Image`` of an RGB picture (``rgb8``) or of a
   depth map in metres (``32FC1``, :func:`~crfdepth.io.ros.messages.depth_image_fields`);

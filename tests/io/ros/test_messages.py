@@ -1,4 +1,4 @@
-"""Tests of crfdepth.io.ros.messages: images (raw encodings with padded rows, JPEG/PNG),
+"""Tests of crfdepth.io.ros.images and crfdepth.io.ros.messages: images (raw encodings with padded rows, JPEG/PNG),
 CameraInfo (ROS 1 and ROS 2 field names, distortion models, refusals), PointCloud2 layouts
 (float32/float64, big-endian, organised with padded rows) and the 32FC1 depth image fields.
 
@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 
 from crfdepth.errors import InputError
+from crfdepth.io.ros.images import IMAGE_ENCODINGS, decode_image
 from crfdepth.io.ros.messages import (
-    IMAGE_ENCODINGS,
     CameraModel,
     camera_from_info,
-    decode_image,
     depth_image_fields,
     points_from_cloud,
     stamp_ns,

@@ -1,4 +1,4 @@
-"""crfdepth.io.ros.writer: what BagWriter writes reads back through crfdepth.io.ros.messages, atomically."""
+"""crfdepth.io.ros.writer: what BagWriter writes reads back through crfdepth.io.ros.images and .messages, atomically."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 pytest.importorskip("rosbags")
 
 from crfdepth.io.ros.bag import Recording  # noqa: E402
-from crfdepth.io.ros.messages import camera_from_info, decode_image, points_from_cloud, stamp_ns  # noqa: E402
+from crfdepth.io.ros.images import decode_image  # noqa: E402
+from crfdepth.io.ros.messages import camera_from_info, points_from_cloud, stamp_ns  # noqa: E402
 from crfdepth.io.ros.writer import BagWriter  # noqa: E402
 
 STAMP = 1_700_000_000_123_456_789

@@ -1,0 +1,237 @@
+"""Poses given, and the maths of rigid poses every pose source shares (docs/design.md section 12).
+
+- :func:`read_kitti_poses`: KITTI odometry ``poses.txt`` (camera-0 poses, 12 numbers a line).
+- :func:`read_oxts`: KITTI raw ``oxts/data/*.txt`` (GPS/IMU), the devkit's Mercator
+  conversion (:func:`oxts_to_pose`); :func:`read_imu_to_velo` reads the day's ``calib_imu_to_velo.txt``.
+- :func:`camera_relative_pose`: the camera's motion through the fixed extrinsic.
+- :func:`invert_rigid`, :func:`rotation_deg`, :func:`axis_rotation`: rigid-transform maths,
+  used here and by :mod:`crfdepth.sequences.registration` and :mod:`crfdepth.sequences.odometry`.
+
+Convention, here and in LiDAR odometry (:mod:`crfdepth.sequences.odometry`): poses are LiDAR
+poses ``T_world<-lidar(t)`` as (n, 4, 4) float64, ``p_world = T @ p_lidar``, with the world =
+the LiDAR frame of the first scan (the first pose is the identity). LiDAR frame: KITTI
+Velodyne axes (x forward, y left, z up, metres).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from crfdepth.checks import check_rigid
+from crfdepth.errors import InputError
+from crfdepth.io.files import check_input_file, read_text
+from crfdepth.io.key_values import entry_array, read_key_values
+
+__all__ = [
+    "axis_rotation",
+    "camera_relative_pose",
+    "invert_rigid",
+    "oxts_to_pose",
+    "read_imu_to_velo",
+    "read_kitti_poses",
+    "read_oxts",
+    "rotation_deg",
+]
+
+POSE_TOLERANCE = 1e-3
+"""Largest |R^T R - I| accepted in a pose file (KITTI writes 6-7 significant digits)."""
+
+
+# --------------------------------------------------------------------------- pose maths
+
+
+def rotation_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix, degrees."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def invert_rigid(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid (4, 4) transform."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def camera_relative_pose(T_w_lidar_s, T_w_lidar_t, T_cam_lidar) -> np.ndarray:
+    """``T_cam(s)<-cam(t) = T_cam_lidar T_lidar(s)<-lidar(t) T_cam_lidar^-1`` (design 3c).
+
+    Args:
+        T_w_lidar_s, T_w_lidar_t: (4, 4) world<-LiDAR poses at times s and t.
+        T_cam_lidar: (4, 4) LiDAR-to-camera extrinsic (rigidly mounted).
+
+    Returns:
+        (4, 4) float64: maps points of camera frame t into camera frame s.
+    """
+    T_cam_lidar = check_rigid(T_cam_lidar, "T_cam_lidar")
+    s = check_rigid(T_w_lidar_s, "T_w_lidar_s")
+    t = check_rigid(T_w_lidar_t, "T_w_lidar_t")
+    return T_cam_lidar @ invert_rigid(s) @ t @ invert_rigid(T_cam_lidar)
+
+
+def axis_rotation(axis: int, a: float) -> np.ndarray:
+    """(3, 3) rotation by ``a`` radians about axis 0, 1 or 2 (x, y, z)."""
+    c, s = math.cos(a), math.sin(a)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+# --------------------------------------------------------------------------- poses given
+
+
+def _numbers(line: str, path: Path, lineno: int, count: int, what: str) -> np.ndarray:
+    tokens = line.split()
+    if len(tokens) != count:
+        raise InputError(f"{what}: expected {count} numbers per line in {path}, got {len(tokens)} on line {lineno}")
+    try:
+        return np.array([float(t) for t in tokens])
+    except ValueError:
+        raise InputError(f"{what}: expected numbers in {path}, got {line.strip()[:60]!r} on line {lineno}") from None
+
+
+def _check_pose(T: np.ndarray, path: Path, lineno: int, what: str) -> None:
+    if not np.isfinite(T).all():
+        raise InputError(f"{what}: expected finite numbers in {path}, got a non-finite value on line {lineno}")
+    dev = float(np.max(np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3))))
+    if dev > POSE_TOLERANCE or np.linalg.det(T[:3, :3]) < 0:
+        raise InputError(f"{what}: expected rigid poses (an orthonormal rotation) in {path}, got max "
+                         f"|R^T R - I| = {dev:.3g}, det {np.linalg.det(T[:3, :3]):.3g} on line {lineno}")
+
+
+def _check_count(poses: np.ndarray, n_frames: int | None, path: Path, what: str) -> np.ndarray:
+    if n_frames is not None:
+        if len(poses) < n_frames:
+            raise InputError(f"{what}: expected at least {n_frames} poses (one per frame) in {path}, got {len(poses)}")
+        poses = poses[:n_frames]
+    return poses
+
+
+def _to_lidar(poses_a: np.ndarray, T_a_lidar) -> np.ndarray:
+    """World<-sensor-a poses to ``T_lidar(0)<-lidar(t) = T_a_lidar^-1 A(0)^-1 A(t) T_a_lidar``."""
+    first = invert_rigid(poses_a[0])
+    inv_ext = invert_rigid(T_a_lidar)
+    return np.stack([inv_ext @ first @ P @ T_a_lidar for P in poses_a])
+
+
+def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None) -> np.ndarray:
+    """Read a KITTI odometry ``poses.txt``: one ``[R | t]`` of camera 0 per line (12 numbers).
+
+    Args:
+        path: the text file.
+        T_cam0_lidar: (4, 4) Velodyne -> rectified camera-0 transform (the odometry
+            calibration's ``Tr``; for raw data ``R_rect_00 @ T_velo_to_cam``, i.e.
+            :meth:`crfdepth.io.calibration.Calibration.velo_to_rect_cam`). None: return the
+            camera-0 poses as written.
+        n_frames: the number of frames the poses are for; more poses are cut, fewer raise.
+
+    Returns:
+        (n, 4, 4) float64: with ``T_cam0_lidar`` the LiDAR poses
+        ``T_lidar(0)<-lidar(t) = Tr^-1 P(0)^-1 P(t) Tr``; without, the camera-0 poses ``P(t)``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        InputError: a line without 12 numbers, a non-rigid pose, fewer than ``n_frames``
+            poses (the message names the file and line).
+    """
+    path = check_input_file(path, "poses")
+    rows = []
+    for lineno, line in enumerate(read_text(path, "poses", "12 numbers per line").splitlines(), 1):
+        if not line.strip():
+            continue
+        T = np.eye(4)
+        T[:3, :] = _numbers(line, path, lineno, 12, "poses").reshape(3, 4)
+        _check_pose(T, path, lineno, "poses")
+        rows.append(T)
+    if not rows:
+        raise InputError(f"poses: expected 12 numbers per line in {path}, got an empty file")
+    poses = _check_count(np.stack(rows), n_frames, path, "poses")
+    if T_cam0_lidar is None:
+        return poses
+    return _to_lidar(poses, check_rigid(T_cam0_lidar, "T_cam0_lidar"))
+
+
+EARTH_RADIUS_M = 6378137.0
+"""The KITTI devkit's earth radius for the Mercator projection of oxts positions."""
+OXTS_VALUES = 30
+
+
+def oxts_to_pose(packet: np.ndarray, scale: float) -> np.ndarray:
+    """(4, 4) world<-IMU pose of one oxts packet (lat, lon, alt, roll, pitch, yaw, ...).
+
+    The KITTI devkit's ``convertOxtsToPose``: Mercator position ``x = scale lon pi er / 180``,
+    ``y = scale er log(tan((90 + lat) pi / 360))``, ``z = alt``, with ``scale`` = cos of the
+    first latitude and ``er`` = 6378137 m; rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` (x east,
+    y north, z up).
+    """
+    lat, lon, alt, roll, pitch, yaw = packet[:6]
+    T = np.eye(4)
+    T[0, 3] = scale * lon * math.pi * EARTH_RADIUS_M / 180.0
+    T[1, 3] = scale * EARTH_RADIUS_M * math.log(math.tan((90.0 + lat) * math.pi / 360.0))
+    T[2, 3] = alt
+    T[:3, :3] = axis_rotation(2, yaw) @ axis_rotation(1, pitch) @ axis_rotation(0, roll)
+    return T
+
+
+def read_imu_to_velo(day_dir) -> np.ndarray:
+    """(4, 4) ``T_velo_imu`` (IMU -> Velodyne) from a KITTI raw day's ``calib_imu_to_velo.txt``."""
+    day_dir = Path(day_dir)
+    path = check_input_file(day_dir / "calib_imu_to_velo.txt" if day_dir.is_dir() else day_dir, "calibration")
+    entries = read_key_values(path, "calibration")
+    T = np.eye(4)
+    T[:3, :3] = entry_array(entries, "R", (3, 3), path)
+    T[:3, 3] = entry_array(entries, "T", (3,), path)
+    return check_rigid(T, f"calibration: keys 'R', 'T' in {path}")
+
+
+def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None) -> np.ndarray:
+    """Read a KITTI raw drive's GPS/IMU poses (``oxts/data/0000000000.txt`` ...).
+
+    Args:
+        folder: the ``oxts`` folder (holding ``data/``) or its ``data`` folder.
+        T_velo_imu: (4, 4) IMU -> Velodyne (:func:`read_imu_to_velo`). None: return the
+            IMU poses relative to the first, ``T_imu(0)<-imu(t)``.
+        n_frames: the number of frames; more packets are cut, fewer raise.
+
+    Returns:
+        (n, 4, 4) float64: with ``T_velo_imu``, ``T_lidar(0)<-lidar(t) =
+        T_velo_imu T_imu(0)<-imu(t) T_velo_imu^-1``.
+
+    Raises:
+        FileNotFoundError: no such folder, or no ``.txt`` files in it.
+        InputError: a file without 30 numbers on its first line, a latitude outside
+            (-90, 90), fewer than ``n_frames`` packets (the message names the file).
+    """
+    folder = Path(folder)
+    data = folder / "data" if (folder / "data").is_dir() else folder
+    if not data.is_dir():
+        raise FileNotFoundError(f"oxts: no such directory: {folder}")
+    files = sorted(data.glob("*.txt"))
+    if not files:
+        raise FileNotFoundError(f"oxts: no .txt files in {data}")
+    packets = []
+    for f in files:
+        lines = [ln for ln in read_text(f, "oxts", f"{OXTS_VALUES} numbers").splitlines() if ln.strip()]
+        if not lines:
+            raise InputError(f"oxts: expected {OXTS_VALUES} numbers per line in {f}, got an empty file")
+        p = _numbers(lines[0], f, 1, OXTS_VALUES, "oxts")
+        if not np.isfinite(p[:6]).all() or not -90.0 < p[0] < 90.0:
+            raise InputError(f"oxts: expected a latitude in (-90, 90) degrees and finite values in {f}, "
+                             f"got lat {p[0]!r} on line 1")
+        packets.append(p)
+    packets = np.stack(packets)
+    if n_frames is not None and len(packets) < n_frames:
+        raise InputError(f"oxts: expected at least {n_frames} packets (one per frame) in {data}, got {len(packets)}")
+    if n_frames is not None:
+        packets = packets[:n_frames]
+    scale = math.cos(math.radians(packets[0, 0]))
+    poses = np.stack([oxts_to_pose(p, scale) for p in packets])
+    if T_velo_imu is None:
+        first = invert_rigid(poses[0])
+        return np.stack([first @ P for P in poses])
+    return _to_lidar(poses, invert_rigid(check_rigid(T_velo_imu, "T_velo_imu")))
