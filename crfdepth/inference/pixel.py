@@ -3,30 +3,33 @@ sections 3 and 6), and the stages both pipelines share: the LiDAR evidence and t
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 
+from crfdepth.inference.settings import ModelSettings
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
-from crfdepth.potentials.energy import GridTerms, grid_potentials, grid_system, std_in_metres, to_depth, to_unknown
+from crfdepth.potentials.energy import (
+    GridTerms,
+    grid_potentials,
+    grid_system,
+    std_in_metres,
+    to_depth,
+    to_unknown,
+)
 from crfdepth.potentials.robust import reweight
 from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.uncertainty.predictive import std_features
 
-if TYPE_CHECKING:
-    from crfdepth.model import CRFDepth
 
-
-def evidence(model: CRFDepth, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+def evidence(model: ModelSettings, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
     gate = (model.gate_threshold, model.gate_softness) if model.gate else None
     return lidar_evidence(sparse, gate, model.gate_window, model.prior)
 
 
-def predictive_std(model: CRFDepth, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
+def predictive_std(model: ModelSettings, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
     """The predictive std (:mod:`crfdepth.uncertainty.predictive`) and its signals, from the conditional
     variance of the last solve in the unknown's units."""
     variance = (std_in_metres(variance.sqrt(), depth, model.variable) / depth.detach()) ** 2  # in (log z)^2
@@ -34,7 +37,7 @@ def predictive_std(model: CRFDepth, depth, sparse, kept, gate, variance) -> tupl
     return model.std_head(features), features
 
 
-def pixel_solve(model: CRFDepth, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
+def pixel_solve(model: ModelSettings, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
                 kept=None) -> tuple[torch.Tensor, GridTerms]:
     """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
 
@@ -60,7 +63,7 @@ def pixel_solve(model: CRFDepth, image, sparse, K, prior, eps, infos: list[Solve
     return geometry, t
 
 
-def pixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
+def pixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                   return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""
     bsz, _, h, w = sparse.shape
