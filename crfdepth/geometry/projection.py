@@ -45,7 +45,7 @@ def _check_points(points: np.ndarray, name: str, min_columns: int) -> np.ndarray
     return array
 
 
-def _check_image_size(image_size) -> tuple[int, int]:
+def check_image_size(image_size) -> tuple[int, int]:
     try:
         height, width = (int(n) for n in image_size)
         valid = height > 0 and width > 0 and tuple(image_size) == (height, width)
@@ -71,7 +71,7 @@ def project_to_depth(points_cam: np.ndarray, P: np.ndarray, image_size: tuple[in
         with z <= 0 (behind the camera) are dropped. The stored value is the z of the
         point in the frame of ``P``'s camera, i.e. ``(P @ [x, y, z, 1])[2]``.
     """
-    height, width = _check_image_size(image_size)
+    height, width = check_image_size(image_size)
     P = np.asarray(P, dtype=np.float64)
     if P.shape == (3, 3):
         P = np.concatenate([P, np.zeros((3, 1))], axis=1)
@@ -168,7 +168,7 @@ def count_in_image(points: np.ndarray, T_cam_lidar: np.ndarray, K: np.ndarray,
         T_cam_lidar: (4, 4) LiDAR -> camera transform; K: (3, 3) intrinsics, pixels.
         image_size: (height, width), pixels.
     """
-    height, width = _check_image_size(image_size)
+    height, width = check_image_size(image_size)
     xyz = _check_points(points, "points", 3)[:, :3].astype(np.float64)
     T, K = np.asarray(T_cam_lidar, dtype=np.float64), np.asarray(K, dtype=np.float64)
     cam = xyz @ T[:3, :3].T + T[:3, 3]

@@ -36,7 +36,7 @@ import numpy as np
 from crfdepth.checks import check_intrinsics, check_number, check_rigid
 from crfdepth.errors import InputError
 from crfdepth.sequences.free_space import seen_through
-from crfdepth.geometry.projection import _check_image_size
+from crfdepth.geometry.projection import check_image_size
 
 __all__ = [
     "KEPT",
@@ -259,7 +259,7 @@ def camera_view_targets(scans, poses, T_cam_lidar, K, image_size, index: int, *,
     """
     window, P, index, k = _check_window(scans, poses, index, k)
     T_cam_lidar = check_rigid(T_cam_lidar, "T_cam_lidar")
-    height, width = _check_image_size(image_size)
+    height, width = check_image_size(image_size)
     K = check_intrinsics(K, "K", (height, width))
     surfel_m = check_number("surfel_m", surfel_m, low=0, low_open=False)
     max_splat_px = check_number("max_splat_px", max_splat_px, low=0, high=64, low_open=False,
