@@ -18,12 +18,12 @@ plain containers are unpickled; no code in the file runs), and every floating te
 them must be finite:
 
 (a) a Lightning checkpoint (``.ckpt``) of the trainer in ``train/``: ``{"state_dict":
-    {"model.<name>": tensor, ...}, "hyper_parameters": {"crf": {CRFDepth kwargs}}, ...}``.
-    The model is rebuilt as ``CRFDepth(**hyper_parameters["crf"])`` and given the
+    {"model.<name>": tensor, ...}, "hyper_parameters": {"crf": {configuration}}, ...}``.
+    The model is rebuilt as ``CRFDepth(hyper_parameters["crf"])`` and given the
     ``model.``-prefixed tensors (prefix stripped); other keys of the LightningModule (a
     loss module, optimizer and loop states) are ignored.
 (b) crfdepth's own model file, written by :func:`save_model`: ``{"format": "crfdepth",
-    "version": 1, "config": {CRFDepth kwargs}, "state_dict": {name: tensor}}``.
+    "version": 1, "config": {configuration}, "state_dict": {name: tensor}}``.
 (c) a JSON weights file, written by :func:`save_weights` (such as the shipped
     ``kitti.json``): recognised by its first character ``{``. The CRF has ten learnable
     numbers, so the file is not a pickle but its complete ``CRFDepth`` configuration
@@ -31,10 +31,10 @@ them must be finite:
     a free-form ``"about"`` record::
 
         {"format": "crfdepth-weights", "version": 1,
-         "config": {"mode": "superpixel", ..., "alpha": 0.41, ...},
+         "config": {"structure": {"mode": "pixel", ...}, "potentials": {"alpha": 0.41, ...}, ...},
          "about": {"data": ..., "command": ..., "validation": ...}}
 
-    ``CRFDepth(**config)`` rebuilds the model (the learned values are float32 values
+    ``CRFDepth(config)`` rebuilds the model (the learned values are float32 values
     written out in full, so the rebuilt parameters equal the trained ones to float32
     rounding of the logit/log, about 1e-7 relative). ``python -m train.export`` turns a
     trainer checkpoint into one.
@@ -46,8 +46,9 @@ another structure (the shipped pixel / log-depth / gate weights in the default s
 model) give a wrong depth without any error. Load it into the model it came from and
 :func:`save_model` that.
 
-The configuration is ``CRFDepth.config``: the constructor's keyword arguments, JSON
-friendly. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by the stored
+The configuration is ``CRFDepth.config``: its five groups (:mod:`crfdepth.config`) as plain,
+JSON-friendly data; files written before the groups hold the flat keyword arguments instead
+(``{"mode": "pixel", "gate": true, "alpha": 0.41, ...}``) and load the same. Its initial weights (``alpha``, ``sigma_d`` ...) are overwritten by the stored
 tensors; the structural options (``mode``, ``potentials``, ``refine``, solver settings)
 define the model the weights run in.
 
@@ -61,7 +62,6 @@ import cycle (docs/design.md section 8).
 
 from __future__ import annotations
 
-import inspect
 import logging
 import os
 from pathlib import Path
@@ -69,8 +69,9 @@ from typing import Any, Mapping
 
 import torch
 
+from crfdepth.config import POTENTIALS, CRFConfig, flat_view
 from crfdepth.errors import InputError
-from crfdepth.model import POTENTIALS, CRFDepth
+from crfdepth.model import CRFDepth
 from crfdepth.weights.files import (
     DEFAULT_WEIGHTS,
     pretrained_state,
@@ -105,17 +106,14 @@ def load_pretrained(name: str = DEFAULT_WEIGHTS, **overrides: Any) -> CRFDepth:
 
 
 def own_structure(name: str) -> dict[str, Any]:
-    """The structure the shipped weight set ``name`` is made for: its stored configuration with
-    ``CRFDepth``'s defaults for what it does not store (``"paper"``: ``CRFDepth().config``).
+    """The structure the shipped weight set ``name`` is made for, by flat names: its stored
+    configuration with the defaults for what it does not store (``"paper"``: the defaults).
 
     Raises:
         InputError: an unknown ``name``.
     """
     config, _ = pretrained_state(name)
-    defaults = {k: list(p.default) if isinstance(p.default, tuple) else p.default  # as in CRFDepth.config
-                for k, p in inspect.signature(CRFDepth.__init__).parameters.items()
-                if p.default is not inspect.Parameter.empty}
-    return {**defaults, **config}
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in CRFConfig.build(config).flat().items()}
 
 
 def describe(model_or_config: CRFDepth | Mapping[str, Any]) -> str:
@@ -127,7 +125,7 @@ def describe(model_or_config: CRFDepth | Mapping[str, Any]) -> str:
     posterior std are added where they are set.
     """
     config = model_or_config.config if isinstance(model_or_config, torch.nn.Module) else model_or_config
-    get = config.get
+    get = flat_view(config).get
     if get("mode", "superpixel") == "pixel":
         parts = ["pixel grid"]
     else:
@@ -167,10 +165,10 @@ def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, A
     """
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
-    config = dict(model.config)
-    config.update(model.weights())  # the current (learned) values replace the initial ones
+    learned = model.weights()  # the current (learned) values replace the initial ones
     if model.std_head is not None:
-        config["std_terms"] = model.std_head.terms()
+        learned["std_terms"] = model.std_head.terms()
+    config = CRFConfig.build(model.settings, **learned).groups()
     head = {k: v for k, v in model.state_dict().items() if k.startswith("head.")}
     return write_weights(path, config, about, state=head)
 
@@ -239,6 +237,6 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     """
     file = Path(path)
     config, state, kind = read_checkpoint(file, map_location)
-    model = CRFDepth.from_stored({**config, **dict(overrides or {})}, state, file=file, kind=kind)
+    model = CRFDepth.from_stored(config, state, overrides=overrides, file=file, kind=kind)
     logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.mode, file, kind)
     return model.to(torch.device(map_location)).eval()

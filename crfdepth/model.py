@@ -17,30 +17,32 @@ gradients reach every parameter through all rounds.
 
 from __future__ import annotations
 
-from typing import Callable, Literal, Mapping, Sequence
+from typing import Any, Callable, Mapping
 
 import torch
 
 from crfdepth.checks import check_frames, check_number
+from crfdepth.config import (
+    MODES,
+    POTENTIALS,
+    PRIORS,
+    UNCERTAINTIES,
+    VARIABLES,
+    CRFConfig,
+)
 from crfdepth.errors import InputError
 from crfdepth.inference.pixel import pixel_forward
 from crfdepth.inference.superpixel import superpixel_forward
-from crfdepth.potentials.data_term import PRIORS
-from crfdepth.potentials.head import PotentialHead
 from crfdepth.linalg import solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput
+from crfdepth.potentials.energy import PotentialWeights, energy
+from crfdepth.potentials.head import PotentialHead
 from crfdepth.potentials.parameters import ConstrainedWeights
-from crfdepth.potentials.occlusion import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
 from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms
-from crfdepth.potentials.energy import (VARIABLES, PotentialWeights, Variable, energy)
-from crfdepth.potentials.robust import DEFAULT_IRLS_SCALE
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
-Mode = Literal["superpixel", "pixel"]
-POTENTIALS = ("colour", "normal", "distance")
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
-UNCERTAINTIES = ("predictive", "posterior")  # the std of ``return_std`` (docs/design.md section 5)
 
 
 class CRFDepth(ConstrainedWeights):
@@ -70,6 +72,13 @@ class CRFDepth(ConstrainedWeights):
     parameters get gradients through ``std`` only.
 
     Args:
+        config: a :class:`~crfdepth.config.CRFConfig`, or a mapping of its groups
+            (``{"structure": {"mode": "pixel"}, "gate": {"enabled": True}}``, what
+            ``model.config``, weights files and checkpoints hold) or of flat names; None: the
+            defaults below.
+        **options: groups (``gate={"enabled": True}``) or flat names that replace what
+            ``config`` sets. The flat names, each a field of one group (:data:`crfdepth.config.FLAT`):
+
         mode: "superpixel" (paper) or "pixel".
         superpixels: SLIC segments for a 1216x352 image (paper: 1200, 2400, 5500).
         scale_superpixels: scale the segment count with the image area (any image size
@@ -123,86 +132,56 @@ class CRFDepth(ConstrainedWeights):
             allocating; None: the memory the device has available at each forward.
     """
 
-    def __init__(
-        self,
-        mode: Mode = "superpixel",
-        superpixels: int = 5500,
-        scale_superpixels: bool = True,
-        potentials: Sequence[str] = POTENTIALS,
-        aggregate: Literal["mean", "median"] = "mean",
-        refine: bool = True,
-        rounds: int = 1,
-        alpha: float = 0.5,
-        beta: float = 0.5,
-        gamma: float = 0.05,
-        delta: float = 0.25,
-        sigma_d: float = 0.1,
-        sigma_n: float = 0.3,
-        sigma_p: float = 1.0,
-        confidence: float = 100.0,
-        eps: float = 0.1,
-        refine_prior: float = 0.05,
-        std_scale: float = 1.0,
-        std_samples: int = 32,
-        rtol: float = 1e-5,
-        max_iter: int | None = None,
-        method: Literal["cg", "cgs"] = "cg",
-        variable: Variable = "depth",
-        head: bool = False,
-        gate: bool = False,
-        gate_window: int = DEFAULT_WINDOW,
-        gate_threshold: float = DEFAULT_THRESHOLD,
-        gate_softness: float = DEFAULT_SOFTNESS,
-        prior: Literal["nearest", "ip_basic"] = "nearest",
-        irls: int = 0,
-        irls_scale: float = DEFAULT_IRLS_SCALE,
-        uncertainty: Literal["predictive", "posterior"] = "predictive",
-        std_terms: Mapping[str, float] | None = None,
-        memory_limit_gb: float | None = None,
-    ) -> None:
+    def __init__(self, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> None:
         super().__init__()
-        # The constructor arguments, JSON-friendly: checkpoints store them to rebuild the model.
-        self.config = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
-        self.config["potentials"] = list(potentials)
-        for name, value, choices in (("mode", mode, ("superpixel", "pixel")), ("variable", variable, VARIABLES),
-                                     ("prior", prior, PRIORS), ("uncertainty", uncertainty, UNCERTAINTIES)):
+        settings = CRFConfig.build(config, **options)
+        # What checkpoints and weights files store to rebuild the model: the five groups.
+        self.settings, self.config = settings, settings.groups()
+        structure, terms, gate, solver, std = (settings.structure, settings.potentials, settings.gate,
+                                               settings.solver, settings.uncertainty)
+        for name, value, choices in (("mode", structure.mode, MODES), ("variable", structure.variable, VARIABLES),
+                                     ("prior", structure.prior, PRIORS), ("uncertainty", std.kind, UNCERTAINTIES)):
             if value not in choices:
                 raise InputError(f"{name}: expected one of {choices}, got {value!r}")
-        check_number("superpixels", superpixels, low=1, low_open=False, integer=True)
-        unknown = set(potentials) - set(POTENTIALS)
-        if unknown or "colour" not in potentials:
+        check_number("superpixels", structure.superpixels, low=1, low_open=False, integer=True)
+        unknown = set(terms.on) - set(POTENTIALS)
+        if unknown or "colour" not in terms.on:
             raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
-                             f"got {tuple(potentials)!r}")
-        if gate and aggregate != "mean":
+                             f"got {tuple(terms.on)!r}")
+        if gate.enabled and structure.aggregate != "mean":
             raise InputError(f"aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
-                             f"got {aggregate!r}")
-        if isinstance(gate_window, bool) or not isinstance(gate_window, int) or gate_window < 3 or gate_window % 2 == 0:
-            raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {gate_window!r}")
-        check_number("rounds", rounds, low=1, low_open=False, integer=True)
-        if memory_limit_gb is not None:
-            check_number("memory_limit_gb", memory_limit_gb, low=0.0)
-        check_number("irls", irls, low=0, low_open=False, integer=True)
-        for name, value in (("alpha", alpha), ("beta", beta), ("gamma", gamma), ("delta", delta)):
-            check_number(name, value, low=0.0, high=1.0)
-        for name, value in (("sigma_d", sigma_d), ("sigma_n", sigma_n), ("sigma_p", sigma_p),
-                            ("confidence", confidence), ("eps", eps), ("refine_prior", refine_prior),
-                            ("std_scale", std_scale), ("gate_threshold", gate_threshold),
-                            ("gate_softness", gate_softness), ("irls_scale", irls_scale)):
+                             f"got {structure.aggregate!r}")
+        window = gate.window
+        if isinstance(window, bool) or not isinstance(window, int) or window < 3 or window % 2 == 0:
+            raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {window!r}")
+        check_number("rounds", structure.rounds, low=1, low_open=False, integer=True)
+        if solver.memory_limit_gb is not None:
+            check_number("memory_limit_gb", solver.memory_limit_gb, low=0.0)
+        check_number("irls", terms.irls, low=0, low_open=False, integer=True)
+        for name in ("alpha", "beta", "gamma", "delta"):
+            check_number(name, getattr(terms, name), low=0.0, high=1.0)
+        for name, value in (("sigma_d", terms.sigma_d), ("sigma_n", terms.sigma_n), ("sigma_p", terms.sigma_p),
+                            ("confidence", terms.confidence), ("eps", terms.eps), ("refine_prior", terms.refine_prior),
+                            ("std_scale", std.scale), ("gate_threshold", gate.threshold),
+                            ("gate_softness", gate.softness), ("irls_scale", terms.irls_scale)):
             check_number(name, value, low=0.0)
-        self.mode, self.superpixels, self.scale_superpixels = mode, superpixels, scale_superpixels
-        self.potentials = tuple(p for p in POTENTIALS if p in potentials)
-        self.aggregate, self.refine, self.rounds, self.std_samples = aggregate, refine, rounds, std_samples
-        self.variable, self.gate, self.gate_window, self.prior = variable, gate, gate_window, prior
-        self.irls, self.uncertainty, self.memory_limit_gb = irls, uncertainty, memory_limit_gb
-        std_terms = check_std_terms(std_terms)
-        self.std_head = None if uncertainty == "posterior" else PredictiveStd(std_terms)
-        self.head = PotentialHead() if head else None
-        self.solver = solver_settings(method=method, rtol=rtol, max_iter=max_iter)
-        self._register_weights(dict(alpha=alpha, beta=beta, gamma=gamma, delta=delta, sigma_d=sigma_d, sigma_n=sigma_n,
-                                    sigma_p=sigma_p, confidence=confidence, std_scale=std_scale,
-                                    refine_prior=refine_prior, gate_threshold=gate_threshold,
-                                    gate_softness=gate_softness, irls_scale=irls_scale))
-        self.register_buffer("eps", torch.tensor(float(eps)))
+        self.mode, self.superpixels, self.scale_superpixels = structure.mode, structure.superpixels, \
+            structure.scale_superpixels
+        self.potentials = tuple(p for p in POTENTIALS if p in terms.on)
+        self.aggregate, self.refine, self.rounds = structure.aggregate, structure.refine, structure.rounds
+        self.variable, self.prior, self.std_samples = structure.variable, structure.prior, std.samples
+        self.gate, self.gate_window = gate.enabled, window
+        self.irls, self.uncertainty, self.memory_limit_gb = terms.irls, std.kind, solver.memory_limit_gb
+        std_terms = check_std_terms(std.terms)
+        self.std_head = None if std.kind == "posterior" else PredictiveStd(std_terms)
+        self.head = PotentialHead() if structure.head else None
+        self.solver = solver_settings(method=solver.method, rtol=solver.rtol, max_iter=solver.max_iter)
+        self._register_weights(dict(alpha=terms.alpha, beta=terms.beta, gamma=terms.gamma, delta=terms.delta,
+                                    sigma_d=terms.sigma_d, sigma_n=terms.sigma_n, sigma_p=terms.sigma_p,
+                                    confidence=terms.confidence, std_scale=std.scale,
+                                    refine_prior=terms.refine_prior, gate_threshold=gate.threshold,
+                                    gate_softness=gate.softness, irls_scale=terms.irls_scale))
+        self.register_buffer("eps", torch.tensor(float(terms.eps)))
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -216,24 +195,25 @@ class CRFDepth(ConstrainedWeights):
         missing or unexpected one is an error naming the file).
         """
         config, state = pretrained_state(name)
-        return cls.from_stored({**config, **overrides}, state, file=weights_path(name)).eval()
+        return cls.from_stored(config, state, overrides=overrides, file=weights_path(name)).eval()
 
     @classmethod
-    def from_stored(cls, config: Mapping, state: dict[str, torch.Tensor], *, file=None,
-                    kind: str | None = None) -> "CRFDepth":
+    def from_stored(cls, config: Mapping, state: dict[str, torch.Tensor], *, overrides: Mapping | None = None,
+                    file=None, kind: str | None = None) -> "CRFDepth":
         """The model built from a stored configuration and state dict: the one step every loader
         (shipped sets, weights files, checkpoints) ends in, with its checks.
 
-        ``kind`` names the file's kind ("Lightning checkpoint" ...) when the configuration
-        comes from that file, and errors in it name the file; without it the configuration's
-        faults are the caller's ``overrides``.
+        ``config`` holds groups or flat names (files written before the groups);
+        ``overrides`` (groups or flat names) replace what it sets. ``kind`` names the file's kind
+        ("Lightning checkpoint" ...) when the configuration comes from that file, and errors in
+        it name the file; without it the configuration's faults are the caller's ``overrides``.
 
         Raises:
             InputError: a configuration ``CRFDepth`` rejects, or tensors that do not fit it
                 (:func:`crfdepth.weights.state.load_state`), naming ``file``.
         """
         try:
-            model = cls(**config)
+            model = cls(config, **dict(overrides or {}))
         except TypeError as exc:  # unknown or missing keyword arguments
             if kind is None:
                 raise InputError(f"overrides: not CRFDepth arguments ({exc})") from None

@@ -7,9 +7,9 @@ the target pixels through the CRF's implicit solves.
 
 Checkpoint contract (read by :func:`crfdepth.load_model` and
 ``crfdepth evaluate``): state-dict keys are ``model.<parameter>``, and
-``checkpoint["hyper_parameters"]["crf"]`` holds the complete ``CRFDepth`` constructor
-arguments (``CRFDepth(**crf)`` rebuilds the model; the defaults are written out when the
-config gave none). All hyperparameters are plain Python values, so
+``checkpoint["hyper_parameters"]["crf"]`` holds the model's whole configuration in its five
+groups (``CRFDepth(crf)`` rebuilds the model; :mod:`crfdepth.config`; the defaults are written
+out when the config gave none). All hyperparameters are plain Python values, so
 ``torch.load(path, weights_only=True)`` reads the checkpoint.
 
 Logged (``self.log``; TensorBoard by default):
@@ -111,8 +111,9 @@ class CRFDepthModule(pl.LightningModule):
     recipe fits them after training: ``python -m train.export --calibrate-std``).
 
     Args:
-        crf: ``CRFDepth`` constructor arguments (e.g. ``{mode: pixel}``); None = all
-            defaults. Stored complete in the hyperparameters (see module docstring).
+        crf: the model's configuration: groups (``{structure: {mode: pixel}, gate: {enabled:
+            true}}``, :mod:`crfdepth.config`) or flat ``CRFDepth`` arguments (``{mode: pixel}``);
+            None = all defaults. Stored complete, in groups, in the hyperparameters.
         loss: "l2" or "l1".
         nll_weight: weight of the Gaussian NLL term (>= 0).
         lr: Adam learning rate on the free (unconstrained) parameters: logits of
@@ -120,7 +121,7 @@ class CRFDepthModule(pl.LightningModule):
         freeze: names of weights to keep at their initial value (any of alpha, beta,
             gamma, delta, sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale,
             gate_threshold, gate_softness, irls_scale).
-        head_lr: Adam learning rate of the small learned head (``crf: {head: true}``), whose
+        head_lr: Adam learning rate of the small learned head (``crf: {structure: {head: true}}``), whose
             weights are ordinary network weights rather than logs of scalars.
         photometric_weight: weight of the photometric self-supervision (>= 0; 0 = off):
             :func:`crfdepth.sequences.photometric.photometric_loss` of the predicted depth, per image
@@ -162,7 +163,7 @@ class CRFDepthModule(pl.LightningModule):
         unknown = set(freeze or ()) - set(PARAMETERS)
         if unknown:
             raise InputError(f"freeze: expected names among {', '.join(PARAMETERS)}, got {sorted(unknown)}")
-        self.model = CRFDepth(**(crf or {}))
+        self.model = CRFDepth(crf)
         self.save_hyperparameters()
         # Self-describing checkpoints: the complete constructor arguments, plain values.
         self.hparams["crf"] = copy.deepcopy(self.model.config)

@@ -34,6 +34,7 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
     import lightning.pytorch as pl
     from torch.utils.data import DataLoader
 
+    from crfdepth.config import CRFConfig
     from crfdepth.data import (
         Compose,
         HorizontalFlip,
@@ -49,7 +50,8 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
     data = config["data"]
     pl.seed_everything(config.get("seed_everything", 0), verbose=False)
     model = config["model"]
-    module = CRFDepthModule(**{**model, "crf": {**(model.get("crf") or {}), **(crf or {})}, "nll_weight": 0.0})
+    module = CRFDepthModule(**{**model, "crf": CRFConfig.build(model.get("crf"), **(crf or {})).groups(),
+                                "nll_weight": 0.0})
     augment = ([HorizontalFlip(p=data["flip"])] if data.get("flip") else []) + \
         ([RandomCrop(*data["crop"])] if data.get("crop") else []) + \
         ([RandomThinning(*data["thin"])] if data.get("thin") else [])
@@ -106,7 +108,7 @@ def posterior_view(model: CRFDepth, fits: dict, args) -> CRFDepth:
 
     fit = next(f for f in fits.values() if f["model"] is model)
     if "posterior" not in fit:
-        view = CRFDepth(**{**model.config, "uncertainty": "posterior", "std_samples": args.posterior_samples})
+        view = CRFDepth(model.config, uncertainty="posterior", std_samples=args.posterior_samples)
         view.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("std_head.")})
         view = view.to(args.device).eval()
         if fit["train_frames"] is not None:

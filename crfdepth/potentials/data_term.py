@@ -13,6 +13,7 @@ from typing import Literal
 
 import torch
 
+from crfdepth.config import PRIORS
 from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.potentials.occlusion import gate_or_fallback
@@ -20,7 +21,6 @@ from crfdepth.potentials.energy import Variable, to_unknown
 
 __all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
 
-PRIORS = ("nearest", "ip_basic")
 """The prior fills ``x0``: nearest LiDAR return (:mod:`crfdepth.fill.nearest`) or IP-Basic (:mod:`crfdepth.fill.ip_basic`)."""
 
 

@@ -22,16 +22,10 @@ from typing import Literal
 import torch
 
 from crfdepth.linalg.operators import grid_edge_index
+from crfdepth.config import Variable
 from crfdepth.linalg.system import System
 from crfdepth.geometry.normals import camera_points, dense_normals
 
-
-#: The CRF's unknown (docs/design.md section 3b): ``"depth"`` solves for z (the paper),
-#: ``"inverse"`` for 1/z, on which a membrane prior reproduces planes exactly, ``"log"`` for
-#: log z (metres), between the two: a pixel mixing a near and a far surface lands at their
-#: geometric mean rather than near the nearer one (1/z) or at the arithmetic mean (z).
-Variable = Literal["depth", "inverse", "log"]
-VARIABLES = ("depth", "inverse", "log")
 
 
 def to_unknown(depth: torch.Tensor, variable: Variable) -> torch.Tensor:

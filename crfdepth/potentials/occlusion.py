@@ -70,6 +70,7 @@ import torch
 import torch.nn.functional as F
 
 from crfdepth.checks import check_map, check_number, check_scalar_tensor
+from crfdepth.config import DEFAULT_SOFTNESS, DEFAULT_THRESHOLD, DEFAULT_WINDOW
 from crfdepth.errors import InputError
 from crfdepth.geometry.windows import window_max
 
@@ -86,12 +87,6 @@ __all__ = [
     "see_through_residual",
 ]
 
-DEFAULT_WINDOW = 5
-"""Side of the square neighbourhood, pixels (module docstring)."""
-DEFAULT_THRESHOLD = 0.015
-"""Inverse-depth lead r above which a return is see-through, 1/m (module docstring)."""
-DEFAULT_SOFTNESS = 0.003
-"""Width of the soft gate's transition in r, 1/m (module docstring)."""
 MIN_KEPT_SHARE = 0.1
 """:func:`gate_or_fallback` falls back when a frame keeps less than this share of its data
 weight. Real scans lose 0.6-6.1% of their returns per frame to the default mask; a frame

@@ -35,15 +35,13 @@ import dataclasses
 
 import torch
 
+from crfdepth.config import DEFAULT_IRLS_SCALE
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.linalg.operators import PixelGrid
 from crfdepth.potentials.energy import Variable, grid_system, to_depth
 
 __all__ = ["DEFAULT_IRLS_SCALE", "leave_one_out", "reweight", "robust_factor"]
 
-DEFAULT_IRLS_SCALE = 0.015
-"""``sigma`` of the Geman-McClure factor, 1/m: the occlusion gate's threshold, so that a
-return that far behind its prediction keeps a quarter of its weight."""
 
 
 def leave_one_out(x: torch.Tensor, z: torch.Tensor, data_weight: torch.Tensor, diagonal: torch.Tensor

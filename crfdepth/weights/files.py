@@ -27,6 +27,7 @@ from typing import Any, Mapping
 
 import torch
 
+from crfdepth.config import flat_view, is_grouped
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_output_file
 from crfdepth.weights.torch_files import (
@@ -129,8 +130,9 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
     config = data.get("config")
     if not isinstance(config, dict):
         raise InputError(f"{file}: expected a \"config\" object (CRFDepth arguments), got {type(config).__name__}")
+    values = flat_view(config)  # grouped (current files) or flat (earlier ones)
     for key in LEARNED:
-        value = config.get(key)
+        value = values.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"{file}: config[{key!r}]: expected a finite number, got {value!r}")
     data.setdefault("about", {})
@@ -242,7 +244,7 @@ def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -
     Lightning checkpoint of ``CRFDepth()`` with every default) says by its state's keys whether
     it has a gate and a head."""
     if config:
-        return {**_OLD_DEFAULTS, **config}
+        return config if is_grouped(config) else {**_OLD_DEFAULTS, **config}
     if state:
         return {"gate": "log_gate_threshold" in state, "head": any(k.startswith("head.") for k in state),
                 "uncertainty": "predictive" if "std_head.weights" in state else "posterior"}

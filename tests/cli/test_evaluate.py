@@ -207,7 +207,7 @@ def test_synthetic_layout_needs_no_data_folder(tmp_path):
     assert list(rows[0]) == ["name", *METRICS, "pixels"]  # without --std: no uncertainty columns
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert "uncertainty" not in summary and summary["units"] == UNITS and "AUSE" not in stdout
-    assert summary["data_root"] is None and summary["model_config"]["mode"] == "pixel"
+    assert summary["data_root"] is None and summary["model_config"]["structure"]["mode"] == "pixel"
     assert summary["dataset_options"] == {"seed": 3}
     assert 0 < summary["metrics"]["rmse"] < 3000 and summary["metrics"]["delta1"] > 0.9
     assert abs(_printed(stdout, "RMSE") - summary["metrics"]["rmse"]) < 0.01
@@ -321,8 +321,8 @@ def test_checkpoint_configuration_and_cli_overrides(tmp_path):
                             "--out-dir", tmp_path / "overridden"])
     assert code == 0, stderr
     overridden = json.loads((tmp_path / "overridden" / "summary.json").read_text())
-    assert overridden["model_config"] == {**model.config, "mode": "superpixel", "superpixels": 800,
-                                          "refine": False}
+    assert overridden["model_config"] == CRFDepth(model.config, mode="superpixel", superpixels=800,
+                                                  refine=False).config
     assert overridden["weights"] == pytest.approx(stored["weights"])  # the checkpoint's weights
     assert overridden["metrics"]["rmse"] != pytest.approx(stored["metrics"]["rmse"], abs=1.0)
 
@@ -346,7 +346,7 @@ def test_evaluate_works_without_lightning(tmp_path):
                           timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stdout + done.stderr
     summary = json.loads((tmp_path / "evaluation" / "summary.json").read_text())  # default --out-dir
-    assert summary["frames"] == 1 and summary["model_config"]["mode"] == "pixel"
+    assert summary["frames"] == 1 and summary["model_config"]["structure"]["mode"] == "pixel"
     assert summary["checkpoint"] == str((tmp_path / "last.ckpt").resolve())
     assert "RMSE" in done.stdout
 

@@ -86,7 +86,7 @@ def test_export_fits_the_predictive_std_on_the_configs_training_frames(tmp_path,
     calibration = data["about"]["std_calibration"]
     assert calibration["uncertainty"] == "predictive" and calibration["frames"] == 2
     assert calibration["after"] != calibration["before"]
-    assert data["config"]["std_terms"] == pytest.approx(calibration["after"], rel=1e-6)
+    assert data["config"]["uncertainty"]["terms"] == pytest.approx(calibration["after"], rel=1e-6)
     assert load_model(out).std_head.terms() == pytest.approx(calibration["after"], rel=1e-6)
     assert "predictive std fitted on 2 training frames" in capsys.readouterr().out
 

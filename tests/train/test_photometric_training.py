@@ -158,7 +158,8 @@ def test_the_sequence_config_parses(configs, capsys, monkeypatch):
         main(["fit", "--config", str(configs / "kitti_sequence.yaml"), "--print_config"])
     assert exit_info.value.code in (0, None)
     printed = yaml.safe_load(capsys.readouterr().out)
-    assert printed["model"]["crf"] == {**SHIPPED, "head": True}
+    assert printed["model"]["crf"] == {"structure": {"mode": "pixel", "variable": "log", "head": True},
+                                       "gate": {"enabled": True}}
     assert printed["model"]["photometric_weight"] == 0.0 and printed["model"]["loss"] == "l2"
     data = printed["data"]
     assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 46]

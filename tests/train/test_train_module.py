@@ -48,7 +48,7 @@ def test_hyperparameters_hold_the_complete_crf_config():
     assert module.hparams["crf"] == CRFDepth().config
     module = CRFDepthModule(crf={"mode": "pixel", "alpha": 0.3})
     crf = module.hparams["crf"]
-    assert crf == CRFDepth(mode="pixel", alpha=0.3).config and crf["mode"] == "pixel"
+    assert crf == CRFDepth(mode="pixel", alpha=0.3).config and crf["structure"]["mode"] == "pixel"
     assert _plain(dict(module.hparams))
     rebuilt = CRFDepth(**crf)
     rebuilt.load_state_dict({k[len("model."):]: v for k, v in module.state_dict().items() if k.startswith("model.")})

@@ -142,7 +142,7 @@ def test_overrides_replace_the_stored_configuration(tmp_path):
     torch.save(_lightning(model.state_dict(), model.config), tmp_path / "last.ckpt")
     loaded = load_model(tmp_path / "last.ckpt", overrides={"mode": "superpixel", "refine": False})
     assert loaded.mode == "superpixel" and loaded.refine is False
-    assert loaded.config == {**model.config, "mode": "superpixel", "refine": False}
+    assert loaded.config == CRFDepth(model.config, mode="superpixel", refine=False).config
     _assert_same_parameters(loaded, model)  # the learned weights, in another graph
 
 

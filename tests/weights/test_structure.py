@@ -100,7 +100,7 @@ def test_every_complete_file_kind_loads_in_its_stored_structure(tmp_path):
 
 def test_own_structure_and_describe():
     assert {k: own_structure("kitti")[k] for k in KITTI_STRUCTURE} == KITTI_STRUCTURE
-    assert own_structure("paper") == CRFDepth().config  # all defaults
+    assert CRFDepth(own_structure("paper")).config == CRFDepth().config  # all defaults
     assert describe(load_pretrained("kitti")) == "pixel grid, log depth, occlusion gate"
     assert describe(own_structure("kitti")) == describe(load_pretrained("kitti"))
     assert describe(CRFDepth()) == "superpixel graph (5500 segments) + pixel refinement, depth, no gate"

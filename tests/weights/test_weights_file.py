@@ -26,7 +26,8 @@ def test_save_read_load_round_trip(tmp_path):
     data = json.loads(path.read_text())
     assert data["format"] == WEIGHTS_FORMAT and data["version"] == WEIGHTS_VERSION
     assert data["about"]["data"] == "my drives"
-    assert data["config"]["mode"] == "pixel" and data["config"]["potentials"] == ["colour", "normal"]
+    config = data["config"]  # in groups
+    assert config["structure"]["mode"] == "pixel" and config["potentials"]["on"] == ["colour", "normal"]
     loaded = load_model(path)
     assert loaded.mode == "pixel" and loaded.potentials == ("colour", "normal")
     assert _close(loaded.weights(), model.weights())

@@ -1,0 +1,206 @@
+"""The configuration of a :class:`~crfdepth.model.CRFDepth`, in five typed groups (docs/design.md section 8).
+
+- :class:`Structure`: the graph (superpixels or the pixel grid), the unknown, the fill, the head.
+- :class:`Potentials`: which pairwise terms are on and the initial weights of all terms.
+- :class:`Gate`: the occlusion gate of the data term (section 3b).
+- :class:`Solver`: the linear solves and the memory they may take.
+- :class:`Uncertainty`: which standard deviation ``return_std`` gives, and its settings.
+
+The weights file, the checkpoint and the trainer's YAML hold these groups
+(``{"structure": {"mode": "pixel"}, "gate": {"enabled": true}}``); a group left out, or a field
+left out of a group, keeps its default. Every field also has a flat name, the keyword argument of
+``CRFDepth`` before the groups (``mode``, ``gate``, ``gate_window`` ...; :data:`FLAT`), which
+files written before the groups use and which ``CRFDepth(mode="pixel")`` still takes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal, Mapping
+
+Mode = Literal["superpixel", "pixel"]
+MODES = ("superpixel", "pixel")
+Variable = Literal["depth", "inverse", "log"]
+VARIABLES = ("depth", "inverse", "log")
+"""The CRF's unknown (section 3b): ``"depth"`` solves for z (the paper), ``"inverse"`` for 1/z, on
+which a membrane prior reproduces planes exactly, ``"log"`` for log z, between the two: a pixel
+mixing a near and a far surface lands at their geometric mean."""
+PRIORS = ("nearest", "ip_basic")
+POTENTIALS = ("colour", "normal", "distance")
+UNCERTAINTIES = ("predictive", "posterior")  # the std of ``return_std`` (section 5)
+
+DEFAULT_WINDOW = 5
+"""Side of the occlusion gate's square neighbourhood, pixels (:mod:`crfdepth.potentials.occlusion`)."""
+DEFAULT_THRESHOLD = 0.015
+"""Inverse-depth lead r above which a return is see-through, 1/m."""
+DEFAULT_SOFTNESS = 0.003
+"""Width of the soft gate's transition in r, 1/m."""
+DEFAULT_IRLS_SCALE = 0.015
+"""``sigma`` of the robust reweighting's Geman-McClure factor, 1/m: the occlusion gate's threshold,
+so that a return that far behind its prediction keeps a quarter of its weight."""
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The graph and what it solves for (section 2, 3b, 6)."""
+
+    mode: Mode = "superpixel"
+    superpixels: int = 5500  # SLIC segments for a 1216x352 image
+    scale_superpixels: bool = True
+    aggregate: Literal["mean", "median"] = "mean"
+    refine: bool = True
+    rounds: int = 1
+    variable: Variable = "depth"
+    prior: Literal["nearest", "ip_basic"] = "nearest"
+    head: bool = False
+
+
+@dataclass(frozen=True)
+class Potentials:
+    """The pairwise terms that are on and the initial weights of every term (section 3)."""
+
+    on: tuple[str, ...] = POTENTIALS
+    alpha: float = 0.5
+    beta: float = 0.5
+    gamma: float = 0.05
+    delta: float = 0.25
+    sigma_d: float = 0.1
+    sigma_n: float = 0.3
+    sigma_p: float = 1.0
+    confidence: float = 100.0
+    eps: float = 0.1
+    refine_prior: float = 0.05
+    irls: int = 0
+    irls_scale: float = DEFAULT_IRLS_SCALE
+
+
+@dataclass(frozen=True)
+class Gate:
+    """The soft occlusion gate on each return's data weight (section 3b)."""
+
+    enabled: bool = False
+    window: int = DEFAULT_WINDOW
+    threshold: float = DEFAULT_THRESHOLD
+    softness: float = DEFAULT_SOFTNESS
+
+
+@dataclass(frozen=True)
+class Solver:
+    """Settings of every linear solve (section 4) and the memory a forward may take (section 10)."""
+
+    method: Literal["cg", "cgs"] = "cg"
+    rtol: float = 1e-5
+    max_iter: int | None = None
+    memory_limit_gb: float | None = None
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """The std of ``return_std`` (section 5)."""
+
+    kind: Literal["predictive", "posterior"] = "predictive"
+    scale: float = 1.0
+    samples: int = 32
+    terms: Mapping[str, float] | None = None
+
+
+GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "gate": Gate, "solver": Solver,
+                           "uncertainty": Uncertainty}
+
+FLAT: dict[str, tuple[str, str]] = {
+    **{name: ("structure", name) for name in ("mode", "superpixels", "scale_superpixels", "aggregate", "refine",
+                                              "rounds", "variable", "prior", "head")},
+    "potentials": ("potentials", "on"),
+    **{name: ("potentials", name) for name in ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p",
+                                               "confidence", "eps", "refine_prior", "irls", "irls_scale")},
+    "gate": ("gate", "enabled"), "gate_window": ("gate", "window"), "gate_threshold": ("gate", "threshold"),
+    "gate_softness": ("gate", "softness"),
+    **{name: ("solver", name) for name in ("method", "rtol", "max_iter", "memory_limit_gb")},
+    "uncertainty": ("uncertainty", "kind"), "std_scale": ("uncertainty", "scale"),
+    "std_samples": ("uncertainty", "samples"), "std_terms": ("uncertainty", "terms"),
+}
+"""Flat name (``CRFDepth``'s keyword argument, and the key in files written before the groups) ->
+(group, field)."""
+
+
+def is_group(value: Any) -> bool:
+    """A group's value: a mapping of its fields or the group's dataclass (a flat option such as
+    ``gate=True`` or ``potentials=("colour",)`` is not)."""
+    return isinstance(value, Mapping) or (dataclasses.is_dataclass(value) and not isinstance(value, type))
+
+
+def is_grouped(config: Mapping[str, Any]) -> bool:
+    """Does ``config`` hold groups (the current files) rather than flat names (older ones)?"""
+    return any(key in GROUPS and is_group(value) for key, value in config.items())
+
+
+@dataclass(frozen=True)
+class CRFConfig:
+    """The whole configuration: five groups."""
+
+    structure: Structure = field(default_factory=Structure)
+    potentials: Potentials = field(default_factory=Potentials)
+    gate: Gate = field(default_factory=Gate)
+    solver: Solver = field(default_factory=Solver)
+    uncertainty: Uncertainty = field(default_factory=Uncertainty)
+
+    @classmethod
+    def build(cls, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> CRFConfig:
+        """The configuration from a base (a :class:`CRFConfig`, a mapping of groups or of flat names,
+        or None for the defaults) and ``options``: groups (``gate={"enabled": True}``) or flat names
+        (``mode="pixel"``, ``gate=True``), applied in that order.
+
+        Raises:
+            TypeError: a name that is neither a group nor a flat name, or a field a group does not
+                have (as for any unknown keyword argument).
+        """
+        result = config if isinstance(config, CRFConfig) else cls()._with(config or {})
+        return result._with(options)
+
+    def _with(self, values: Mapping[str, Any]) -> CRFConfig:
+        groups = {name: getattr(self, name) for name in GROUPS}
+        flat = {}
+        for key, value in values.items():
+            if key in GROUPS and is_group(value):
+                update = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else dict(value)
+                unknown = sorted(set(update) - {f.name for f in dataclasses.fields(GROUPS[key])})
+                if unknown:
+                    raise TypeError(f"CRFDepth() got unexpected {key} field(s) {', '.join(map(repr, unknown))}")
+                groups[key] = dataclasses.replace(groups[key], **update)
+            elif key in FLAT:
+                flat[key] = value
+            else:
+                raise TypeError(f"CRFDepth() got an unexpected keyword argument {key!r}")
+        for key, value in flat.items():
+            group, name = FLAT[key]
+            groups[group] = dataclasses.replace(groups[group], **{name: value})
+        if isinstance(groups["potentials"].on, (list, tuple)):
+            groups["potentials"] = dataclasses.replace(groups["potentials"], on=tuple(groups["potentials"].on))
+        return CRFConfig(**groups)
+
+    def flat(self) -> dict[str, Any]:
+        """The configuration by flat names (every one of :data:`FLAT`)."""
+        return {key: getattr(getattr(self, group), name) for key, (group, name) in FLAT.items()}
+
+    def groups(self) -> dict[str, dict[str, Any]]:
+        """The configuration as plain data, group by group (what files and checkpoints store)."""
+        return {name: {f.name: _plain(getattr(getattr(self, name), f.name)) for f in dataclasses.fields(kind)}
+                for name, kind in GROUPS.items()}
+
+
+def flat_view(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The flat names a stored configuration sets (grouped or flat), without filling defaults."""
+    if not is_grouped(config):
+        return dict(config)
+    by_field = {value: key for key, value in FLAT.items()}
+    return {by_field[(group, name)]: value for group, fields in config.items() if group in GROUPS
+            for name, value in dict(fields).items() if (group, name) in by_field}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return list(value)
+    if isinstance(value, Mapping):
+        return dict(value)
+    return value
