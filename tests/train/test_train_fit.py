@@ -18,6 +18,7 @@ import yaml
 from crfdepth.data import build_dataset, collate_samples
 from crfdepth.uncertainty.predictive import DEFAULT_STD_TERMS, STD_TERMS
 from crfdepth.metrics import depth_metrics
+from crfdepth.config import flat_view
 from crfdepth.model import CRFDepth
 from train.__main__ import main
 
@@ -99,7 +100,7 @@ def test_synthetic_config_as_shipped_fits_the_predictive_std(tmp_path, configs, 
           f"train NLL per epoch {[round(v, 2) for v in nll]}")
     assert scale0 == scale1 == pytest.approx(1.0) and float(moved.max()) > 0.05
     assert nll[-1] < nll[0]
-    assert ckpt["hyper_parameters"]["crf"]["mode"] == "superpixel" and ckpt["hyper_parameters"]["nll_weight"] > 0
+    assert ckpt["hyper_parameters"]["crf"]["structure"]["mode"] == "superpixel" and ckpt["hyper_parameters"]["nll_weight"] > 0
 
 
 # ----------------------------------------------------------------------------- real frames
@@ -127,7 +128,7 @@ def test_training_on_real_frames_lowers_heldout_rmse(kitti_run):
     ckpt = torch.load(best[0], weights_only=True)
     learned_rmse = _best_score(ckpt)
     assert learned_rmse == pytest.approx(min(v for _, v in scalars["val/rmse"][1:]))
-    initial = ckpt["hyper_parameters"]["crf"]
+    initial = flat_view(ckpt["hyper_parameters"]["crf"])
     learned = _learned_weights(ckpt)
     print(f"\nreal frames ({kitti_run.seconds:.1f} s): held-out RMSE on {KITTI_VAL_FRAME}: default weights "
           f"{default_rmse:.1f} mm, learned {learned_rmse:.1f} mm")
