@@ -69,7 +69,7 @@ from typing import Any, Mapping
 
 import torch
 
-from crfdepth.config import POTENTIALS, CRFConfig, flat_view
+from crfdepth.config import POTENTIALS, CRFConfig, flat_view, plain_data
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights.files import (
@@ -113,7 +113,7 @@ def own_structure(name: str) -> dict[str, Any]:
         InputError: an unknown ``name``.
     """
     config, _ = pretrained_state(name)
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in CRFConfig.build(config).flat().items()}
+    return plain_data(CRFConfig.build(config).flat())
 
 
 def describe(model_or_config: CRFDepth | Mapping[str, Any]) -> str:

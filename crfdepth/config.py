@@ -185,7 +185,7 @@ class CRFConfig:
 
     def groups(self) -> dict[str, dict[str, Any]]:
         """The configuration as plain data, group by group (what files and checkpoints store)."""
-        return {name: {f.name: _plain(getattr(getattr(self, name), f.name)) for f in dataclasses.fields(kind)}
+        return {name: {f.name: plain_data(getattr(getattr(self, name), f.name)) for f in dataclasses.fields(kind)}
                 for name, kind in GROUPS.items()}
 
 
@@ -198,9 +198,11 @@ def flat_view(config: Mapping[str, Any]) -> dict[str, Any]:
             for name, value in dict(fields).items() if (group, name) in by_field}
 
 
-def _plain(value: Any) -> Any:
-    if isinstance(value, tuple):
-        return list(value)
+def plain_data(value: Any) -> Any:
+    """Tuples as lists and mappings as dicts, recursively: what JSON and ``torch.load(weights_only=True)``
+    read back as they were written."""
     if isinstance(value, Mapping):
-        return dict(value)
+        return {k: plain_data(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_data(v) for v in value]
     return value

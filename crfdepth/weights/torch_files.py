@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 import torch
 
+from crfdepth.config import plain_data
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write, check_output_file
 
@@ -60,20 +61,11 @@ def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: 
     payload = {
         "format": MODEL_FORMAT,
         "version": MODEL_VERSION,
-        "config": _plain(dict(config)),
+        "config": plain_data(dict(config)),
         "state_dict": {k: v.detach().cpu().clone() for k, v in state.items()},
     }
     atomic_write(file, lambda temporary: torch.save(payload, temporary))
     return file
-
-
-def _plain(value: Any) -> Any:
-    """Tuples as lists, recursively (the file stays loadable with ``weights_only=True``)."""
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
 
 
 # --------------------------------------------------------------------------- reading
