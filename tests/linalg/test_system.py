@@ -10,7 +10,6 @@ from crfdepth.uncertainty.posterior import posterior_std, system_conditional_var
 
 
 def _dense(d, edge_index, w):
-    n = d.shape[0]
     A = torch.diag(d).clone()
     for (i, j), wij in zip(edge_index.T.tolist(), w.tolist()):
         A[i, i] += wij
