@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import sys
 import warnings
 from dataclasses import dataclass, field
 
@@ -126,14 +128,29 @@ def _report(info: SolveInfo, settings: SolverSettings, what: str) -> None:
            f"warm start x0.")
     if settings.on_nonconvergence == "raise":
         raise ConvergenceError(msg)
-    warnings.warn(msg, ConvergenceWarning, stacklevel=4)
+    warnings.warn(msg, ConvergenceWarning, stacklevel=_caller_level())
+
+
+# the folders of crfdepth (two above this file) and of torch: the frames _caller_level passes over
+_LIBRARY_DIRS = (os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep,
+                 os.path.dirname(os.path.abspath(torch.__file__)) + os.sep)
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of ``warnings.warn`` in :func:`_report` that names the first frame outside crfdepth and
+    torch: the user's call, however deep in the library (model, layer, public solve, autograd's backward) the
+    solve ran."""
+    frame, level = sys._getframe(2), 2  # the frame that called _report is level 2 of warnings.warn
+    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
+        frame, level = frame.f_back, level + 1
+    return level if frame is not None else 1
 
 
 class _LaplacianSolve(torch.autograd.Function):
     """``x = A^-1 b`` with ``A = diag(d) + L(w)``, differentiated implicitly.
 
-    Forward: Krylov solve under ``no_grad``. A solve whose result will be differentiated
-    runs to ``min(rtol, grad_rtol)`` and, for float32 (or half) inputs, in float64: the
+    The solve of :func:`solve_system` whose result will be differentiated. Forward: Krylov
+    solve under ``no_grad``, to ``min(rtol, grad_rtol)`` and, for float32 (or half) inputs, in float64: the
     gradient below is exact only at ``A x = b``, and an early-stopped ``x`` biases it
     (docs/design.md section 4). ``x`` is returned in the inputs' dtype. On pixel grids
     such a solve is preconditioned by multigrid (:mod:`crfdepth.linalg.multigrid`; the
@@ -153,13 +170,13 @@ class _LaplacianSolve(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, structure, settings, differentiable, info_box, x0, b, d, *weights):
-        work = torch.float64 if differentiable and b.dtype in _LOW_PRECISION else b.dtype
+    def forward(ctx, structure, settings, info_box, x0, b, d, *weights):
+        work = torch.float64 if b.dtype in _LOW_PRECISION else b.dtype
         forward_settings = settings
-        if differentiable and settings.grad_rtol < settings.rtol:
+        if settings.grad_rtol < settings.rtol:
             forward_settings = dataclasses.replace(settings, rtol=settings.grad_rtol)
         with torch.no_grad():
-            matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, forward_settings, differentiable,
+            matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, forward_settings, True,
                                                                        d.to(work), [w.to(work) for w in weights])
             x0_rows = None if x0 is None else structure.to_rows(x0.to(work))
             x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(b.to(work)), x0_rows,
@@ -178,9 +195,9 @@ class _LaplacianSolve(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x):
         (x,) = ctx.saved_tensors
-        needs = ctx.needs_input_grad  # (structure, settings, differentiable, info_box, x0, b, d, *weights)
-        if not any(needs[5:]):
-            return (None,) * (7 + ctx.num_weights)
+        needs = ctx.needs_input_grad  # (structure, settings, info_box, x0, b, d, *weights)
+        if not any(needs[4:]):
+            return (None,) * (6 + ctx.num_weights)
         layout, scaled_matvec, s_rows, diag_rows, precondition = ctx.solver_state
         g_rows = layout.to_rows(grad_x.to(x.dtype).contiguous())
         lam_rows, info = _krylov_solve(layout, scaled_matvec, s_rows, diag_rows, g_rows, None, ctx.settings,
@@ -188,13 +205,13 @@ class _LaplacianSolve(torch.autograd.Function):
         ctx.info.adjoint = info
         _report(info, ctx.settings, "adjoint solve")
         lam = layout.from_rows(lam_rows)
-        grad_b = lam.to(ctx.dtype) if needs[5] else None
-        grad_d = (-lam * x).to(ctx.dtype) if needs[6] else None
+        grad_b = lam.to(ctx.dtype) if needs[4] else None
+        grad_d = (-lam * x).to(ctx.dtype) if needs[5] else None
         grad_w = [None] * ctx.num_weights
-        if any(needs[7:]):
+        if any(needs[6:]):
             gw = layout.weight_grad(lam, x)
             grad_w = [g.to(ctx.dtype) for g in (gw if isinstance(gw, tuple) else (gw,))]
-        return (None, None, None, None, None, grad_b, grad_d, *grad_w)
+        return (None, None, None, None, grad_b, grad_d, *grad_w)
 
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16, torch.float32)
@@ -259,10 +276,20 @@ def _scaled_multigrid(cycle: GridMultigrid, sqrt_diag_rows: torch.Tensor):
 
 def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettings) -> tuple[torch.Tensor, SolveInfo]:
     """``x`` of ``system`` (differentiable in its diagonal, right-hand side and weights) and the
-    solve's :class:`SolveInfo`, without input checks; ``x0`` is a warm start, no gradient flows to it."""
+    solve's :class:`SolveInfo`, without input checks; ``x0`` is a warm start, no gradient flows to it.
+
+    A solve that will not be differentiated (inference runs under ``no_grad``) goes straight to the
+    Krylov loop, in the system's dtype; one that will goes through :class:`_LaplacianSolve`."""
     structure = PixelGrid(*system.rhs.shape) if system.is_grid else EdgeGraph(system.edge_index, system.ptr)
     tensors = (system.rhs, system.diagonal, *system.weights)
-    box: list[SolveInfo] = []
-    x = _LaplacianSolve.apply(structure, settings, _differentiable(*tensors), box,
-                              None if x0 is None else x0.detach(), *tensors)
-    return x, box[0]
+    if _differentiable(*tensors):
+        box: list[SolveInfo] = []
+        x = _LaplacianSolve.apply(structure, settings, box, None if x0 is None else x0.detach(), *tensors)
+        return x, box[0]
+    with torch.no_grad():
+        matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, settings, False, system.diagonal,
+                                                                   list(system.weights))
+        x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(system.rhs),
+                                     None if x0 is None else structure.to_rows(x0), settings, precondition)
+    _report(info, settings, "solve")
+    return structure.from_rows(x_rows), info

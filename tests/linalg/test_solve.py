@@ -166,9 +166,15 @@ def test_float32_solve_and_zero_rhs():
 
 def test_nonconvergence_warns_with_numbers_or_raises():
     b, d, ei, w = random_graph(200, 10, observed=0.02)
-    with pytest.warns(ConvergenceWarning, match=r"graph 0: 3 iterations, relative residual \d"):
+    with pytest.warns(ConvergenceWarning, match=r"graph 0: 3 iterations, relative residual \d") as caught:
         _, info = solve_laplacian(b, d, ei, w, max_iter=3, check_every=1)
     assert not bool(info.converged[0]) and int(info.iterations[0]) == 3
+    assert caught[0].filename == __file__  # the warning names the caller's line, not the library's
+    w.requires_grad_(True)  # the differentiated solve (through autograd) names it too
+    with pytest.warns(ConvergenceWarning) as caught:
+        solve_laplacian(b, d, ei, w, max_iter=3, check_every=1)
+    assert caught[0].filename == __file__
+    w = w.detach()
     with pytest.raises(ConvergenceError, match="did not reach rtol"):
         solve_laplacian(b, d, ei, w, max_iter=3, on_nonconvergence="raise")
     with warnings.catch_warnings():
