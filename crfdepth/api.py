@@ -24,16 +24,17 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 
 import cv2
 import numpy as np
 import torch
 
 from crfdepth.checkpoints import load_pretrained
-from crfdepth.checks import check_intrinsics, check_rigid
+from crfdepth.checks import check_frames, check_intrinsics
 from crfdepth.errors import InputError
+from crfdepth.inference import PIPELINES
 from crfdepth.inputs import (
-    calibration_name,
     checked_points_to_sparse,
     image_to_numpy,
     prepare_points,
@@ -48,7 +49,7 @@ from crfdepth.memory import (
     out_of_memory,
 )
 
-__all__ = ["check_frame", "complete_batch", "complete_depth"]
+__all__ = ["check_frame", "complete_batch", "complete_checked", "complete_depth"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +61,7 @@ def check_frame(image, sparse, K) -> None:
     not finite, >= 0, with a return, or not plausibly metres of a LiDAR scene seen with this K
     (:func:`crfdepth.plausibility.check_sparse_plausible`: the hints say what to divide by)."""
     rgb, _, _ = image_to_numpy(image)
+    check_frame_size("image", *rgb.shape[:2])
     Kn = check_intrinsics(K, "K", rgb.shape[:2])
     sparse_to_numpy(sparse, rgb.shape[:2], Kn)
 
@@ -178,16 +180,46 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             allocator failure in the forward is turned into the same kind of error.
     """
     known = _image_size(image)
-    if known is not None:  # size and memory from the shape alone, before any conversion allocates
-        model = _model_on(model, device)
-        check_frame_size("image", *known)
-        check_model_memory(model, 1, *known, bool(return_std))
+    if known is None:  # not an image of an accepted layout: refused here, naming image
+        image_to_numpy(image)
+    model = _model_on(model, device)
+    # size and memory from the shape alone, before any conversion allocates
+    check_frame_size("image", *known)
+    check_model_memory(model, 1, *known, bool(return_std))
     rgb, is_tensor, out_device = image_to_numpy(image)
     size = rgb.shape[:2]
     if not isinstance(trust_transform, bool):
         raise InputError(f"trust_transform: expected True or False, got {trust_transform!r}")
     if not isinstance(trust_units, bool):
         raise InputError(f"trust_units: expected True or False, got {trust_units!r}")
+    calibration = _calibration(calibration, K, T_cam_lidar, distortion, points, size)
+    if (sparse is None) == (points is None):
+        raise InputError(f"sparse / points: expected exactly one of them (a sparse depth map or a point cloud), "
+                         f"got {'both' if sparse is not None else 'neither'}")
+    if calibration.distortion is not None:
+        rgb = cv2.undistort(rgb, calibration.K, calibration.distortion)
+        if sparse is not None:
+            logger.warning("distortion: the image is undistorted but a given sparse map is used as is; it must "
+                           "already be projected with K and no distortion")
+    if points is not None:
+        sparse_np = checked_points_to_sparse(prepare_points(points), calibration, size, trust_transform)
+    else:
+        sparse_np = sparse_to_numpy(sparse, size, None if trust_units else calibration.K)
+
+    # The one conversion in: checked arrays -> the model's tensors (batch of one); the pipeline is called
+    # here rather than through model.forward, which would check the frame again.
+    image_t, sparse_t, K_t = _on_model(model, rgb.transpose(2, 0, 1)[None], sparse_np[None, None], calibration.K[None])
+    with _ModelStep(model, sparse_t, return_std) as step:
+        step.output = PIPELINES[model.mode](model, image_t, sparse_t, K_t, return_std)
+    depth, std = step.result()
+    if is_tensor:  # the one conversion out: the image's kind and device
+        return depth[0].to(out_device), (std[0].to(out_device) if std is not None else None)
+    return depth[0].cpu().numpy(), (std[0].cpu().numpy() if std is not None else None)
+
+
+def _calibration(calibration, K, T_cam_lidar, distortion, points, size: tuple[int, int]) -> RigCalibration:
+    """The camera of :func:`complete_depth` as one checked :class:`RigCalibration`, from ``calibration`` or
+    from ``K`` / ``T_cam_lidar`` / ``distortion``."""
     if calibration is not None:
         given = [name for name, value in (("K", K), ("T_cam_lidar", T_cam_lidar), ("distortion", distortion))
                  if value is not None]
@@ -204,36 +236,17 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
                              f"{calibration.image_size[1]}x{calibration.image_size[0]} (WxH), got {size[1]}x{size[0]}; "
                              f"resize/crop the image back or use the calibration of this image size (K scales "
                              f"with the image)")
-        check_intrinsics(calibration.K, calibration_name("K", calibration), size)
-    else:
-        if K is None:
-            raise InputError("K: required: expected the 3x3 intrinsics of the image (or calibration=), got None")
-        Kn = check_intrinsics(K, "K", size)
-        if points is not None and T_cam_lidar is None:
-            raise InputError("T_cam_lidar: required with points: expected the 4x4 LiDAR -> camera transform "
-                             "(metres), got None")
-        T = np.eye(4) if T_cam_lidar is None else check_rigid(T_cam_lidar, "T_cam_lidar")
-        calibration = RigCalibration(K=Kn, T_cam_lidar=T, distortion=distortion, image_size=size, source="arguments")
-    if (sparse is None) == (points is None):
-        raise InputError(f"sparse / points: expected exactly one of them (a sparse depth map or a point cloud), "
-                         f"got {'both' if sparse is not None else 'neither'}")
-    if calibration.distortion is not None:
-        rgb = cv2.undistort(rgb, calibration.K, calibration.distortion)
-        if sparse is not None:
-            logger.warning("distortion: the image is undistorted but a given sparse map is used as is; it must "
-                           "already be projected with K and no distortion")
-    if points is not None:
-        sparse_np = checked_points_to_sparse(prepare_points(points), calibration, size, trust_transform)
-    else:
-        sparse_np = sparse_to_numpy(sparse, size, None if trust_units else calibration.K)
-
-    image_t = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
-    depth, std = complete_batch(image_t, torch.from_numpy(sparse_np)[None, None], torch.from_numpy(calibration.K),
-                                model=model, device=device, return_std=return_std)
-    depth, std = depth[0], (std[0] if std is not None else None)
-    if is_tensor:
-        return depth.to(out_device), (std.to(out_device) if std is not None else None)
-    return depth.cpu().numpy(), (std.cpu().numpy() if std is not None else None)
+        if calibration.image_size is None:  # K was checked without an image size when it was built
+            check_intrinsics(calibration.K, calibration.name("K"), size)
+        return calibration
+    if K is None:
+        raise InputError("K: required: expected the 3x3 intrinsics of the image (or calibration=), got None")
+    if points is not None and T_cam_lidar is None:
+        raise InputError("T_cam_lidar: required with points: expected the 4x4 LiDAR -> camera transform "
+                         "(metres), got None")
+    # checked once, as the calibration is built: K against the image's size, T rigid, distortion's length
+    return RigCalibration(K=K, T_cam_lidar=np.eye(4) if T_cam_lidar is None else T_cam_lidar, distortion=distortion,
+                          image_size=size, source="arguments")
 
 
 def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *, model=None,
@@ -263,27 +276,67 @@ def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *
         ``return_std`` is False).
     """
     model = _model_on(model, device)
-    param = next(model.parameters())
-    failure = None
-    with torch.no_grad():
-        try:
-            out = model(*(t.to(param.device, param.dtype) for t in (image, sparse, K)), return_std=return_std)
-        except (RuntimeError, MemoryError) as exc:  # the last line of defence behind the up-front estimate
-            if not is_out_of_memory(exc):
-                raise
-            failure = _allocator_failure(exc, model, sparse, return_std)
-    if failure is not None:  # raised here, once the failed forward's tensors are released
-        if param.device.type == "cuda":
-            torch.cuda.empty_cache()
-        raise failure
-    return out.depth[:, 0].float(), (out.std[:, 0].float() if return_std else None)
+    for name, value in (("image", image), ("sparse", sparse), ("K", K)):
+        if not isinstance(value, torch.Tensor):
+            raise InputError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+    if sparse.dim() == 4:  # the size from the shape alone, before the checks allocate per pixel
+        check_frame_size("image", *sparse.shape[2:])
+    image, sparse, K = check_frames(*_on_model(model, image, sparse, K))
+    return complete_checked(model, image, sparse, K, return_std=return_std)
 
 
-def _allocator_failure(exc: BaseException, model, sparse, return_std: bool) -> InputError:
-    """The one-line error for an allocator failure in ``model``'s forward of ``sparse``'s frames."""
-    shape = tuple(sparse.shape)
-    size = (shape[0], shape[-2], shape[-1]) if len(shape) == 4 else (1, *shape[-2:])
+def complete_checked(model, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *, return_std: bool
+                     ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`complete_batch` of frames already checked (:func:`check_frame` on each, as the CLI's folder mode
+    does in its DataLoader workers), in the layout :func:`crfdepth.checks.check_frames` returns: no input is
+    checked again; the batch is refused up front when it would not fit in the memory
+    (:class:`~crfdepth.memory.MemoryRefusal`). ``model`` is a :class:`~crfdepth.model.CRFDepth`; the
+    tensors are moved to its device and dtype. Returns (B, H, W) float32 depth and std (None without
+    ``return_std``), metres, on the model's device."""
+    check_model_memory(model, sparse.shape[0], *sparse.shape[2:], bool(return_std))
+    image, sparse, K = _on_model(model, image, sparse, K)
+    with _ModelStep(model, sparse, return_std) as step:
+        step.output = PIPELINES[model.mode](model, image, sparse, K, return_std)
+    return step.result()
+
+
+def _on_model(model, *arrays) -> tuple[torch.Tensor, ...]:
+    """``arrays`` (numpy or tensors) as tensors on the model's device in its dtype: the one conversion of a
+    frame's values on its way in (a numpy array is shared, not copied, where its layout allows)."""
     param = next(model.parameters())
-    estimate = estimate_bytes(model.mode, size[0] * size[1] * size[2], bool(return_std), model.uncertainty,
-                              torch.finfo(param.dtype).bits // 8)
-    return out_of_memory(exc, size, param.device, estimate=estimate)
+    return tuple((torch.from_numpy(np.require(a, a.dtype.newbyteorder("="), ("C", "W"))) if isinstance(a, np.ndarray)
+                  else a).to(param.device, param.dtype) for a in arrays)
+
+
+class _ModelStep:
+    """The model's pipeline run inside ``with``: under ``no_grad``, and with an allocator failure (the last
+    line of defence behind the up-front memory estimate) held back and raised by :meth:`result` as a one-line
+    :class:`~crfdepth.memory.MemoryRefusal`, once the failed forward's tensors are released."""
+
+    def __init__(self, model, sparse: torch.Tensor, return_std: bool):
+        self.model, self.size, self.return_std = model, (sparse.shape[0], *sparse.shape[-2:]), return_std
+        self.output, self.failure = None, None
+        self._no_grad = torch.no_grad()
+
+    def __enter__(self) -> "_ModelStep":
+        self._no_grad.__enter__()
+        return self
+
+    def __exit__(self, kind, exc, traceback) -> bool:
+        self._no_grad.__exit__(kind, exc, traceback)
+        if exc is None or not isinstance(exc, (RuntimeError, MemoryError)) or not is_out_of_memory(exc):
+            return False
+        param = next(self.model.parameters())
+        estimate = estimate_bytes(self.model.mode, math.prod(self.size), self.return_std, self.model.uncertainty,
+                                  torch.finfo(param.dtype).bits // 8)
+        self.failure = out_of_memory(exc, self.size, param.device, estimate=estimate)
+        return True
+
+    def result(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, H, W) float32 depth and std (None without ``return_std``) of the run, or its allocator failure."""
+        if self.failure is not None:
+            if next(self.model.parameters()).device.type == "cuda":
+                torch.cuda.empty_cache()
+            raise self.failure
+        out = self.output
+        return out.depth[:, 0].float(), (out.std[:, 0].float() if self.return_std else None)

@@ -23,7 +23,6 @@ from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_plausible
 
 __all__ = [
-    "calibration_name",
     "checked_points_to_sparse",
     "image_to_numpy",
     "no_points_message",
@@ -71,8 +70,9 @@ def image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
 
 
 def sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
-    """``sparse`` as an (H, W) float32 map in metres, checked (with ``K``, the image's intrinsics,
-    for the plausibility check :func:`crfdepth.plausibility.check_sparse_plausible`)."""
+    """``sparse`` as an (H, W) numpy map in metres, checked (with ``K``, the image's intrinsics, for the
+    plausibility check :func:`crfdepth.plausibility.check_sparse_plausible`); its dtype is kept, the model's
+    is applied where the frame becomes tensors (:mod:`crfdepth.api`)."""
     array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
     if array.ndim == 3 and array.shape[0] == 1:
         array = array[0]
@@ -87,7 +87,7 @@ def sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
     if not np.any(array > 0):
         raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
     check_sparse_plausible("sparse", array, K)
-    return array.astype(np.float32)
+    return array
 
 
 def prepare_points(points) -> np.ndarray:
@@ -189,16 +189,8 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
     if not isinstance(calibration, RigCalibration):
         raise InputError(f"calibration: expected a crfdepth.io.calibration.RigCalibration (load_any_calibration) "
                          f"or a KITTI Calibration, got {type(calibration).__name__}")
-    check_intrinsics(calibration.K, calibration_name("K", calibration), image_size)
+    check_intrinsics(calibration.K, calibration.name("K"), image_size)
     return checked_points_to_sparse(prepare_points(points), calibration, image_size, trust_transform)
-
-
-def calibration_name(key: str, calibration: RigCalibration) -> str:
-    """The user's name of a calibration entry: ``T_cam_lidar`` (given as an argument),
-    ``calibration.T_cam_lidar`` (of a calibration object) or ``T_cam_lidar (rig.yaml)`` (read from a file)."""
-    if calibration.source == "arguments":
-        return key
-    return f"calibration.{key}" if calibration.source == "calibration" else f"{key} ({calibration.source})"
 
 
 def checked_points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image_size: tuple[int, int],
@@ -219,7 +211,7 @@ def checked_points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image
             tilt, inverse = ground_tilt_deg(normal, T), ground_tilt_deg(normal, np.linalg.inv(T))
             if tilt > INVERTED_MIN_TILT_DEG and inverse < INVERTED_MAX_INVERSE_TILT_DEG:
                 raise InputError(
-                    f"{calibration_name('T_cam_lidar', calibration)}: expected the transform that maps LiDAR points "
+                    f"{calibration.name('T_cam_lidar')}: expected the transform that maps LiDAR points "
                     f"into the camera frame (x right, y down, z forward), got one that looks inverted: it turns the "
                     f"scan's ground plane {tilt:.0f} degrees from level under the camera, its inverse {inverse:.0f} "
                     f"degrees; pass its inverse (np.linalg.inv), or trust_transform=True to use it as given")

@@ -31,8 +31,7 @@ from crfdepth.config import (
     CRFConfig,
 )
 from crfdepth.errors import InputError
-from crfdepth.inference.pixel import pixel_forward
-from crfdepth.inference.superpixel import superpixel_forward
+from crfdepth.inference import PIPELINES
 from crfdepth.linalg import solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput
@@ -281,9 +280,7 @@ class CRFDepth(ConstrainedWeights):
         image, sparse, K = check_frames(image, sparse, K)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
-        if self.mode == "pixel":
-            return pixel_forward(self, image, sparse, K, return_std)
-        return superpixel_forward(self, image, sparse, K, return_std)
+        return PIPELINES[self.mode](self, image, sparse, K, return_std)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

@@ -18,6 +18,7 @@ from crfdepth.errors import InputError
 
 __all__ = [
     "CODES_PER_METRE",
+    "ImplausibleDepth",
     "MAX_LIDAR_DEPTH_M",
     "SPARSE_UNITS",
     "check_sparse_plausible",
@@ -109,6 +110,27 @@ def _hint(read_as: str, unit: str) -> str:
     return f"{names[unit]}: pass --sparse-units {unit}"
 
 
+class ImplausibleDepth(InputError):
+    """The refusal of :func:`check_sparse_plausible`. It keeps the map and K it judged, so that
+    :meth:`retold` can say it again under another name and reading (the CLI's ``--sparse`` file and
+    its ``--sparse-units``) without the map being checked twice when it passes."""
+
+    def __init__(self, message: str, depth: np.ndarray | None = None, K: np.ndarray | None = None):
+        super().__init__(message)
+        self.depth, self.K = depth, K
+
+    def retold(self, name: str, read_as: str) -> InputError:
+        """The same refusal of the same map, naming ``name``, with the hints of ``read_as``
+        (:func:`check_sparse_plausible`'s argument)."""
+        if self.depth is None:
+            return self
+        try:
+            check_sparse_plausible(name, self.depth, self.K, read_as=read_as)
+        except InputError as exc:
+            return exc
+        return self
+
+
 def check_sparse_plausible(name: str, depth: object, K: object = None, *, read_as: str = "api") -> None:
     """Refuse a sparse depth map that cannot be metres of a real LiDAR scene, naming the likely unit.
 
@@ -189,7 +211,7 @@ def check_sparse_plausible(name: str, depth: object, K: object = None, *, read_a
         message += ("; if the camera really is that high (a mast, a drone), pass trust_units=True" if read_as == "api"
                     else f"; if the camera really is that high (a mast, a drone), give --sparse-units {read_as} "
                          f"explicitly")
-    raise InputError(message)
+    raise ImplausibleDepth(message, array, K)
 
 
 def check_sparse_units(name: str, sparse: object) -> None:

@@ -23,6 +23,7 @@ import torch
 from crfdepth import api, cli, memory
 from crfdepth import model as model_module
 from crfdepth.errors import InputError
+from crfdepth.inference import PIPELINES
 from crfdepth.io.image_size import read_image_size
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.memory import MemoryRefusal, available_memory, estimate_bytes
@@ -145,6 +146,12 @@ def test_complete_depth_tensor_image_is_measured_in_either_layout(monkeypatch):
             api.complete_depth(image, sparse=torch.zeros(1, 1).expand(15000, 20000), K=K)
 
 
+def _run_instead(monkeypatch, forward) -> None:
+    """``forward(model, image, sparse, K, return_std)`` runs in place of the model's pipeline in every mode."""
+    for mode in PIPELINES:
+        monkeypatch.setitem(PIPELINES, mode, forward)
+
+
 def test_model_forward_refuses_before_its_input_checks(monkeypatch):
     def checked(*args, **kwargs):  # pragma: no cover - must not be reached
         raise AssertionError("check_frames ran before the memory check")
@@ -168,7 +175,7 @@ def test_allocator_failure_in_the_forward_is_one_line(monkeypatch, failure):
     def forward(self, *args, **kwargs):
         raise failure
 
-    monkeypatch.setattr(CRFDepth, "forward", forward)
+    _run_instead(monkeypatch, forward)
     rgb, sparse = _scene()
     with pytest.raises(MemoryRefusal) as err:
         api.complete_depth(rgb, sparse=sparse, K=K)
@@ -182,7 +189,7 @@ def test_other_runtime_errors_are_not_taken_for_memory(monkeypatch):
     def forward(self, *args, **kwargs):
         raise RuntimeError("some other failure")
 
-    monkeypatch.setattr(CRFDepth, "forward", forward)
+    _run_instead(monkeypatch, forward)
     rgb, sparse = _scene()
     with pytest.raises(RuntimeError, match="some other failure") as err:
         api.complete_depth(rgb, sparse=sparse, K=K)
@@ -236,7 +243,7 @@ def test_cli_allocator_failure_exits_2_with_one_line(main, capsys, tmp_path, mon
     def forward(self, *args, **kwargs):
         raise RuntimeError(ALLOCATOR_FAILURE)
 
-    monkeypatch.setattr(CRFDepth, "forward", forward)
+    _run_instead(monkeypatch, forward)
     frame = _frame(tmp_path / "in")
     out = tmp_path / "depth.png"
     assert main(_args(frame, out, "--mode", "pixel")) == 2

@@ -17,6 +17,7 @@ from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, keep_ev
 from crfdepth.inputs import points_to_sparse
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.kitti import read_velodyne
+from crfdepth.output import CRFOutput
 from crfdepth.plausibility import check_sparse_plausible
 
 
@@ -133,11 +134,12 @@ def test_a_camera_up_a_mast_passes_the_checks_with_trust_units(monkeypatch, mast
     sparse, K = mast_map
     seen = {}
 
-    def fake_batch(image, sparse_t, K_t, **kwargs):
+    def fake_pipeline(model, image, sparse_t, K_t, return_std):
         seen["sparse"] = sparse_t[0, 0].numpy()
-        return torch.ones(1, *sparse.shape), None
+        return CRFOutput(torch.ones(1, 1, *sparse.shape), *(None,) * 10)
 
-    monkeypatch.setattr(api, "complete_batch", fake_batch)
+    monkeypatch.setitem(api.PIPELINES, "pixel", fake_pipeline)
+    monkeypatch.setitem(api.PIPELINES, "superpixel", fake_pipeline)
     image = np.full((*sparse.shape, 3), 128, np.uint8)
     api.complete_depth(image, sparse=sparse, K=K, return_std=False, trust_units=True)
     np.testing.assert_allclose(seen["sparse"], sparse, rtol=0, atol=0)

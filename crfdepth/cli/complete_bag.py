@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from crfdepth import api
 from crfdepth.inputs import points_to_sparse
 from crfdepth.cli.arguments import BAD_INPUT, positive_number
 from crfdepth.cli.bag_frames import (
@@ -69,7 +70,7 @@ from crfdepth.cli.bag_frames import (
     paired_frames,
     plan_frames,
 )
-from crfdepth.cli.completion import complete_frame, flag_names
+from crfdepth.cli.completion import flag_names, frame_errors
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import (
     check_output_folders,
@@ -274,7 +275,9 @@ def _one(args, model, plan: Plan, i: int, image_msg, cloud_msg, c: int, out_dir:
     stamp = int(plan.images.stamps_ns[i])
     rgb, xyz, flags = decode_frame(args, plan, i, image_msg, cloud_msg, c)
     calibration = plan.calibrations[i]
-    depth, std = complete_frame(args, model, rgb, flags, with_std, points=xyz, calibration=calibration)
+    with frame_errors(args, model, rgb.shape[:2], flags):
+        depth, std = api.complete_depth(rgb, points=xyz, calibration=calibration, model=model, device=args.device,
+                                        return_std=with_std, trust_transform=args.trust_transform)
     name = f"{stamp}.png"
     in_view = count_in_image(xyz.astype(np.float64), calibration.T_cam_lidar, calibration.K, depth.shape)
     rows.append({"timestamp_ns": stamp, "image_topic": args.image_topic, "points_topic": args.points_topic,
@@ -285,9 +288,9 @@ def _one(args, model, plan: Plan, i: int, image_msg, cloud_msg, c: int, out_dir:
                 args.vis_range)
     if writer is not None:
         log_ns, frame_id = int(plan.images.log_ns[i]), plan.images.frame_ids[i]
-        writer.write(topics["depth"], log_ns, writer.image(depth.astype(np.float32), stamp, frame_id, "32FC1"))
+        writer.write(topics["depth"], log_ns, writer.image(depth, stamp, frame_id, "32FC1"))
         if with_std:
-            writer.write(topics["std"], log_ns, writer.image(std.astype(np.float32), stamp, frame_id, "32FC1"))
+            writer.write(topics["std"], log_ns, writer.image(std, stamp, frame_id, "32FC1"))
         writer.write(topics["camera_info"], log_ns, writer.camera_info(calibration.K, depth.shape, stamp, frame_id))
 
 

@@ -147,8 +147,8 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
                 where = (f"frames {positions[written] + 1}-{positions[written + len(batch) - 1] + 1}/{total} "
                          f"({', '.join(batch.names)})")
             depth, std = complete_batch_with_cli_advice(model, batch, with_std)
-            depth = depth.double().cpu().numpy()
-            std = std.double().cpu().numpy() if std is not None else [None] * len(batch)
+            depth = depth.cpu().numpy()  # float32, as the one-frame mode writes it
+            std = std.cpu().numpy() if std is not None else [None] * len(batch)
             for name, frame_depth, frame_std in zip(batch.names, depth, std):
                 where = _where(positions[written], total, name)
                 write_frame(frame_depth, frame_std, out_dir / f"{name}.png",

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crfdepth.checks import check_intrinsics
-from crfdepth.plausibility import check_sparse_plausible
-from crfdepth.cli.completion import complete_frame
+from crfdepth import api
+from crfdepth.cli.completion import frame_errors
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import make_output_dir, same_file, write_frame
 from crfdepth.errors import InputError
@@ -91,19 +90,17 @@ def run_one(args: argparse.Namespace) -> int:
         if rgb.shape[:2] != sparse.shape:
             raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
                              f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
-        # the API checks both again; here the hints can name --sparse-units
         # an explicit --sparse-units overrules the guess about the rig (a camera more than 4 m up)
-        explicit = args.sparse_units is not None
-        Kn = check_intrinsics(K, f"--intrinsics {args.intrinsics}", sparse.shape)
-        check_sparse_plausible(f"--sparse {args.sparse}", sparse, None if explicit else Kn, read_as=units)
-        inputs = dict(sparse=sparse, K=K, trust_units=explicit)
+        inputs = dict(sparse=sparse, K=K, trust_units=args.sparse_units is not None)
         where = {"sparse": f"--sparse {args.sparse}", "K": f"--intrinsics {args.intrinsics}",
                  "image": f"--image {args.image}"}
     if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
         logger.warning("--image %s is greyscale; the colour potential sees intensity only", args.image)
     model = build_model(args)
     start = time.perf_counter()
-    depth, std = complete_frame(args, model, rgb, where, out_std is not None or args.vis is not None, **inputs)
+    with frame_errors(args, model, rgb.shape[:2], where, None if points_mode else units):
+        depth, std = api.complete_depth(rgb, model=model, device=args.device, trust_transform=args.trust_transform,
+                                        return_std=out_std is not None or args.vis is not None, **inputs)
     vis_dir = None
     if args.vis is not None:  # created only once the frame is completed
         vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent

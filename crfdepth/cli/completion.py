@@ -1,19 +1,20 @@
 """A frame or a batch through :mod:`crfdepth.api` for a command: errors retold in the user's flags.
 
-- :func:`complete_frame` / :func:`flag_names`: one frame through
+- :func:`frame_errors` / :func:`flag_names`: one frame through
   :func:`crfdepth.api.complete_depth`, errors under the user's flags (``complete``'s
   one-frame, point-cloud and bag modes);
 - :func:`check_sample` / :func:`complete_batch_with_cli_advice`: a batch of checked frames
-  through :func:`crfdepth.api.complete_batch` (``complete --input-dir`` and ``evaluate``);
+  through :func:`crfdepth.api.complete_checked` (``complete --input-dir`` and ``evaluate``);
   a frame too large for the memory is refused with the CLI's options as the fix.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from collections.abc import Iterator
 
-import numpy as np
 import torch
 
 from crfdepth import api
@@ -22,8 +23,9 @@ from crfdepth.data.sample import Batch, Sample
 from crfdepth.errors import InputError
 from crfdepth.memory import MemoryRefusal, cli_advice
 from crfdepth.model import CRFDepth
+from crfdepth.plausibility import ImplausibleDepth
 
-__all__ = ["check_sample", "complete_batch_with_cli_advice", "complete_frame", "flag_names"]
+__all__ = ["check_sample", "complete_batch_with_cli_advice", "flag_names", "frame_errors"]
 
 
 def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
@@ -37,37 +39,38 @@ def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
     return exc
 
 
-def complete_frame(args: argparse.Namespace, model, image, where: dict[str, str], with_std: bool, **inputs):
-    """One frame through :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
-    calls its batched form, :func:`complete_batch_with_cli_advice`); errors name ``where``'s flags. Returns
-    float64 numpy (H, W) depth and std (None without ``with_std``), metres.
+@contextlib.contextmanager
+def frame_errors(args: argparse.Namespace, model, size: tuple[int, int], where: dict[str, str],
+                 sparse_units: str | None = None) -> Iterator[None]:
+    """Around one frame's :func:`crfdepth.api.complete_depth` (one-frame, point-cloud and bag modes; folder mode
+    calls :func:`complete_batch_with_cli_advice`): its errors name ``where``'s flags, and a sparse map refused as
+    not metres gets the hints of the ``--sparse-units`` it was read in.
 
     A frame too large for the memory (refused up front, or an allocator failure in the forward) is an
     InputError naming the image's flag with the CLI's fix. Outside the bag mode and without ``--quiet``, a
-    frame expected to take or taking more than a few seconds gets a status line of the model's stages on
-    stderr when it is a terminal or with ``--verbose`` (:mod:`crfdepth.cli.progress`).
+    frame of ``size`` (height, width) expected to take or taking more than a few seconds gets a status line of
+    the model's stages on stderr when it is a terminal or with ``--verbose`` (:mod:`crfdepth.cli.progress`).
     """
     bag = getattr(args, "bag", None) is not None
     show = not getattr(args, "quiet", False) and not bag and (sys.stderr.isatty() or getattr(args, "verbose", False))
-    height, width = np.shape(image)[:2]
-    progress = FrameProgress(height, width, torch.device(args.device).type, enabled=show)
+    progress = FrameProgress(*size, torch.device(args.device).type, enabled=show)
     hook = model.progress if isinstance(model, CRFDepth) else None
     if isinstance(model, CRFDepth) and show:
         model.progress = progress.stage
     try:
         with progress:
-            depth, std = api.complete_depth(image, model=model, device=args.device, return_std=with_std,
-                                            trust_transform=args.trust_transform, **inputs)
+            yield
     except MemoryRefusal as exc:
         raise exc.retold(where.get("image", "image"), cli_advice(args.device)) from None
+    except ImplausibleDepth as exc:
+        if sparse_units is None:
+            raise flag_names(exc, where) from None
+        raise exc.retold(where["sparse"], sparse_units) from None
     except InputError as exc:
         raise flag_names(exc, where) from None
     finally:
         if isinstance(model, CRFDepth):
             model.progress = hook
-    as_numpy = (lambda a: a.double().cpu().numpy()) if isinstance(depth, torch.Tensor) else \
-        (lambda a: a.astype(np.float64))
-    return as_numpy(depth), (None if std is None else as_numpy(std))
 
 
 def check_sample(sample: Sample) -> None:
@@ -78,12 +81,11 @@ def check_sample(sample: Sample) -> None:
 
 def complete_batch_with_cli_advice(model: CRFDepth, batch: Batch, return_std: bool
                                    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`crfdepth.api.complete_batch` of a batch of frames checked by :func:`check_sample`, on the
-    model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. A memory refusal
-    advises the CLI's options."""
+    """:func:`crfdepth.api.complete_checked` of a batch of frames checked by :func:`check_sample` (so not
+    checked again), on the model's device: (B, H, W) float32 depth and std (None without ``return_std``),
+    metres. A memory refusal advises the CLI's options."""
     device = next(model.parameters()).device
     try:
-        return api.complete_batch(batch.image, batch.sparse, batch.K, model=model, device=device,
-                                  return_std=return_std)
+        return api.complete_checked(model, batch.image, batch.sparse, batch.K, return_std=return_std)
     except MemoryRefusal as exc:
         raise exc.retold("image", cli_advice(device.type, len(batch))) from None

@@ -167,11 +167,19 @@ class RigCalibration:
 
     def __post_init__(self) -> None:
         if self.image_size is not None:
-            self.image_size = _check_size(self.image_size, f"image_size ({self.source})")
-        self.K = check_intrinsics(self.K, f"K ({self.source})", self.image_size)
-        self.T_cam_lidar = check_rigid(self.T_cam_lidar, f"T_cam_lidar ({self.source})")
+            self.image_size = _check_size(self.image_size, self.name("image_size"))
+        self.K = check_intrinsics(self.K, self.name("K"), self.image_size)
+        self.T_cam_lidar = check_rigid(self.T_cam_lidar, self.name("T_cam_lidar"))
         if self.distortion is not None:
-            self.distortion = _check_distortion(self.distortion, f"distortion ({self.source})")
+            self.distortion = _check_distortion(self.distortion, self.name("distortion"))
+
+    def name(self, key: str) -> str:
+        """The user's name of an entry: ``T_cam_lidar`` (``source="arguments"``: given as an argument),
+        ``calibration.T_cam_lidar`` (``source="calibration"``: of an object the caller built) or
+        ``T_cam_lidar (rig.yaml)`` (read from that file)."""
+        if self.source == "arguments":
+            return key
+        return f"calibration.{key}" if self.source == "calibration" else f"{key} ({self.source})"
 
     @classmethod
     def from_kitti(cls, calib: Calibration, source: str = "KITTI calibration") -> RigCalibration:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from crfdepth import api
 from crfdepth.cli import complete_folder, complete_one
 from crfdepth.cli.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
@@ -28,7 +29,7 @@ def no_model(monkeypatch):
         raise AssertionError("the model was used before the output was checked")
 
     monkeypatch.setattr(complete_one, "build_model", refuse)
-    monkeypatch.setattr(complete_one, "complete_frame", refuse)
+    monkeypatch.setattr(api, "complete_depth", refuse)
     monkeypatch.setattr(complete_folder, "build_model", refuse)
 
 

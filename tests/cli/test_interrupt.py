@@ -8,6 +8,7 @@ import csv
 
 import pytest
 
+from crfdepth import api
 from crfdepth.cli import complete_bag, complete_folder, outputs
 from tests.cli.frames import FAST, files, png, run, write_folder
 
@@ -73,7 +74,7 @@ def _bag_argv(recorded, out, *extra) -> list:
 
 def test_bag_run_leaves_an_index_of_the_frames_written(bag, tmp_path, monkeypatch):
     out = tmp_path / "d"
-    _interrupt_after(monkeypatch, complete_bag, "complete_frame", 2)
+    _interrupt_after(monkeypatch, api, "complete_depth", 2)
     code, _, err = run(_bag_argv(bag, out, "--out-std-dir", tmp_path / "std", "--out-bag", tmp_path / "out"))
     assert code == 130
     assert err == (f"crfdepth complete: interrupted after 2 of 4 frame(s) written to {out} and listed in its "

@@ -1,0 +1,83 @@
+"""One frame from ``crfdepth complete`` to the conjugate-gradient loop (docs/design.md section 8): at most 8
+calls deep, converted to the model's tensors once on the way in and to arrays once on the way out, and each
+input checked once. Measured by profiling a real run on a small synthetic frame."""
+
+from __future__ import annotations
+
+import collections
+import sys
+from pathlib import Path
+
+import pytest
+
+from crfdepth import cli
+from tests.cli.frames import png, stem, write_folder
+
+# Where a frame crosses between arrays and tensors: the CLI, the API and the modules they read and check with
+# (the model's own stages may view a tensor's memory as an array, e.g. the CG loop's BLAS calls, without a copy).
+BOUNDARY = ("crfdepth/cli/", "crfdepth/io/", "crfdepth/api.py", "crfdepth/inputs.py", "crfdepth/checks.py",
+            "crfdepth/plausibility.py", "crfdepth/model.py")
+CHECKS = ("check_intrinsics", "check_sparse_plausible", "check_frames", "image_to_numpy", "sparse_to_numpy",
+          "check_frame_size", "check_model_memory")
+
+
+def _profile(argv: list[str]) -> tuple[list[str], collections.Counter, collections.Counter]:
+    """(the crfdepth functions from ``cli.main`` to the first ``conjugate_gradient``, calls per crfdepth
+    function, calls of torch.from_numpy and Tensor.numpy per (boundary function, callee))."""
+    path: list[str] = []
+    calls: collections.Counter = collections.Counter()
+    conversions: collections.Counter = collections.Counter()
+
+    def profile(frame, event, arg):
+        code = frame.f_code
+        if f"{Path('crfdepth')}/" not in code.co_filename.replace("\\", "/"):
+            return
+        if event == "call":
+            calls[code.co_name] += 1
+            if code.co_name == "conjugate_gradient" and not path:
+                stack, f = [], frame
+                while f is not None and f.f_code.co_name != "main":
+                    stack.append(f.f_code.co_name)
+                    f = f.f_back
+                path.extend(reversed(stack))
+        elif event == "c_call" and getattr(arg, "__name__", "") in ("from_numpy", "numpy") and \
+                any(part in code.co_filename.replace("\\", "/") for part in BOUNDARY):
+            caller = frame.f_back.f_code.co_name if code.co_name == "<genexpr>" else code.co_name
+            conversions[(caller, arg.__name__)] += 1
+
+    sys.setprofile(profile)
+    try:
+        assert cli.main(argv) == 0
+    finally:
+        sys.setprofile(None)
+    return path, calls, conversions
+
+
+@pytest.fixture(scope="module")
+def one_frame(tmp_path_factory):
+    root = write_folder(tmp_path_factory.mktemp("frame") / "val_selection_cropped", 1)
+    out = root.parent / "depth.png"
+    argv = ["complete", "--image", str(root / "image" / f"{stem('image', 0)}.png"),
+            "--sparse", str(root / "velodyne_raw" / png(0)),
+            "--intrinsics", str(root / "intrinsics" / f"{stem('image', 0)}.txt"), "--out", str(out), "--quiet"]
+    return _profile(argv)
+
+
+def test_complete_reaches_the_cg_loop_in_at_most_8_calls(one_frame):
+    path, _, _ = one_frame
+    # run, run_one, complete_depth, pixel_forward, pixel_solve, solve_system, _krylov_solve, conjugate_gradient
+    assert path[-1] == "conjugate_gradient" and "complete_depth" in path, path
+    assert len(path) <= 8, path
+
+
+def test_the_frame_is_converted_once_each_way(one_frame):
+    _, _, conversions = one_frame
+    # image, sparse and K become the model's tensors together; depth alone comes back (no --out-std)
+    assert conversions == {("_on_model", "from_numpy"): 3, ("complete_depth", "numpy"): 1}, conversions
+
+
+def test_each_input_is_checked_once(one_frame):
+    _, calls, _ = one_frame
+    assert {name: calls[name] for name in CHECKS} == {
+        "check_intrinsics": 1, "check_sparse_plausible": 1, "check_frames": 0, "image_to_numpy": 1,
+        "sparse_to_numpy": 1, "check_frame_size": 1, "check_model_memory": 1}
