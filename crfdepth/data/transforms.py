@@ -64,6 +64,14 @@ def crop_sample(sample: Sample, top: int, left: int, height: int, width: int) ->
     )
 
 
+def _size_fitting(sample: Sample, height: int, width: int, crop: str) -> tuple[int, int]:
+    """``(H, W)`` of ``sample``; an InputError naming ``crop`` when a ``height x width`` window does not fit."""
+    h, w = sample.size
+    if h < height or w < width:
+        raise InputError(f"{crop}: sample {sample.name!r} is {h}x{w} (HxW), smaller than the crop {height}x{width}")
+    return h, w
+
+
 @dataclass(frozen=True)
 class BottomCenterCrop:
     """Crop the bottom-centre ``height x width`` window (KITTI's benchmark crop).
@@ -96,13 +104,7 @@ class BottomCenterCrop:
         return h - self.height, (w - self.width) // 2
 
     def __call__(self, sample: Sample) -> Sample:
-        h, w = sample.size
-        if h < self.height or w < self.width:
-            raise InputError(
-                f"BottomCenterCrop: sample {sample.name!r} is {h}x{w} (HxW), smaller than the "
-                f"crop {self.height}x{self.width}"
-            )
-        top, left = self.offsets((h, w))
+        top, left = self.offsets(_size_fitting(sample, self.height, self.width, "BottomCenterCrop"))
         return crop_sample(sample, top, left, self.height, self.width)
 
 
@@ -181,12 +183,7 @@ class RandomCrop:
         self.generator = generator
 
     def __call__(self, sample: Sample) -> Sample:
-        h, w = sample.size
-        if h < self.height or w < self.width:
-            raise InputError(
-                f"RandomCrop: sample {sample.name!r} is {h}x{w} (HxW), smaller than the crop "
-                f"{self.height}x{self.width}"
-            )
+        h, w = _size_fitting(sample, self.height, self.width, "RandomCrop")
         top = int(torch.randint(h - self.height + 1, (), generator=self.generator))
         left = int(torch.randint(w - self.width + 1, (), generator=self.generator))
         return crop_sample(sample, top, left, self.height, self.width)

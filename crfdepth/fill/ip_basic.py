@@ -111,25 +111,22 @@ def ip_basic_fill(sparse: torch.Tensor, *, config: Config = "fast", max_depth: f
 
 def _fast(returns: torch.Tensor) -> torch.Tensor:
     """Steps 2 to 7 of the fast configuration on inverted depth (B, 1, H, W), 0 = empty."""
-    x = _dilate_diamond5(returns)
-    x = _close(x, 5)
-    x = _fill_empty(x, 7)
-    x = _extend_to_top(x)
-    x = _fill_empty(x, 31)
-    x = _fill_unreached(x, returns)
-    return _gaussian(_median(x, 5))
+    x = _close(_dilate_diamond5(returns), 5)
+    return _gaussian(_median(_fill_holes(x, returns), 5))
 
 
 def _multiscale(returns: torch.Tensor, max_depth: float) -> torch.Tensor:
     """Steps 2 to 7 of the multiscale configuration on inverted depth (B, 1, H, W), 0 = empty."""
-    x = _dilate_by_range(returns, max_depth)
-    x = _close(x, 5)
-    x = _median_filled(x, 5)
+    x = _median_filled(_close(_dilate_by_range(returns, max_depth), 5), 5)
+    return _bilateral(_median(_fill_holes(x, returns), 5))
+
+
+def _fill_holes(x: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+    """Steps 4 to 6 and the fill of the pixels they leave empty, the same in both configurations."""
     x = _fill_empty(x, 7)
     x = _extend_to_top(x)
     x = _fill_empty(x, 31)
-    x = _fill_unreached(x, returns)
-    return _bilateral(_median(x, 5))
+    return _fill_unreached(x, returns)
 
 
 # --------------------------------------------------------------------------- the steps

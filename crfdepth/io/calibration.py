@@ -60,7 +60,8 @@ __all__ = [
 
 PathLike = str | os.PathLike
 RIG_SUFFIXES = (".yaml", ".yml", ".json")
-_DISTORTION_LENGTHS = (4, 5, 8, 12, 14)  # the lengths OpenCV accepts
+DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+"""The numbers of distortion coefficients OpenCV accepts (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])."""
 _RAW_CAM_TO_CAM = "calib_cam_to_cam.txt"
 _RAW_VELO_TO_CAM = "calib_velo_to_cam.txt"
 
@@ -197,8 +198,8 @@ def _check_distortion(value, what: str) -> np.ndarray:
     except (TypeError, ValueError):
         raise InputError(f"{what}: expected a list of numbers (OpenCV k1 k2 p1 p2 [k3 ...]), got {value!r:.80}") \
             from None
-    if array.size not in _DISTORTION_LENGTHS or not np.all(np.isfinite(array)):
-        raise InputError(f"{what}: expected {', '.join(map(str, _DISTORTION_LENGTHS))} finite numbers (OpenCV "
+    if array.size not in DISTORTION_LENGTHS or not np.all(np.isfinite(array)):
+        raise InputError(f"{what}: expected {', '.join(map(str, DISTORTION_LENGTHS))} finite numbers (OpenCV "
                          f"k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]), got {array.tolist()}")
     return array
 

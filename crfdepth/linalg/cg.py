@@ -80,13 +80,17 @@ class _Monitor:
         return KrylovResult(self.iterations, self.rel_residual, converged & torch.isfinite(self.rel_residual))
 
 
-def _start(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor,
-           rtol: float) -> tuple[torch.Tensor, torch.Tensor, _Monitor]:
-    """Initial iterate, its residual ``c - M y`` and the convergence monitor."""
+def _start(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor, rtol: float,
+           max_iter: int) -> tuple[torch.Tensor, torch.Tensor, _Monitor, bool]:
+    """Initial iterate, its residual ``c - M y``, the convergence monitor, and whether the solve
+    ends before the first iteration (converged at ``y0``, or ``max_iter == 0``)."""
     if y0 is None:
-        return torch.zeros_like(c), c.clone(), _Monitor(c, residual_weight, rtol)
-    y = y0.clone()
-    return y, c - matvec(y), _Monitor(c, residual_weight, rtol)
+        y, r = torch.zeros_like(c), c.clone()
+    else:
+        y = y0.clone()
+        r = c - matvec(y)
+    monitor = _Monitor(c, residual_weight, rtol)
+    return y, r, monitor, monitor.check(r, 0) or max_iter == 0
 
 
 def conjugate_gradient(
@@ -117,45 +121,30 @@ def conjugate_gradient(
     Returns:
         y (G, n) and a :class:`KrylovResult`.
     """
-    tiny = torch.finfo(c.dtype).tiny
-    y, r, monitor = _start(matvec, c, y0, residual_weight, rtol)
-    if monitor.check(r, 0) or max_iter == 0:
+    y, r, monitor, done = _start(matvec, c, y0, residual_weight, rtol, max_iter)
+    if done:
         return y, monitor.result()
-    if precondition is not None:
-        return _preconditioned_cg(matvec, precondition, y, r, monitor, max_iter, check_every)
-    p = r.clone()
-    if c.shape[0] == 1 and c.device.type == "cpu" and c.shape[1] <= _HOST_LOOP_MAX_NODES:
-        return _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every)
-    rr = _rowdot(r, r)
-    for it in range(1, max_iter + 1):
-        q = matvec(p)
-        # Frozen (converged) systems get a zero step and keep their iterate.
-        alpha = rr / _rowdot(p, q).clamp_min(tiny) * monitor.active
-        y.addcmul_(p, alpha)
-        r.addcmul_(q, alpha, value=-1.0)
-        rr_new = _rowdot(r, r)
-        beta = rr_new / rr.clamp_min(tiny)
-        rr = rr_new
-        p.mul_(beta).add_(r)
-        if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
-            break
-    return y, monitor.result()
+    if precondition is None and c.shape[0] == 1 and c.device.type == "cpu" and c.shape[1] <= _HOST_LOOP_MAX_NODES:
+        return _cg_one_system_on_host(matvec, y, r, r.clone(), monitor, max_iter, check_every)
+    return _cg_loop(matvec, precondition, y, r, monitor, max_iter, check_every)
 
 
-def _preconditioned_cg(matvec, precondition, y, r, monitor, max_iter, check_every):
-    """The CG loop with ``z = precondition(r)`` in place of ``r`` in the search directions."""
+def _cg_loop(matvec, precondition, y, r, monitor, max_iter, check_every):
+    """The CG loop on torch tensors: with ``z = precondition(r)`` in place of ``r`` in the search
+    directions, or plain CG (``z = r``) when ``precondition`` is None."""
     tiny = torch.finfo(r.dtype).tiny
-    z = precondition(r)
+    z = r if precondition is None else precondition(r)
     p = z.clone()
     rz = _rowdot(r, z)
     for it in range(1, max_iter + 1):
         q = matvec(p)
+        # Frozen (converged) systems get a zero step and keep their iterate.
         alpha = rz / _rowdot(p, q).clamp_min(tiny) * monitor.active
         y.addcmul_(p, alpha)
         r.addcmul_(q, alpha, value=-1.0)
         if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
             break
-        z = precondition(r)
+        z = r if precondition is None else precondition(r)
         rz_new = _rowdot(r, z)
         beta = rz_new / rz.clamp_min(tiny)
         rz = rz_new
@@ -222,8 +211,8 @@ def conjugate_gradient_squared(
     method for the SPD systems of crfdepth; CGS is offered to reproduce the paper.
     """
     tiny = torch.finfo(c.dtype).tiny
-    y, r, monitor = _start(matvec, c, y0, residual_weight, rtol)
-    if monitor.check(r, 0) or max_iter == 0:
+    y, r, monitor, done = _start(matvec, c, y0, residual_weight, rtol, max_iter)
+    if done:
         return y, monitor.result()
     r_hat = r.clone()
     rho = _rowdot(r_hat, r)

@@ -61,6 +61,20 @@ def _check_float(name: str, t: torch.Tensor, ref: torch.Tensor, nonneg: bool) ->
                          f"({int((t < 0).sum())} negative entries)")
 
 
+def _check_array(name: str, t, shape: tuple, ref: torch.Tensor, nonneg: bool) -> None:
+    """:func:`_check_tensor` with ``shape``, then :func:`_check_float` against ``ref``."""
+    _check_tensor(name, t, shape)
+    _check_float(name, t, ref, nonneg)
+
+
+def _warm_start(x0, shape: tuple, b: torch.Tensor) -> torch.Tensor | None:
+    """``x0`` checked like ``b`` and detached (no gradient flows to a warm start); None stays None."""
+    if x0 is None:
+        return None
+    _check_array("x0", x0, shape, b, nonneg=False)
+    return x0.detach()
+
+
 def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
                     on_nonconvergence: OnFail = "warn", grad_rtol: float = GRAD_RTOL,
                     preconditioner: Preconditioner = "auto") -> SolverSettings:
@@ -186,8 +200,7 @@ def solve_laplacian(
         raise InputError(f"b: expected a 1-D tensor (N,), got shape {tuple(b.shape)}")
     n = b.shape[0]
     _check_float("b", b, b, nonneg=False)
-    _check_tensor("d", d, (n,))
-    _check_float("d", d, b, nonneg=True)
+    _check_array("d", d, (n,), b, nonneg=True)
     _check_tensor("edge_index", edge_index)
     if edge_index.dim() != 2 or edge_index.shape[0] != 2:
         raise InputError(f"edge_index: expected shape (2, E), got {tuple(edge_index.shape)}")
@@ -220,10 +233,7 @@ def solve_laplacian(
                 e = int(torch.nonzero(graph[0] != graph[1])[0])
                 raise InputError(f"edge_index: edge {e} joins nodes {edge_index[:, e].tolist()} of "
                                  f"different graphs (ptr {ptr.tolist()[:10]})")
-    if x0 is not None:
-        _check_tensor("x0", x0, (n,))
-        _check_float("x0", x0, b, nonneg=False)
-        x0 = x0.detach()
+    x0 = _warm_start(x0, (n,), b)
     _check_positive_definite(d.detach().cpu().numpy(), edge_index[0].cpu().numpy(),
                              edge_index[1].cpu().numpy(), edge_weight.detach().cpu().numpy(), n, "d")
     return solve_system(System.graph(d, b, edge_index, edge_weight, ptr), x0, settings)
@@ -275,16 +285,10 @@ def solve_grid_laplacian(
         raise InputError(f"b: expected a (B, H, W) tensor, got shape {tuple(b.shape)}")
     bsz, h, w = b.shape
     _check_float("b", b, b, nonneg=False)
-    _check_tensor("d", d, (bsz, h, w))
-    _check_float("d", d, b, nonneg=True)
-    _check_tensor("weight_h", weight_h, (bsz, h, w - 1))
-    _check_float("weight_h", weight_h, b, nonneg=True)
-    _check_tensor("weight_v", weight_v, (bsz, h - 1, w))
-    _check_float("weight_v", weight_v, b, nonneg=True)
-    if x0 is not None:
-        _check_tensor("x0", x0, (bsz, h, w))
-        _check_float("x0", x0, b, nonneg=False)
-        x0 = x0.detach()
+    _check_array("d", d, (bsz, h, w), b, nonneg=True)
+    _check_array("weight_h", weight_h, (bsz, h, w - 1), b, nonneg=True)
+    _check_array("weight_v", weight_v, (bsz, h - 1, w), b, nonneg=True)
+    x0 = _warm_start(x0, (bsz, h, w), b)
     if not bool((d > 0).all()):
         from crfdepth.linalg.operators import grid_edge_index
 

@@ -52,11 +52,11 @@ __all__ = [
 Scale = Literal["linear", "log"]
 """Colour scale of a std map: linear in metres or linear in log(metres)."""
 
-_BLACK = (0, 0, 0)
-_WHITE = (255, 255, 255)
+BLACK = (0, 0, 0)
+WHITE = (255, 255, 255)
 
 
-def _as_map(name: str, values) -> np.ndarray:
+def as_map(name: str, values) -> np.ndarray:
     """(H, W) float64 copy of a numpy array or tensor; leading singleton dims dropped."""
     if isinstance(values, torch.Tensor):
         values = values.detach().cpu().numpy()
@@ -71,7 +71,8 @@ def _as_map(name: str, values) -> np.ndarray:
     return array.astype(np.float64)
 
 
-def _check_color(color, name: str = "invalid_color") -> np.ndarray:
+def check_color(color, name: str = "invalid_color") -> np.ndarray:
+    """``color`` as a (3,) uint8 RGB triple; InputError naming ``name`` unless it is three numbers in [0, 255]."""
     colour = np.asarray(color)
     if colour.shape != (3,) or not np.all((colour >= 0) & (colour <= 255)):
         raise InputError(f"{name}: expected an (R, G, B) triple in [0, 255], got {color!r}")
@@ -87,11 +88,11 @@ def _paint(t: np.ndarray, valid: np.ndarray, colormap: int, invalid_color) -> np
     """Colour map of ``t`` in [0, 1] (1 = top of the map) as RGB; invalid pixels painted."""
     codes = np.round(np.clip(np.where(valid, t, 0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
     rgb = cv2.cvtColor(cv2.applyColorMap(codes, colormap), cv2.COLOR_BGR2RGB)
-    rgb[~valid] = _check_color(invalid_color)
+    rgb[~valid] = check_color(invalid_color)
     return rgb
 
 
-def _check_vis_range(vis_range, *, positive: bool) -> tuple[float, float]:
+def check_vis_range(vis_range, *, positive: bool) -> tuple[float, float]:
     """``vis_range`` as two floats ``(min, max)``: finite, min < max, min > 0 (``positive``) or >= 0."""
     bound = "0 < min < max" if positive else "0 <= min < max"
     expected = f"vis_range: expected two finite numbers (min, max) in metres with {bound}, got {vis_range!r}"
@@ -113,10 +114,11 @@ def _range_or_bounds(vis_range, vmin, vmax, *, positive: bool):
     if vmin is not None or vmax is not None:
         raise InputError(f"vis_range: expected either vis_range or vmin/vmax, not both, got vis_range={vis_range!r}, "
                          f"vmin={vmin!r}, vmax={vmax!r}")
-    return _check_vis_range(vis_range, positive=positive)
+    return check_vis_range(vis_range, positive=positive)
 
 
-def _check_scale(scale) -> str:
+def check_scale(scale) -> str:
+    """``scale`` as ``"linear"`` or ``"log"`` (see :data:`Scale`); InputError for anything else."""
     if scale not in ("linear", "log"):
         raise InputError(f"scale: expected 'linear' or 'log', got {scale!r}")
     return str(scale)
@@ -164,7 +166,7 @@ def depth_range(depth, percentiles=(2.0, 98.0)) -> tuple[float, float]:
     Raises:
         InputError: not a 2-D real map, no valid depth, or bad ``percentiles``.
     """
-    d = _as_map("depth", depth)
+    d = as_map("depth", depth)
     return _robust_range(d[np.isfinite(d) & (d > 0)], percentiles, "depth", "valid depth (finite, > 0 metres)")
 
 
@@ -185,13 +187,13 @@ def std_range(std, percentiles=(2.0, 98.0)) -> tuple[float, float]:
     Raises:
         InputError: not a 2-D real map, no std > 0, or bad ``percentiles``.
     """
-    s = _as_map("std", std)
+    s = as_map("std", std)
     return _robust_range(s[np.isfinite(s) & (s > 0)], percentiles, "std", "finite std > 0 metres")
 
 
 def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, *,
                    vis_range: tuple[float, float] | None = None, colormap: int = cv2.COLORMAP_TURBO,
-                   invalid_color=_BLACK) -> np.ndarray:
+                   invalid_color=BLACK) -> np.ndarray:
     """Colour map of a depth map, near = warm (no colour bar: see :func:`crfdepth.pictures.figures.depth_picture`).
 
     The colour is linear in inverse depth: ``t = (1/d - 1/vmax) / (1/vmin - 1/vmax)``,
@@ -217,7 +219,7 @@ def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, 
         InputError: not a 2-D real map, vmin/vmax not finite with 0 < vmin <= vmax, or a
             bad ``vis_range`` (or given with vmin/vmax).
     """
-    d = _as_map("depth", depth)
+    d = as_map("depth", depth)
     vmin, vmax = _range_or_bounds(vis_range, vmin, vmax, positive=True)
     valid = np.isfinite(d) & (d > 0)
     # Computed ends never cross a given one (e.g. vmin given beyond the farthest depth).
@@ -240,7 +242,7 @@ def colorize_depth(depth, vmin: float | None = None, vmax: float | None = None, 
 def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
                  vis_range: tuple[float, float] | None = None, scale: Scale = "linear",
                  percentile: float = 99.0, colormap: int = cv2.COLORMAP_VIRIDIS,
-                 invalid_color=_BLACK) -> np.ndarray:
+                 invalid_color=BLACK) -> np.ndarray:
     """Colour map of a standard-deviation (uncertainty) map, certain = dark (no colour bar:
     see :func:`crfdepth.pictures.figures.std_picture`).
 
@@ -276,8 +278,8 @@ def colorize_std(std, vmin: float | None = None, vmax: float | None = None, *,
             for log), a bad ``vis_range`` / ``scale``, ``percentile`` outside (0, 100], or
             (log, no range given) no std > 0.
     """
-    s = _as_map("std", std)
-    scale = _check_scale(scale)
+    s = as_map("std", std)
+    scale = check_scale(scale)
     vmin, vmax = _range_or_bounds(vis_range, vmin, vmax, positive=scale == "log")
     if not 0.0 < float(percentile) <= 100.0:
         raise InputError(f"percentile: expected a number in (0, 100], got {percentile!r}")
@@ -318,7 +320,7 @@ def draw_points(rgb: np.ndarray, sparse, vmin: float | None = None, vmax: float 
     Returns:
         (H, W, 3) uint8 RGB, the image darkened to half so the points stand out.
     """
-    s = _as_map("sparse", sparse)
+    s = as_map("sparse", sparse)
     if rgb.shape != (*s.shape, 3) or rgb.dtype != np.uint8:
         raise InputError(f"rgb: expected a {s.shape + (3,)} uint8 image like sparse, got {rgb.shape} {rgb.dtype}")
     colours = colorize_depth(s, vmin, vmax)
@@ -354,7 +356,7 @@ def render_point_cloud(depth, rgb: np.ndarray, K: np.ndarray, *, max_depth: floa
     Returns:
         (H, W, 3) uint8 RGB picture.
     """
-    d = _as_map("depth", depth)
+    d = as_map("depth", depth)
     h, w = d.shape
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or rgb.shape != (h, w, 3):

@@ -20,13 +20,13 @@ import numpy as np
 from crfdepth.errors import InputError
 from crfdepth.sequences.targets import REASON_COLOURS, Targets
 from crfdepth.pictures.colour import (
+    BLACK,
+    WHITE,
     Scale,
-    _BLACK,
-    _WHITE,
-    _as_map,
-    _check_color,
-    _check_scale,
-    _check_vis_range,
+    as_map,
+    check_color,
+    check_scale,
+    check_vis_range,
     colorize_depth,
     colorize_std,
     depth_range,
@@ -37,7 +37,7 @@ __all__ = ["depth_picture", "std_picture", "targets_picture"]
 
 
 def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
-                  invalid_color=_BLACK) -> np.ndarray:
+                  invalid_color=BLACK) -> np.ndarray:
     """A depth map a reader can read: :func:`colorize_depth` with a colour bar in metres below.
 
     Near = warm (TURBO on inverse depth, see :func:`colorize_depth`). The bar under the
@@ -62,15 +62,15 @@ def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
         InputError: not a 2-D real map, a bad ``vis_range``, or no valid depth when
             ``vis_range`` is None.
     """
-    d = _as_map("depth", depth)
-    lo, hi = depth_range(d) if vis_range is None else _check_vis_range(vis_range, positive=True)
+    d = as_map("depth", depth)
+    lo, hi = depth_range(d) if vis_range is None else check_vis_range(vis_range, positive=True)
     rgb = colorize_depth(d, lo, hi, invalid_color=invalid_color)
     return _with_colour_bar(rgb, _Scale("inverse", lo, hi), "depth",
                             lambda m: colorize_depth(m, lo, hi, invalid_color=invalid_color))
 
 
 def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *, scale: Scale = "log",
-                lidar_color=_WHITE, invalid_color=_BLACK) -> np.ndarray:
+                lidar_color=WHITE, invalid_color=BLACK) -> np.ndarray:
     """An uncertainty map a reader can read: :func:`colorize_std` with a colour bar in metres below.
 
     Certain = dark (VIRIDIS). On the default log scale the bar's ticks are log-spaced
@@ -100,21 +100,21 @@ def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *
         InputError: not a 2-D real map, a bad ``vis_range`` or ``scale``, ``lidar`` not
             of the map's shape, or no std > 0 when ``vis_range`` is None on the log scale.
     """
-    s = _as_map("std", std)
-    scale = _check_scale(scale)
+    s = as_map("std", std)
+    scale = check_scale(scale)
     if vis_range is not None:
-        lo, hi = _check_vis_range(vis_range, positive=scale == "log")
+        lo, hi = check_vis_range(vis_range, positive=scale == "log")
     elif scale == "log":
         lo, hi = std_range(s)
     else:  # linear: from 0 to the 98th percentile
         lo, hi = 0.0, std_range(s)[1]
     rgb = colorize_std(s, lo, hi, scale=scale, invalid_color=invalid_color)
     if lidar is not None:
-        points = _as_map("lidar", lidar)
+        points = as_map("lidar", lidar)
         if points.shape != s.shape:
             raise InputError(f"lidar: expected an (H, W) sparse depth map of shape {s.shape} like std, "
                              f"got shape {points.shape}")
-        rgb[np.isfinite(points) & (points > 0)] = _check_color(lidar_color, "lidar_color")
+        rgb[np.isfinite(points) & (points > 0)] = check_color(lidar_color, "lidar_color")
     return _with_colour_bar(rgb, _Scale(scale, lo, hi), "std" if scale == "linear" else "std, log",
                             lambda m: colorize_std(m, lo, hi, scale=scale, invalid_color=invalid_color))
 

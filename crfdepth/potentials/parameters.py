@@ -28,27 +28,30 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
-def _constrained(raw: str, constraint) -> property:
-    """A read-only property: ``constraint`` of the free parameter named ``raw``."""
+def _free_name(name: str) -> str:
+    """The free parameter under weight ``name``: ``raw_<name>`` (a logit) in (0, 1), else ``log_<name>``."""
+    return f"raw_{name}" if name in UNIT_INTERVAL else f"log_{name}"
+
+
+def _constrained(name: str) -> property:
+    """A read-only property: weight ``name``, the sigmoid or exp of its free parameter."""
+    raw = _free_name(name)
+    constraint = torch.sigmoid if name in UNIT_INTERVAL else torch.exp
     return property(lambda self: constraint(getattr(self, raw)), doc=f"``{constraint.__name__}({raw})``")
 
 
-class ConstrainedWeights(nn.Module):
-    """Base of :class:`crfdepth.model.CRFDepth`: registers and exposes its constrained scalars."""
+def _weight_properties(cls: type) -> type:
+    """Class decorator: a read-only property (:func:`_constrained`) per weight of :data:`UNIT_INTERVAL`
+    and :data:`POSITIVE`, so the tables are the one list of the weights."""
+    for name in UNIT_INTERVAL + POSITIVE:
+        setattr(cls, name, _constrained(name))
+    return cls
 
-    alpha = _constrained("raw_alpha", torch.sigmoid)
-    beta = _constrained("raw_beta", torch.sigmoid)
-    gamma = _constrained("raw_gamma", torch.sigmoid)
-    delta = _constrained("raw_delta", torch.sigmoid)
-    sigma_d = _constrained("log_sigma_d", torch.exp)
-    sigma_n = _constrained("log_sigma_n", torch.exp)
-    sigma_p = _constrained("log_sigma_p", torch.exp)
-    confidence = _constrained("log_confidence", torch.exp)
-    refine_prior = _constrained("log_refine_prior", torch.exp)
-    std_scale = _constrained("log_std_scale", torch.exp)
-    gate_threshold = _constrained("log_gate_threshold", torch.exp)
-    gate_softness = _constrained("log_gate_softness", torch.exp)
-    irls_scale = _constrained("log_irls_scale", torch.exp)
+
+@_weight_properties
+class ConstrainedWeights(nn.Module):
+    """Base of :class:`crfdepth.model.CRFDepth`: registers and exposes its constrained scalars
+    (``alpha``, ..., ``irls_scale``: the properties :func:`_weight_properties` adds)."""
 
     def _register_weights(self, values: dict[str, float]) -> None:
         """Create the free parameters of ``values`` (checked by the caller; the attributes of
@@ -56,9 +59,8 @@ class ConstrainedWeights(nn.Module):
         for name, value in values.items():
             if name in OPTIONAL and not getattr(self, OPTIONAL[name]):
                 continue
-            raw = f"raw_{name}" if name in UNIT_INTERVAL else f"log_{name}"
             free = _logit(value) if name in UNIT_INTERVAL else math.log(value)
-            self.register_parameter(raw, nn.Parameter(torch.tensor(free)))
+            self.register_parameter(_free_name(name), nn.Parameter(torch.tensor(free)))
 
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""

@@ -98,15 +98,22 @@ class PhotometricMaps:
 # --------------------------------------------------------------------------- checks
 
 
+def _per_frame(value: object, name: str, n: int, bsz: int, what: str, note: str) -> torch.Tensor:
+    """An (n, n) tensor for every frame or a (B, n, n) one per frame, as (B, n, n); ``what`` and
+    ``note`` complete the error messages."""
+    if not isinstance(value, torch.Tensor):
+        raise InputError(f"{name}: expected a ({n}, {n}) or ({bsz}, {n}, {n}) tensor{what}, got {describe(value)}")
+    if tuple(value.shape) == (n, n):
+        value = value[None].expand(bsz, n, n)
+    if tuple(value.shape) != (bsz, n, n):
+        raise InputError(f"{name}: expected shape ({n}, {n}) or ({bsz}, {n}, {n}) ({note}), got "
+                         f"shape {tuple(value.shape)}")
+    return value
+
+
 def _check_intrinsics(K: object, bsz: int, height: int, width: int, ref: torch.Tensor) -> torch.Tensor:
     """K (3, 3) or (B, 3, 3) as a (B, 3, 3) tensor like ``ref`` (gradients kept)."""
-    if not isinstance(K, torch.Tensor):
-        raise InputError(f"K: expected a (3, 3) or ({bsz}, 3, 3) tensor, got {describe(K)}")
-    if tuple(K.shape) == (3, 3):
-        K = K[None].expand(bsz, 3, 3)
-    if tuple(K.shape) != (bsz, 3, 3):
-        raise InputError(f"K: expected shape (3, 3) or ({bsz}, 3, 3) (one per frame of target_depth), got "
-                         f"shape {tuple(K.shape)}")
+    K = _per_frame(K, "K", 3, bsz, "", "one per frame of target_depth")
     for b in range(bsz):
         check_intrinsics(K[b], "K" if bsz == 1 else f"K[{b}]", image_size=(height, width))
     return K.to(device=ref.device, dtype=ref.dtype)
@@ -114,13 +121,7 @@ def _check_intrinsics(K: object, bsz: int, height: int, width: int, ref: torch.T
 
 def _check_pose(T: object, name: str, bsz: int, ref: torch.Tensor) -> torch.Tensor:
     """A rigid T_source<-target, (4, 4) or (B, 4, 4), as a (B, 4, 4) tensor like ``ref``."""
-    if not isinstance(T, torch.Tensor):
-        raise InputError(f"{name}: expected a (4, 4) or ({bsz}, 4, 4) tensor T_source<-target, got {describe(T)}")
-    if tuple(T.shape) == (4, 4):
-        T = T[None].expand(bsz, 4, 4)
-    if tuple(T.shape) != (bsz, 4, 4):
-        raise InputError(f"{name}: expected shape (4, 4) or ({bsz}, 4, 4) (T_source<-target, one per frame), got "
-                         f"shape {tuple(T.shape)}")
+    T = _per_frame(T, name, 4, bsz, " T_source<-target", "T_source<-target, one per frame")
     if not T.is_floating_point():
         raise InputError(f"{name}: expected a floating-point rigid transform, got dtype {T.dtype}")
     for b in range(bsz):

@@ -5,7 +5,8 @@
   conversion (:func:`oxts_to_pose`); :func:`read_imu_to_velo` reads the day's ``calib_imu_to_velo.txt``.
 - :func:`camera_relative_pose`: the camera's motion through the fixed extrinsic.
 - :func:`invert_rigid`, :func:`rotation_deg`, :func:`axis_rotation`: rigid-transform maths,
-  used here and by :mod:`crfdepth.sequences.registration` and :mod:`crfdepth.sequences.odometry`.
+  used here and by :mod:`crfdepth.sequences.registration` and :mod:`crfdepth.sequences.odometry`
+  (``invert_rigid`` is :func:`crfdepth.io.ros.tf.invert_rigid`, shared with the ROS transform tree).
 
 Convention, here and in LiDAR odometry (:mod:`crfdepth.sequences.odometry`): poses are LiDAR
 poses ``T_world<-lidar(t)`` as (n, 4, 4) float64, ``p_world = T @ p_lidar``, with the world =
@@ -24,6 +25,7 @@ from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
 from crfdepth.io.files import check_input_file, read_text
 from crfdepth.io.key_values import entry_array, read_key_values
+from crfdepth.io.ros.tf import invert_rigid
 
 __all__ = [
     "axis_rotation",
@@ -47,14 +49,6 @@ def rotation_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix, degrees."""
     c = (np.trace(R) - 1.0) / 2.0
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
-
-
-def invert_rigid(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid (4, 4) transform."""
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
 
 
 def camera_relative_pose(T_w_lidar_s, T_w_lidar_t, T_cam_lidar) -> np.ndarray:

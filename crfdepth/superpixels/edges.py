@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from crfdepth.superpixels.segments import _labels_tensor
+from crfdepth.superpixels.segments import labels_tensor
 
 __all__ = [
     "DIRECTIONS_DEG",
@@ -75,7 +75,7 @@ def region_adjacency(labels: torch.Tensor, num_nodes: int | None = None) -> torc
         (2, A) int64 on the labels' device, ``[0] < [1]``, each pair once, sorted
         lexicographically.
     """
-    labels = _labels_tensor(labels, None)
+    labels = labels_tensor(labels, None)
     n = int(labels.max()) + 1 if num_nodes is None else int(num_nodes)
     return boundary_pairs(labels, n)[0]
 

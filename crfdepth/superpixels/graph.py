@@ -40,7 +40,7 @@ from crfdepth.superpixels.edges import (
     four_neighbour_picks,
     undirected_edges,
 )
-from crfdepth.superpixels.segments import _image_tensor, _labels_tensor, slic_batch
+from crfdepth.superpixels.segments import image_tensor, labels_tensor, slic_batch
 
 __all__ = [
     "SuperpixelGraph",
@@ -186,10 +186,10 @@ def build_superpixel_graph(
         InputError: image not (3, H, W) RGB in [0, 1]; ``sparse`` not the image size, NaN,
             infinite or negative; ``n_segments < 1``; bad ``labels``; unknown ``aggregate``.
     """
-    image = _image_tensor(image)
+    image = image_tensor(image)
     size = (int(image.shape[1]), int(image.shape[2]))
     depth = _sparse_tensor(sparse, size).reshape(1, 1, *size).to(image.device)
-    seg = None if labels is None else _labels_tensor(labels, size)[None]
+    seg = None if labels is None else labels_tensor(labels, size)[None]
     return build_superpixel_graphs(image[None], depth, n_segments, aggregate, seg, compactness=compactness,
                                    sigma=sigma, max_num_iter=max_num_iter)[0]
 
@@ -296,10 +296,10 @@ def build_superpixel_graphs(
     if aggregate not in ("mean", "median"):
         raise InputError(f"aggregate: expected 'mean' or 'median', got {aggregate!r}")
     for k in range(b):  # the per-frame checks, with their messages
-        _image_tensor(image[k])
+        image_tensor(image[k])
         _sparse_tensor(sparse[k], (h, w))
     seg = slic_batch(image, n_segments, compactness=compactness, sigma=sigma, max_num_iter=max_num_iter) \
-        if labels is None else torch.stack([_labels_tensor(labels[k], (h, w)) for k in range(b)])
+        if labels is None else torch.stack([labels_tensor(labels[k], (h, w)) for k in range(b)])
     return build_checked_graphs(image, sparse[:, 0].to(image.device), seg.to(image.device), aggregate)
 
 

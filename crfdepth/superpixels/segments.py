@@ -31,7 +31,7 @@ _BACKENDS = ("auto", "torch", "skimage")
 _CPU_BACKEND = "torch"
 
 
-def _image_tensor(image: torch.Tensor | np.ndarray, name: str = "image") -> torch.Tensor:
+def image_tensor(image: torch.Tensor | np.ndarray, name: str = "image") -> torch.Tensor:
     """(3, H, W) tensor from a (3, H, W) tensor or an (H, W, 3) array; checked finite, [0, 1]."""
     if isinstance(image, np.ndarray):
         if image.ndim != 3 or image.shape[2] != 3:
@@ -61,7 +61,7 @@ def _check_n_segments(n_segments: object) -> int:
     return int(n_segments)
 
 
-def _labels_tensor(
+def labels_tensor(
     labels: torch.Tensor | np.ndarray, size: tuple[int, int] | None, name: str = "labels"
 ) -> torch.Tensor:
     """(H, W) int64 labels, relabelled to consecutive ``0 .. S-1`` if they are not already."""
@@ -165,7 +165,7 @@ def slic_segments(
             or ``max_num_iter < 1``).
     """
     _resolve_backend(backend, torch.device("cpu"))  # a bad name is refused before the image is looked at
-    tensor = _image_tensor(image)
+    tensor = image_tensor(image)
     n_segments = _check_n_segments(n_segments)
     device = tensor.device if isinstance(image, torch.Tensor) else torch.device("cpu")
     if _resolve_backend(backend, device) == "torch":

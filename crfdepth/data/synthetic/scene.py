@@ -100,6 +100,29 @@ def check_frame_options(height, width, beams, azimuth_step_deg, max_range, range
     check_real("image_noise_std", image_noise_std, 0.0, None)
 
 
+def render_frame(world, rng, K, T_cam_lidar, height, width, beams, azimuth_step_deg, max_range, range_noise_std,
+                 dropout, image_noise_std, pose=None, beam_offsets_deg=None):
+    """Render the camera, scan the LiDAR and project the scan into the image: one frame, as
+    :func:`make_scene` and :func:`~.sequence.make_sequence` draw it from ``rng`` (in that order).
+
+    ``pose`` and ``beam_offsets_deg`` as in :func:`~.lidar_sim.scan_lidar` (None: the camera
+    at the world's origin; offsets drawn from ``rng``); the other options as in :func:`make_scene`.
+
+    Returns:
+        ``(image, depth, pixel_index, points, rings, point_index, sparse)``: the arrays of
+        :class:`SyntheticScene` and the primitive each pixel (-1: sky) and each point hit.
+    """
+    image, depth, pixel_index = render_camera(world, K, height, width, rng, float(image_noise_std), pose=pose,
+                                              return_index=True)
+    points, rings, point_index = scan_lidar(
+        world, rng, beams, float(azimuth_step_deg), float(max_range), float(range_noise_std), float(dropout),
+        pose=pose, beam_offsets_deg=beam_offsets_deg, return_index=True,
+    )
+    points_cam = points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
+    sparse = project_to_depth(points_cam, K, (height, width))
+    return image, depth, pixel_index, points, rings, point_index, sparse
+
+
 def make_scene(
     seed: int = 0,
     height: int = 352,
@@ -145,14 +168,9 @@ def make_scene(
     rng = np.random.default_rng(seed)
     world = build_world(rng)
     K = camera_intrinsics(height, width)
-    image, depth = render_camera(world, K, height, width, rng, float(image_noise_std))
-    points, rings = scan_lidar(
-        world, rng, beams, float(azimuth_step_deg), float(max_range),
-        float(range_noise_std), float(dropout),
-    )
     T = lidar_to_camera()
-    points_cam = points[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-    sparse = project_to_depth(points_cam, K, (height, width))
+    image, depth, _, points, rings, _, sparse = render_frame(
+        world, rng, K, T, height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout, image_noise_std)
     return SyntheticScene(
         image=image, depth=depth, sparse=sparse, K=K, points=points, rings=rings,
         T_cam_lidar=T, name=f"synthetic-seed{seed}",

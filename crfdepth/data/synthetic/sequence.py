@@ -38,12 +38,11 @@ from numbers import Real
 import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int, check_real
-from crfdepth.data.synthetic.camera import camera_intrinsics, render_camera
-from crfdepth.data.synthetic.lidar_sim import lidar_to_camera, scan_lidar
-from crfdepth.data.synthetic.scene import SyntheticScene, check_frame_options
+from crfdepth.data.synthetic.camera import camera_intrinsics
+from crfdepth.data.synthetic.lidar_sim import lidar_to_camera
+from crfdepth.data.synthetic.scene import SyntheticScene, check_frame_options, render_frame
 from crfdepth.data.synthetic.world import CAR_BODY, World, build_world
 from crfdepth.errors import InputError
-from crfdepth.geometry.projection import project_to_depth
 
 __all__ = ["SyntheticFrame", "SyntheticSequence", "ego_pose", "make_sequence"]
 
@@ -280,15 +279,9 @@ def make_sequence(
         t = k / rate
         world = _world_at(world0, parts, velocities, t)
         T_w_cam = ego_pose(t, speed, yaw_rate)
-        image, depth, pix_idx = render_camera(world, K, height, width, rng, float(image_noise_std),
-                                              pose=T_w_cam, return_index=True)
-        points, rings, pt_idx = scan_lidar(
-            world, rng, beams, float(azimuth_step_deg), float(max_range),
-            float(range_noise_std), float(dropout), pose=T_w_cam,
-            beam_offsets_deg=beam_offsets, return_index=True,
-        )
-        points_cam = points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
-        sparse = project_to_depth(points_cam, K, (height, width))
+        image, depth, pix_idx, points, rings, pt_idx, sparse = render_frame(
+            world, rng, K, T_cam_lidar, height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
+            image_noise_std, pose=T_w_cam, beam_offsets_deg=beam_offsets)
         frames.append(SyntheticFrame(
             image=image, depth=depth, sparse=sparse, K=K, points=points, rings=rings,
             T_cam_lidar=T_cam_lidar, name=f"synthetic-seed{seed}-frame{k:04d}",

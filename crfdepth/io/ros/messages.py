@@ -27,6 +27,7 @@ import numpy as np
 
 from crfdepth.checks import check_intrinsics
 from crfdepth.errors import InputError
+from crfdepth.io.calibration import DISTORTION_LENGTHS
 from crfdepth.io.ros.fields import message_field, message_rows, message_size
 
 __all__ = [
@@ -38,7 +39,6 @@ __all__ = [
 ]
 
 _DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
-_DISTORTION_LENGTHS = (4, 5, 8, 12, 14)  # the lengths OpenCV accepts
 # sensor_msgs/PointField datatype -> (name, numpy type code without byte order)
 _POINT_TYPES = {1: ("INT8", "i1"), 2: ("UINT8", "u1"), 3: ("INT16", "i2"), 4: ("UINT16", "u2"),
                 5: ("INT32", "i4"), 6: ("UINT32", "u4"), 7: ("FLOAT32", "f4"), 8: ("FLOAT64", "f8")}
@@ -140,7 +140,7 @@ def _distortion(msg, where: str, coefficients: np.ndarray) -> np.ndarray | None:
                          f"image_rect_color) instead, which needs rectified=True")
     if zero:
         return None
-    if coefficients.size not in _DISTORTION_LENGTHS:
+    if coefficients.size not in DISTORTION_LENGTHS:
         raise InputError(f"{where}: expected {model} distortion with 5 (plumb_bob) or 8 (rational_polynomial) "
                          f"coefficients, got {coefficients.size}: {coefficients.tolist()}")
     return coefficients

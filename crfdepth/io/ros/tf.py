@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from crfdepth.errors import InputError
 
-__all__ = ["TransformError", "TransformTree"]
+__all__ = ["TransformError", "TransformTree", "invert_rigid"]
 
 _log = logging.getLogger(__name__)
 
@@ -105,8 +105,8 @@ def _matrix(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
     return T
 
 
-def _inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid (4, 4) transform: ``[R^T | -R^T t]``."""
+def invert_rigid(T: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 inverse of a rigid (4, 4) transform: ``[R^T | -R^T t]``."""
     inv = np.eye(4)
     inv[:3, :3] = T[:3, :3].T
     inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
@@ -256,7 +256,7 @@ class TransformTree:
                 is published on both ``/tf_static`` and ``/tf``.
         """
         up, down = self._chain(target, source)
-        return _inverse(self._compose(down, stamp_ns)) @ self._compose(up, stamp_ns)
+        return invert_rigid(self._compose(down, stamp_ns)) @ self._compose(up, stamp_ns)
 
     def path(self, target: str, source: str) -> list[str]:
         """Frame names along the chain from ``source`` to ``target``, both included (same errors as :meth:`lookup`)."""
