@@ -60,7 +60,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from crfdepth.inputs import points_to_sparse
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
 from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
@@ -80,6 +79,7 @@ from crfdepth.cli.outputs import (
 from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.ros.bag import Recording, camera_info_topic
 
