@@ -54,10 +54,10 @@ from pathlib import Path
 
 import torch
 
-from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
+from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.model import CRFDepth
 
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"

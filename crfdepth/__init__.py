@@ -6,14 +6,13 @@ command. The library does not need Lightning; the
 trainer lives in the separate ``train`` package.
 """
 
+from crfdepth._version import __version__  # pyproject.toml's version, via the package metadata
 from crfdepth.api import complete_batch, complete_depth
+from crfdepth.checkpoints import load_model, load_pretrained, save_model, save_weights
 from crfdepth.errors import ConvergenceError, ConvergenceWarning, InputError
 from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.linalg import SolveInfo, solve_grid_laplacian, solve_laplacian
 from crfdepth.model import CRFDepth, CRFOutput
-from crfdepth.checkpoints import load_model, load_pretrained, save_model, save_weights
-
-from crfdepth._version import __version__  # pyproject.toml's version, via the package metadata
 
 __all__ = [
     "CRFDepth",

@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from crfdepth.superpixels.graph import SuperpixelGraph
 from crfdepth.linalg import SolveInfo
 from crfdepth.potentials.energy import EnergyTerms
+from crfdepth.superpixels.graph import SuperpixelGraph
 
 __all__ = ["CRFOutput", "Stages"]
 

@@ -215,5 +215,6 @@ def check_sparse_plausible(name: str, depth: object, K: object = None, *, read_a
 
 
 def check_sparse_units(name: str, sparse: object) -> None:
-    """:func:`check_sparse_plausible` without K (kept for callers of the earlier name)."""
+    """:func:`check_sparse_plausible` without K: rules 1-3, the depth values alone, for a map whose camera is
+    not known."""
     check_sparse_plausible(name, sparse)

@@ -3,7 +3,6 @@ a 1x1 image, ``device='tpu'``, a channel mismatch in ``CRFRefine``."""
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest

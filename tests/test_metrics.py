@@ -9,8 +9,17 @@ import scipy.stats
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.metrics import (UNCERTAINTY_METRICS, ause, average_metrics, average_uncertainty, depth_metrics,
-                              format_metrics, reliability, sparsification, uncertainty_metrics)
+from crfdepth.metrics import (
+    UNCERTAINTY_METRICS,
+    ause,
+    average_metrics,
+    average_uncertainty,
+    depth_metrics,
+    format_metrics,
+    reliability,
+    sparsification,
+    uncertainty_metrics,
+)
 
 
 def test_hand_computed_single_image():

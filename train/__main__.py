@@ -47,7 +47,7 @@ class EpochCheckpoint(ModelCheckpoint):
     """
 
     @property
-    def state_key(self) -> str:  # ModelCheckpoint's key, so checkpoints read the same as before
+    def state_key(self) -> str:  # ModelCheckpoint's key: a checkpoint resumes with either class
         return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
 
     def on_validation_end(self, trainer, pl_module) -> None:

@@ -28,8 +28,8 @@ from typing import Any, Sequence
 
 import torch
 
-from crfdepth.errors import InputError
 from crfdepth.checkpoints import load_model, save_weights
+from crfdepth.errors import InputError
 from train.calibrate import calibrate_std
 
 

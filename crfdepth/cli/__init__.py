@@ -1,7 +1,9 @@
 """The ``crfdepth`` command line: one sub-command per module in this package.
 
-Each sub-command module defines ``add_parser(subparsers)`` (registers its arguments and
-sets ``func``) so this file only lists them. Nothing happens at import.
+Each sub-command module ``crfdepth.cli.<command>`` defines ``HELP`` (its line in
+``crfdepth --help``), ``DESCRIPTION`` (the head of its own ``--help``),
+``add_arguments(parser)`` and ``run(args)``, so this file only lists them
+(:func:`add_command`). Nothing happens at import.
 
 Exit statuses: 0 on success; 2 for bad input, with one line on stderr naming the option
 (``crfdepth project: error: --keep-every-ring: expected ..., got ...``) and no output
@@ -26,6 +28,7 @@ import logging
 import sys
 import warnings
 from collections.abc import Iterator
+from types import ModuleType
 
 from crfdepth._version import __version__
 from crfdepth.errors import InputError
@@ -81,6 +84,16 @@ def warnings_as_lines(command: str | None) -> Iterator[None]:
         yield
 
 
+def add_command(subparsers: argparse._SubParsersAction, module: ModuleType) -> argparse.ArgumentParser:
+    """Register the sub-command of ``module`` (``crfdepth.cli.<command>``) on ``subparsers``; ``args.func`` is its
+    ``run``."""
+    parser = subparsers.add_parser(module.__name__.rpartition(".")[2], help=module.HELP,
+                                   description=module.DESCRIPTION)
+    module.add_arguments(parser)
+    parser.set_defaults(func=module.run)
+    return parser
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="crfdepth",
@@ -90,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress at INFO level")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
-        importlib.import_module(name).add_parser(subparsers)
+        add_command(subparsers, importlib.import_module(name))
     return parser
 
 

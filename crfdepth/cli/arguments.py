@@ -1,4 +1,5 @@
-"""The argparse types of the commands' options, and what a command reports as bad input.
+"""The argparse types of the commands' options, options that two commands share, and what a
+command reports as bad input.
 
 :func:`int_at_least` / :func:`fraction` / :func:`positive_number` refuse a value with a
 message naming what was expected; argparse prefixes it with the option.
@@ -13,7 +14,7 @@ import numpy as np
 
 from crfdepth.errors import InputError
 
-__all__ = ["BAD_INPUT", "fraction", "int_at_least", "positive_number", "vis_range_type"]
+__all__ = ["BAD_INPUT", "add_topic_arguments", "fraction", "int_at_least", "positive_number", "vis_range_type"]
 
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
 BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
@@ -70,3 +71,17 @@ def positive_number(unit: str):
 
 
 vis_range_type = positive_number("metres")  # one bound of --vis-range
+
+
+def add_topic_arguments(group: argparse._ArgumentGroup, *, only_one_default: bool = False,
+                        points_aliases: tuple[str, ...] = ()) -> None:
+    """``--bag``, ``--image-topic``, ``--points-topic`` (+ ``points_aliases``) and ``--camera-info-topic``, the
+    options of ``complete --bag`` and ``targets --bag``, on ``group``; ``only_one_default``: the command takes the
+    bag's only topic of the type for a topic left out, and the help says so."""
+    default = " (default: the bag's only one)" if only_one_default else ""
+    group.add_argument("--bag", metavar="PATH", help="ROS 1 .bag file, ROS 2 bag folder, or its .db3 / .mcap file")
+    group.add_argument("--image-topic", metavar="TOPIC", help=f"sensor_msgs/Image or CompressedImage topic{default}")
+    group.add_argument("--points-topic", *points_aliases, dest="points_topic", metavar="TOPIC",
+                       help=f"sensor_msgs/PointCloud2 topic{default}")
+    group.add_argument("--camera-info-topic", metavar="TOPIC",
+                       help="sensor_msgs/CameraInfo topic (default: camera_info beside --image-topic)")

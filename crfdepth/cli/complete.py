@@ -111,19 +111,18 @@ from crfdepth.errors import InputError
 # --------------------------------------------------------------------------- arguments
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``complete`` sub-command on ``subparsers`` (sets ``func=run``)."""
-    parser = subparsers.add_parser(
-        "complete",
-        help="complete sparse LiDAR into dense depth (one frame, a KITTI folder or a ROS bag)",
-        description="Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
-                    "metres * 256) with the CRF model, for one frame (--image, --sparse, "
-                    "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
-                    "cloud) or every frame of a val_selection_cropped / "
-                    "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera "
-                    "image of a ROS 1 / ROS 2 recording with the LiDAR cloud nearest in time (--bag, "
-                    "--image-topic, --points-topic, --out-dir).",
-    )
+HELP = "complete sparse LiDAR into dense depth (one frame, a KITTI folder or a ROS bag)"
+DESCRIPTION = ("Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
+               "metres * 256) with the CRF model, for one frame (--image, --sparse, "
+               "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
+               "cloud) or every frame of a val_selection_cropped / "
+               "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera "
+               "image of a ROS 1 / ROS 2 recording with the LiDAR cloud nearest in time (--bag, "
+               "--image-topic, --points-topic, --out-dir).")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``crfdepth complete``."""
     one = parser.add_argument_group("one frame")
     one.add_argument("--image", metavar="RGB.png", help="8-bit RGB camera image")
     one.add_argument("--sparse", metavar="SPARSE.png",
@@ -172,8 +171,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)
-    parser.set_defaults(func=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

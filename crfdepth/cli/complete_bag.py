@@ -61,8 +61,7 @@ import numpy as np
 from tqdm import tqdm
 
 from crfdepth import api
-from crfdepth.inputs import points_to_sparse
-from crfdepth.cli.arguments import BAD_INPUT, positive_number
+from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
 from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
     Plan,
@@ -81,6 +80,7 @@ from crfdepth.cli.outputs import (
 from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.ros.bag import Recording, camera_info_topic
 
@@ -97,11 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The "a ROS bag" option group of ``complete``."""
     bag = parser.add_argument_group("a ROS bag", "ROS 1 .bag or ROS 2 (sqlite3, mcap) recordings; needs the "
                                                  "optional extra: pip install 'crfdepth[ros]'")
-    bag.add_argument("--bag", metavar="PATH", help="ROS 1 .bag file, ROS 2 bag folder, or its .db3 / .mcap file")
-    bag.add_argument("--image-topic", metavar="TOPIC", help="sensor_msgs/Image or CompressedImage topic")
-    bag.add_argument("--points-topic", metavar="TOPIC", help="sensor_msgs/PointCloud2 topic")
-    bag.add_argument("--camera-info-topic", metavar="TOPIC",
-                     help="sensor_msgs/CameraInfo topic (default: camera_info beside --image-topic)")
+    add_topic_arguments(bag)
     bag.add_argument("--rectified", action="store_true",
                      help="the images are already rectified: use CameraInfo's P, no distortion (default for "
                           "topics named *rect*)")

@@ -82,16 +82,15 @@ class _VisRange(argparse.Action):
         setattr(namespace, self.dest, (low, high))
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``demo`` sub-command on ``subparsers`` (sets ``func=run``)."""
-    parser = subparsers.add_parser(
-        "demo",
-        help="run the full pipeline on a built-in scene (no download) or on KITTI frames",
-        description="Complete the LiDAR of the built-in synthetic street scene (or of real KITTI "
-                    "frames with --kitti) and write pictures of the input, the dense depth, the "
-                    "uncertainty and the 3D point cloud (and the depth as uint16 PNG data in "
-                    f"OUT_DIR/{DATA_FOLDER}/).",
-    )
+HELP = "run the full pipeline on a built-in scene (no download) or on KITTI frames"
+DESCRIPTION = ("Complete the LiDAR of the built-in synthetic street scene (or of real KITTI "
+               "frames with --kitti) and write pictures of the input, the dense depth, the "
+               "uncertainty and the 3D point cloud (and the depth as uint16 PNG data in "
+               f"OUT_DIR/{DATA_FOLDER}/).")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``crfdepth demo``."""
     parser.add_argument("--kitti", metavar="DIR", default=None,
                         help="a KITTI folder holding depth_selection/val_selection_cropped (or that folder)")
     parser.add_argument("--out-dir", default="crfdepth_demo", metavar="DIR",
@@ -113,8 +112,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         metavar=("MIN", "MAX"),
                         help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
                              "frame (default: 2nd to 98th percentile of each frame's depth)")
-    parser.set_defaults(func=run)
-    return parser
 
 
 # --------------------------------------------------------------------------- checks and inputs

@@ -114,16 +114,15 @@ _DATASET_OPTIONS = {
 }
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``evaluate`` sub-command on ``subparsers`` (sets ``func=run``)."""
-    parser = subparsers.add_parser(
-        "evaluate",
-        help="KITTI metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)",
-        description="Run a checkpoint (or the shipped weights) over a dataset with ground truth and "
-                    "report the KITTI depth-completion metrics (per-frame mean; RMSE/MAE in mm, "
-                    "iRMSE/iMAE in 1/km). For test-set submissions use 'crfdepth complete "
-                    "--input-dir'.",
-    )
+HELP = "KITTI metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)"
+DESCRIPTION = ("Run a checkpoint (or the shipped weights) over a dataset with ground truth and "
+               "report the KITTI depth-completion metrics (per-frame mean; RMSE/MAE in mm, "
+               "iRMSE/iMAE in 1/km). For test-set submissions use 'crfdepth complete "
+               "--input-dir'.")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``crfdepth evaluate``."""
     data = parser.add_argument_group("data")
     data.add_argument("--layout", required=True, choices=LAYOUTS,
                       help="dataset layout (crfdepth.data.build_dataset); test_selection has no "
@@ -158,8 +157,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                           f"metres * 256)")
     out.add_argument("--quiet", action="store_true", help="no progress bar and no 'model: ...' line")
     add_model_arguments(parser)
-    parser.set_defaults(func=run)
-    return parser
 
 
 # --------------------------------------------------------------------------- setup

@@ -15,8 +15,8 @@ import torch
 
 from crfdepth.checkpoints import describe, load_model, load_pretrained, own_structure
 from crfdepth.cli.arguments import int_at_least
-from crfdepth.errors import InputError
 from crfdepth.config import POTENTIALS
+from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 

@@ -39,15 +39,14 @@ from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
 logger = logging.getLogger(__name__)
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``project`` sub-command on ``subparsers`` (sets ``func=run``)."""
-    parser = subparsers.add_parser(
-        "project",
-        help="project a Velodyne scan into a camera as a sparse depth PNG",
-        description="Project a KITTI Velodyne scan into a camera image and write the sparse "
-                    "z-depth map as a KITTI depth PNG (uint16, metres * 256, 0 = no point); "
-                    "the nearest point wins where several land on one pixel.",
-    )
+HELP = "project a Velodyne scan into a camera as a sparse depth PNG"
+DESCRIPTION = ("Project a KITTI Velodyne scan into a camera image and write the sparse "
+               "z-depth map as a KITTI depth PNG (uint16, metres * 256, 0 = no point); "
+               "the nearest point wins where several land on one pixel.")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``crfdepth project``."""
     parser.add_argument("--velodyne", required=True, metavar="X.bin",
                         help="Velodyne scan (N x 4 float32), in the sensor's scan order")
     parser.add_argument("--calib", required=True, metavar="CALIB",
@@ -67,8 +66,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="seed of --keep-fraction (default: 0)")
     parser.add_argument("--quiet", action="store_true",
                         help="do not print the line saying what was written")
-    parser.set_defaults(func=run)
-    return parser
 
 
 def _check_out(args: argparse.Namespace) -> Path:

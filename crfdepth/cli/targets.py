@@ -15,7 +15,7 @@ from crfdepth.cli import targets_bag, targets_drive
 from crfdepth.cli.arguments import int_at_least
 from crfdepth.errors import InputError
 
-__all__ = ["add_parser", "parse_frames", "run"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "parse_frames", "run"]
 
 
 # --------------------------------------------------------------------------- arguments
@@ -34,17 +34,16 @@ def parse_frames(text: str) -> tuple[int, int]:
     return first, last
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``targets`` sub-command on ``subparsers`` (sets ``func=run``)."""
-    parser = subparsers.add_parser(
-        "targets",
-        help="camera-view depth targets from a KITTI raw drive or a ROS bag (registered scans, what the camera sees)",
-        description="Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive or a ROS bag (--bag: its frames are "
-                    "first written as a KITTI raw drive OUT/<date>/<bag name>_sync) into each frame's camera, keep only "
-                    "the returns the camera sees (returns of moving objects and occluded returns dropped, the "
-                    "frame's own scan first), and write KITTI depth PNGs (proj_depth/groundtruth), a per-pixel "
-                    "count of the scans that agree (proj_depth/support), the poses used and an index CSV.",
-    )
+HELP = "camera-view depth targets from a KITTI raw drive or a ROS bag (registered scans, what the camera sees)"
+DESCRIPTION = ("Accumulate the LiDAR scans t-k..t+k of a KITTI raw drive or a ROS bag (--bag: its frames are "
+               "first written as a KITTI raw drive OUT/<date>/<bag name>_sync) into each frame's camera, keep only "
+               "the returns the camera sees (returns of moving objects and occluded returns dropped, the "
+               "frame's own scan first), and write KITTI depth PNGs (proj_depth/groundtruth), a per-pixel "
+               "count of the scans that agree (proj_depth/support), the poses used and an index CSV.")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``crfdepth targets``."""
     parser.add_argument("--drive", metavar="DIR",
                         help="KITTI raw drive folder (<day>/<drive>_sync with velodyne_points/data/*.bin and "
                              "image_0X/data/*.png); the calibration is read from the day folder above it. Give "
@@ -74,8 +73,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                              "by reason (occluded: magenta, moved: white)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     targets_bag.add_arguments(parser)
-    parser.set_defaults(func=run, out_std_dir=None)
-    return parser
+    # the output-folder checks it shares with complete's folder and bag modes read --out-std-dir
+    parser.set_defaults(out_std_dir=None)
 
 
 def run(args: argparse.Namespace) -> int:

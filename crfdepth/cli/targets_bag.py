@@ -53,7 +53,7 @@ import cv2
 import numpy as np
 
 from crfdepth.cli import targets_drive
-from crfdepth.cli.arguments import BAD_INPUT, positive_number
+from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
 from crfdepth.cli.bag_frames import (
     DEFAULT_MAX_DT_S,
     Plan,
@@ -84,13 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "a ROS bag", "ROS 1 .bag or ROS 2 (sqlite3, mcap) recordings, needs pip install 'crfdepth[ros]'. The frames "
                      "are also written as a KITTI raw drive OUT/<date>/<bag name>_sync (+ the day calibration), the "
                      "targets to OUT/<bag name>_sync: layout \"sequence\" reads OUT as root and targets_root")
-    bag.add_argument("--bag", metavar="PATH", help="ROS 1 .bag file, ROS 2 bag folder, or its .db3 / .mcap file")
-    bag.add_argument("--image-topic", metavar="TOPIC",
-                     help="sensor_msgs/Image or CompressedImage topic (default: the bag's only one)")
-    bag.add_argument("--points-topic", "--cloud-topic", dest="points_topic", metavar="TOPIC",
-                     help="sensor_msgs/PointCloud2 topic (default: the bag's only one)")
-    bag.add_argument("--camera-info-topic", metavar="TOPIC",
-                     help="sensor_msgs/CameraInfo topic (default: camera_info beside --image-topic)")
+    add_topic_arguments(bag, only_one_default=True, points_aliases=("--cloud-topic",))
     bag.add_argument("--calib", metavar="FILE",
                      help="rig YAML/JSON or KITTI calibration: replaces the CameraInfo and the /tf LiDAR -> camera "
                           "transform")

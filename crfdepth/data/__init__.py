@@ -7,6 +7,7 @@ builds one by layout name. Sub-modules: :mod:`~crfdepth.data.kitti`,
 :mod:`~crfdepth.data.example` (the own-sensor example files).
 """
 
+from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.kitti import (
     KittiDepthCompletion,
     KittiRawScans,
@@ -15,6 +16,7 @@ from crfdepth.data.kitti import (
     open_completion_folder,
 )
 from crfdepth.data.sample import Batch, Sample, collate_samples
+from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
 from crfdepth.data.transforms import (
     BottomCenterCrop,
     Compose,
@@ -23,8 +25,6 @@ from crfdepth.data.transforms import (
     RandomThinning,
     SubsampleSparse,
 )
-from crfdepth.data.factory import LAYOUTS, build_dataset
-from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
 
 __all__ = [
     "EVAL_MAX_DEPTH_M",

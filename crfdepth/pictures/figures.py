@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.sequences.targets import REASON_COLOURS, Targets
 from crfdepth.pictures.colour import (
     BLACK,
     WHITE,
@@ -32,6 +31,7 @@ from crfdepth.pictures.colour import (
     depth_range,
     std_range,
 )
+from crfdepth.sequences.targets import REASON_COLOURS, Targets
 
 __all__ = ["depth_picture", "std_picture", "targets_picture"]
 

@@ -16,8 +16,8 @@ import torch
 from crfdepth.config import PRIORS
 from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.fill.nearest import nearest_fill
-from crfdepth.potentials.occlusion import gate_or_fallback
 from crfdepth.potentials.energy import Variable, to_unknown
+from crfdepth.potentials.occlusion import gate_or_fallback
 
 __all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
 

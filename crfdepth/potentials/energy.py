@@ -21,11 +21,10 @@ from typing import Literal
 
 import torch
 
-from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.config import Variable
-from crfdepth.linalg.system import System
 from crfdepth.geometry.normals import camera_points, dense_normals
-
+from crfdepth.linalg.operators import grid_edge_index
+from crfdepth.linalg.system import System
 
 
 def to_unknown(depth: torch.Tensor, variable: Variable) -> torch.Tensor:

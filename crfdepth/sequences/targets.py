@@ -35,8 +35,8 @@ import numpy as np
 
 from crfdepth.checks import check_intrinsics, check_number, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.sequences.free_space import seen_through
 from crfdepth.geometry.projection import check_image_size
+from crfdepth.sequences.free_space import seen_through
 
 __all__ = [
     "KEPT",

@@ -265,8 +265,8 @@ def _tensors(file: Path, value: Any, device: torch.device) -> dict[str, torch.Te
 
 
 def _upgrade(file: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Older state dicts kept the refinement prior as a buffer ``refine_prior``; it is now the
-    parameter ``log_refine_prior``."""
+    """A state dict holding the refinement prior as the buffer ``refine_prior`` gets the parameter
+    ``log_refine_prior`` the model loads (its log: learned in log space, the prior stays > 0)."""
     if "refine_prior" in state and "log_refine_prior" not in state:
         positive = state["refine_prior"] > 0
         if not bool(positive.all()):

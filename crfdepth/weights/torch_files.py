@@ -92,7 +92,7 @@ def load_torch_file(file: Path, map_location: torch.device) -> Any:
     except Exception as exc:  # unpickling errors come in many types; all mean "not a checkpoint"
         with open(file, "rb") as handle:
             head = handle.read(8)
-        if head.startswith(b"PK\x03\x04") or head.startswith(b"\x80"):  # zip archive / pickle >= 2
+        if head.startswith((b"PK\x03\x04", b"\x80")):  # zip archive / pickle >= 2
             reason = f"torch.load with weights_only=True refused it: {_reason(exc)}"
         else:
             reason = f"neither a torch.save archive nor a pickle; it starts with {head!r}"

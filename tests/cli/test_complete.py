@@ -20,12 +20,12 @@ import pytest
 import torch
 
 from crfdepth import cli
+from crfdepth.checkpoints import save_model
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
 from crfdepth.weights import weights_path
-from crfdepth.checkpoints import save_model
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"
 # Cheap model options for tests about files and names rather than accuracy.

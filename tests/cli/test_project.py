@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from crfdepth import cli
+from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 from crfdepth.io.calibration import load_calibration
 from crfdepth.io.kitti import read_depth_png, read_velodyne
-from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 
 DRIVE = "2011_09_26_drive_0001_sync"
 FRAME = "0000000005"

@@ -13,9 +13,9 @@ import pytest
 import torch
 from kornia.morphology import dilation
 
+from crfdepth.errors import InputError
 from crfdepth.fill import ip_basic as classical
 from crfdepth.fill.ip_basic import ip_basic_fill
-from crfdepth.errors import InputError
 
 
 def _map(rows) -> torch.Tensor:

@@ -6,8 +6,6 @@ import numpy as np
 import pytest
 
 from crfdepth.errors import InputError
-from crfdepth.io.calibration import Calibration, RigCalibration, load_calibration
-from crfdepth.io.kitti import read_depth_png, read_velodyne
 from crfdepth.geometry.projection import (
     count_in_image,
     fraction_mask,
@@ -19,6 +17,8 @@ from crfdepth.geometry.projection import (
     recover_rings,
     ring_mask,
 )
+from crfdepth.io.calibration import Calibration, RigCalibration, load_calibration
+from crfdepth.io.kitti import read_depth_png, read_velodyne
 
 DRIVE = "2011_09_26_drive_0001_sync"
 FRAME = "0000000005"

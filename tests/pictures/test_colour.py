@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.pictures import figures as pictures
 from crfdepth.errors import InputError
-from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.pictures import figures as pictures
 from crfdepth.pictures.colour import (
     colorize_depth,
     colorize_std,
@@ -16,6 +15,7 @@ from crfdepth.pictures.colour import (
     render_point_cloud,
     std_range,
 )
+from crfdepth.pictures.figures import depth_picture, std_picture
 
 
 def _lut(colormap: int) -> np.ndarray:

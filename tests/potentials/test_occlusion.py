@@ -236,8 +236,8 @@ def _scans(kitti_root):
     from PIL import Image
 
     from crfdepth.data.kitti import KittiRawScans
-    from crfdepth.io.kitti import read_velodyne
     from crfdepth.geometry.projection import project_to_depth, project_velodyne
+    from crfdepth.io.kitti import read_velodyne
 
     for layout, root in (("raw", kitti_root / "raw"), ("object", kitti_root / "object" / "training")):
         ds = KittiRawScans(root, layout=layout, transform=None)

@@ -9,8 +9,8 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
-from crfdepth.pictures.figures import targets_picture
 from crfdepth.geometry.projection import project_to_depth
+from crfdepth.pictures.figures import targets_picture
 from crfdepth.sequences.targets import (
     KEPT,
     MOVED,

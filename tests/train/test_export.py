@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from crfdepth.model import CRFDepth
 from crfdepth.checkpoints import load_model
+from crfdepth.model import CRFDepth
 from train.export import main
 
 

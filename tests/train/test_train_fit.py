@@ -15,11 +15,11 @@ import pytest
 import torch
 import yaml
 
-from crfdepth.data import build_dataset, collate_samples
-from crfdepth.uncertainty.predictive import DEFAULT_STD_TERMS, STD_TERMS
-from crfdepth.metrics import depth_metrics
 from crfdepth.config import flat_view
+from crfdepth.data import build_dataset, collate_samples
+from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.uncertainty.predictive import DEFAULT_STD_TERMS, STD_TERMS
 from train.__main__ import main
 
 # Lightning's CLI calls jsonargparse functions that jsonargparse 4.49 deprecates.

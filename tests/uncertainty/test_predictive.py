@@ -10,11 +10,19 @@ import torch.nn.functional as F
 
 from crfdepth.data.synthetic import SyntheticScenes
 from crfdepth.errors import InputError
+from crfdepth.geometry.windows import window_max
 from crfdepth.metrics import uncertainty_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.uncertainty.predictive import (DEFAULT_STD_TERMS, OFFSETS, SIGNALS, STD_TERMS, PredictiveStd, fit_std_terms,
-                                 predictive_std, std_features)
-from crfdepth.geometry.windows import window_max
+from crfdepth.uncertainty.predictive import (
+    DEFAULT_STD_TERMS,
+    OFFSETS,
+    SIGNALS,
+    STD_TERMS,
+    PredictiveStd,
+    fit_std_terms,
+    predictive_std,
+    std_features,
+)
 
 
 @pytest.mark.parametrize("window", [3, 5, 7, 15])

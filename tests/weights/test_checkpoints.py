@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from crfdepth.checkpoints import load_model, save_model
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
-from crfdepth.checkpoints import load_model, save_model
 from crfdepth.weights import MODEL_FORMAT, MODEL_VERSION
 
 F64 = torch.float64

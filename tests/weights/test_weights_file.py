@@ -7,10 +7,11 @@ import json
 import pytest
 import torch
 
+from crfdepth.checkpoints import load_model, save_weights
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights import LEARNED, WEIGHTS_FORMAT, WEIGHTS_VERSION, read_weights
-from crfdepth.checkpoints import load_model, save_weights
+
 
 def _close(a: dict[str, float], b: dict[str, float], rtol: float = 1e-5) -> bool:
     return all(abs(a[k] - b[k]) <= rtol * abs(b[k]) for k in LEARNED)

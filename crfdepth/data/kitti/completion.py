@@ -14,7 +14,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from crfdepth.data.kitti.loading import (
-    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+    FrameDataset,
+    PathLike,
+    Transform,
+    load_sample,
+    no_frames,
+    require_dir,
+    require_root,
 )
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop

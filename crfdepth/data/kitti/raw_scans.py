@@ -36,13 +36,19 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import torch
 
-from crfdepth.geometry import projection
 from crfdepth.data.kitti.loading import (
-    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+    FrameDataset,
+    PathLike,
+    Transform,
+    load_sample,
+    no_frames,
+    require_dir,
+    require_root,
 )
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
+from crfdepth.geometry import projection
 from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
 from crfdepth.io.kitti import read_rgb, read_velodyne
 from crfdepth.potentials.occlusion import see_through_mask

@@ -11,7 +11,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from crfdepth.data.kitti.loading import (
-    FrameDataset, PathLike, Transform, load_sample, no_frames, require_dir, require_root,
+    FrameDataset,
+    PathLike,
+    Transform,
+    load_sample,
+    no_frames,
+    require_dir,
+    require_root,
 )
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError

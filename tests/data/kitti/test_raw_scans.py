@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.geometry import projection
 from crfdepth.data.kitti import KittiRawScans
 from crfdepth.data.kitti.raw_scans import remove_see_through
 from crfdepth.errors import InputError
+from crfdepth.geometry import projection
 from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
 from crfdepth.io.kitti import read_velodyne
 from crfdepth.potentials.occlusion import see_through_mask
