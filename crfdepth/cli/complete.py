@@ -98,7 +98,6 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.plausibility import SPARSE_UNITS
 from crfdepth.cli.arguments import vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
@@ -107,6 +106,7 @@ from crfdepth.cli.complete_folder import run_folder
 from crfdepth.cli.complete_one import run_one
 from crfdepth.cli.model_options import add_model_arguments
 from crfdepth.errors import InputError
+from crfdepth.plausibility import SPARSE_UNITS
 
 # --------------------------------------------------------------------------- arguments
 
