@@ -34,20 +34,9 @@ from crfdepth.checkpoints import load_pretrained
 from crfdepth.checks import check_frames, check_intrinsics
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
-from crfdepth.inputs import (
-    checked_points_to_sparse,
-    image_to_numpy,
-    prepare_points,
-    sparse_to_numpy,
-)
+from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
 from crfdepth.io.calibration import Calibration, RigCalibration
-from crfdepth.memory import (
-    check_frame_size,
-    check_model_memory,
-    estimate_bytes,
-    is_out_of_memory,
-    out_of_memory,
-)
+from crfdepth.memory import check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory, out_of_memory
 
 __all__ = ["check_frame", "complete_batch", "complete_checked", "complete_depth"]
 

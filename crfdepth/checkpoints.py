@@ -72,12 +72,7 @@ import torch
 from crfdepth.config import POTENTIALS, CRFConfig, flat_view, plain_data
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
-from crfdepth.weights.files import (
-    DEFAULT_WEIGHTS,
-    pretrained_state,
-    read_checkpoint,
-    write_weights,
-)
+from crfdepth.weights.files import DEFAULT_WEIGHTS, pretrained_state, read_checkpoint, write_weights
 from crfdepth.weights.torch_files import write_model_file
 
 __all__ = ["describe", "load_model", "load_pretrained", "own_structure", "save_model", "save_weights"]

@@ -22,14 +22,7 @@ from typing import Any, Callable, Mapping
 import torch
 
 from crfdepth.checks import check_frames, check_number
-from crfdepth.config import (
-    MODES,
-    POTENTIALS,
-    PRIORS,
-    UNCERTAINTIES,
-    VARIABLES,
-    CRFConfig,
-)
+from crfdepth.config import MODES, POTENTIALS, PRIORS, UNCERTAINTIES, VARIABLES, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.linalg import solver_settings

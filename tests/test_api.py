@@ -32,18 +32,9 @@ from crfdepth.api import complete_depth
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
-from crfdepth.geometry.projection import (
-    ground_normal,
-    ground_tilt_deg,
-    project_velodyne,
-    ring_mask,
-)
+from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, project_velodyne, ring_mask
 from crfdepth.inputs import points_to_sparse
-from crfdepth.io.calibration import (
-    RigCalibration,
-    load_any_calibration,
-    load_calibration,
-)
+from crfdepth.io.calibration import RigCalibration, load_any_calibration, load_calibration
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_velodyne
 from crfdepth.io.pointcloud import read_points, write_pcd, write_ply
 from crfdepth.metrics import depth_metrics

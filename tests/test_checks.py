@@ -9,11 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.checks import (
-    check_choice,
-    check_intrinsics,
-    check_rigid,
-)
+from crfdepth.checks import check_choice, check_intrinsics, check_rigid
 from crfdepth.errors import InputError
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_units
 

@@ -34,13 +34,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from crfdepth.metrics import (
-    ause,
-    average_metrics,
-    depth_metrics,
-    reliability,
-    uncertainty_metrics,
-)
+from crfdepth.metrics import ause, average_metrics, depth_metrics, reliability, uncertainty_metrics
 from crfdepth.model import CRFDepth
 
 from .fits import FIT_SOURCE, get_fit, posterior_view

@@ -35,13 +35,7 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
     from torch.utils.data import DataLoader
 
     from crfdepth.config import CRFConfig
-    from crfdepth.data import (
-        Compose,
-        HorizontalFlip,
-        RandomCrop,
-        RandomThinning,
-        collate_samples,
-    )
+    from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, collate_samples
     from train.data import TransformedDataset
     from train.module import CRFDepthModule
 

@@ -62,21 +62,10 @@ from tqdm import tqdm
 
 from crfdepth import api
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
-from crfdepth.cli.bag_frames import (
-    DEFAULT_MAX_DT_S,
-    Plan,
-    decode_frame,
-    paired_frames,
-    plan_frames,
-)
+from crfdepth.cli.bag_frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
 from crfdepth.cli.completion import flag_names, frame_errors
 from crfdepth.cli.model_options import build_model
-from crfdepth.cli.outputs import (
-    check_output_folders,
-    check_writable_dir,
-    output_folders,
-    write_frame,
-)
+from crfdepth.cli.outputs import check_output_folders, check_writable_dir, output_folders, write_frame
 from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image

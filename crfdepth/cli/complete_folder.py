@@ -17,11 +17,7 @@ from tqdm import tqdm
 
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.batches import bad_frames, frame_batches
-from crfdepth.cli.completion import (
-    check_sample,
-    complete_batch_with_cli_advice,
-    flag_names,
-)
+from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
 from crfdepth.cli.skip_bad import skipped_frames, write_skipped

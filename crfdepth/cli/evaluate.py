@@ -83,12 +83,7 @@ from crfdepth.checkpoints import describe
 from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.evaluate_frames import evaluate_frames
-from crfdepth.cli.evaluate_report import (
-    UNCERTAINTY_UNITS,
-    csv_text,
-    format_table,
-    summarize,
-)
+from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
 from crfdepth.cli.outputs import output_folders
 from crfdepth.data.factory import LAYOUTS, build_dataset

@@ -23,12 +23,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.io.files import (
-    atomic_write_bytes,
-    check_not_locked,
-    lock_folder,
-    probe_folder,
-)
+from crfdepth.io.files import atomic_write_bytes, check_not_locked, lock_folder, probe_folder
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.pictures.figures import depth_picture, std_picture
 

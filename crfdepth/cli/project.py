@@ -27,11 +27,7 @@ from pathlib import Path
 from crfdepth.checks import check_intrinsics
 from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.errors import InputError
-from crfdepth.geometry.projection import (
-    keep_every_ring,
-    keep_fraction,
-    project_velodyne,
-)
+from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 from crfdepth.io.calibration import RIG_SUFFIXES, load_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png

@@ -54,13 +54,7 @@ import numpy as np
 
 from crfdepth.cli import targets_drive
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
-from crfdepth.cli.bag_frames import (
-    DEFAULT_MAX_DT_S,
-    Plan,
-    decode_frame,
-    paired_frames,
-    plan_frames,
-)
+from crfdepth.cli.bag_frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
 from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration

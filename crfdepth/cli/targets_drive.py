@@ -63,12 +63,7 @@ from crfdepth.io.kitti import read_velodyne, write_depth_png
 from crfdepth.pictures.figures import targets_picture
 from crfdepth.sequences import odometry
 from crfdepth.sequences.poses import read_imu_to_velo, read_kitti_poses, read_oxts
-from crfdepth.sequences.targets import (
-    MOVED,
-    OCCLUDED,
-    OUTSIDE,
-    camera_view_targets,
-)
+from crfdepth.sequences.targets import MOVED, OCCLUDED, OUTSIDE, camera_view_targets
 
 logger = logging.getLogger(__name__)
 

@@ -9,14 +9,7 @@ from crfdepth.inference.settings import ModelSettings
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
-from crfdepth.potentials.energy import (
-    GridTerms,
-    grid_potentials,
-    grid_system,
-    std_in_metres,
-    to_depth,
-    to_unknown,
-)
+from crfdepth.potentials.energy import GridTerms, grid_potentials, grid_system, std_in_metres, to_depth, to_unknown
 from crfdepth.potentials.robust import reweight
 from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance

@@ -15,13 +15,7 @@ from crfdepth.io.calibration import (
     read_raw_calibration,
     read_rig_calibration,
 )
-from crfdepth.io.kitti import (
-    read_depth_png,
-    read_intrinsics,
-    read_rgb,
-    read_velodyne,
-    write_depth_png,
-)
+from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_velodyne, write_depth_png
 from crfdepth.io.pointcloud import read_points, write_pcd, write_ply
 
 __all__ = [

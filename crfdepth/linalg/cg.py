@@ -93,16 +93,9 @@ def _start(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_we
     return y, r, monitor, monitor.check(r, 0) or max_iter == 0
 
 
-def conjugate_gradient(
-    matvec: MatVec,
-    c: torch.Tensor,
-    y0: torch.Tensor | None,
-    residual_weight: torch.Tensor,
-    rtol: float,
-    max_iter: int,
-    check_every: int = 8,
-    precondition: MatVec | None = None,
-) -> tuple[torch.Tensor, KrylovResult]:
+def conjugate_gradient(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor,
+                       rtol: float, max_iter: int, check_every: int = 8, precondition: MatVec | None = None
+                       ) -> tuple[torch.Tensor, KrylovResult]:
     """Conjugate Gradient on a batch of SPD systems ``M y = c`` (rows of ``c``).
 
     Args:
@@ -195,15 +188,8 @@ def _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every):
     return y, monitor.result()
 
 
-def conjugate_gradient_squared(
-    matvec: MatVec,
-    c: torch.Tensor,
-    y0: torch.Tensor | None,
-    residual_weight: torch.Tensor,
-    rtol: float,
-    max_iter: int,
-    check_every: int = 8,
-) -> tuple[torch.Tensor, KrylovResult]:
+def conjugate_gradient_squared(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor,
+                               rtol: float, max_iter: int, check_every: int = 8) -> tuple[torch.Tensor, KrylovResult]:
     """Conjugate Gradient Squared (Sonneveld), the paper's solver; same contract as CG.
 
     CGS does not need symmetry and takes two matvecs per iteration; its residual is not

@@ -19,13 +19,7 @@ import torch
 
 from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
-from crfdepth.linalg.adjoint import (
-    _METHODS,
-    GRAD_RTOL,
-    SolveInfo,
-    SolverSettings,
-    solve_system,
-)
+from crfdepth.linalg.adjoint import _METHODS, GRAD_RTOL, SolveInfo, SolverSettings, solve_system
 from crfdepth.linalg.system import System
 
 Method = Literal["cg", "cgs"]
@@ -134,21 +128,10 @@ def _check_positive_definite(d: np.ndarray, src: np.ndarray, dst: np.ndarray, w:
 # public API
 # ----------------------------------------------------------------------------------------
 
-def solve_laplacian(
-    b: torch.Tensor,
-    d: torch.Tensor,
-    edge_index: torch.Tensor,
-    edge_weight: torch.Tensor,
-    *,
-    ptr: torch.Tensor | None = None,
-    x0: torch.Tensor | None = None,
-    method: Method = "cg",
-    rtol: float = 1e-6,
-    max_iter: int | None = None,
-    check_every: int = 8,
-    on_nonconvergence: OnFail = "warn",
-    grad_rtol: float = GRAD_RTOL,
-) -> tuple[torch.Tensor, SolveInfo]:
+def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor, *,
+                    ptr: torch.Tensor | None = None, x0: torch.Tensor | None = None, method: Method = "cg",
+                    rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
+                    on_nonconvergence: OnFail = "warn", grad_rtol: float = GRAD_RTOL) -> tuple[torch.Tensor, SolveInfo]:
     """Solve ``(diag(d) + L(edge_index, edge_weight)) x = b`` for a batch of graphs.
 
     ``L`` is the weighted graph Laplacian, ``(L x)_i = sum_j w_ij (x_i - x_j)`` over the
@@ -239,21 +222,11 @@ def solve_laplacian(
     return solve_system(System.graph(d, b, edge_index, edge_weight, ptr), x0, settings)
 
 
-def solve_grid_laplacian(
-    b: torch.Tensor,
-    d: torch.Tensor,
-    weight_h: torch.Tensor,
-    weight_v: torch.Tensor,
-    *,
-    x0: torch.Tensor | None = None,
-    method: Method = "cg",
-    rtol: float = 1e-6,
-    max_iter: int | None = None,
-    check_every: int = 8,
-    on_nonconvergence: OnFail = "warn",
-    grad_rtol: float = GRAD_RTOL,
-    preconditioner: Preconditioner = "auto",
-) -> tuple[torch.Tensor, SolveInfo]:
+def solve_grid_laplacian(b: torch.Tensor, d: torch.Tensor, weight_h: torch.Tensor, weight_v: torch.Tensor, *,
+                         x0: torch.Tensor | None = None, method: Method = "cg", rtol: float = 1e-6,
+                         max_iter: int | None = None, check_every: int = 8, on_nonconvergence: OnFail = "warn",
+                         grad_rtol: float = GRAD_RTOL, preconditioner: Preconditioner = "auto"
+                         ) -> tuple[torch.Tensor, SolveInfo]:
     """Solve ``(diag(d) + L) x = b`` on a batch of 4-connected pixel grids.
 
     The same system as :func:`solve_laplacian` with the edges of

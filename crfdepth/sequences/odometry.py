@@ -114,26 +114,12 @@ def _kiss():
     return KISSConfig, KissICP
 
 
-def lidar_odometry(
-    scans: Sequence,
-    *,
-    voxel_size: float | None = None,
-    max_range: float = 100.0,
-    min_range: float = 3.0,
-    rate: float = 10.0,
-    max_speed: float = 40.0,
-    max_yaw_rate: float = 60.0,
-    min_points: int = 1000,
-    min_fitness: float = 0.5,
-    min_z: float | None = None,
-    initial_motion=None,
-    deskew: bool = False,
-    threads: int = 0,
-    check: bool = True,
-    check_alignment: bool = True,
-    max_alignment_m: float = MAX_ALIGN_OFFSET_M,
-    max_alignment_deg: float = MAX_ALIGN_OFFSET_DEG,
-) -> Odometry:
+def lidar_odometry(scans: Sequence, *, voxel_size: float | None = None, max_range: float = 100.0,
+                   min_range: float = 3.0, rate: float = 10.0, max_speed: float = 40.0, max_yaw_rate: float = 60.0,
+                   min_points: int = 1000, min_fitness: float = 0.5, min_z: float | None = None, initial_motion=None,
+                   deskew: bool = False, threads: int = 0, check: bool = True, check_alignment: bool = True,
+                   max_alignment_m: float = MAX_ALIGN_OFFSET_M, max_alignment_deg: float = MAX_ALIGN_OFFSET_DEG
+                   ) -> Odometry:
     """LiDAR odometry of consecutive scans with KISS-ICP, every step checked.
 
     Args:

@@ -35,11 +35,7 @@ import torch
 
 from crfdepth.checks import check_depth_values, describe
 from crfdepth.errors import InputError
-from crfdepth.superpixels.edges import (
-    boundary_pairs,
-    four_neighbour_picks,
-    undirected_edges,
-)
+from crfdepth.superpixels.edges import boundary_pairs, four_neighbour_picks, undirected_edges
 from crfdepth.superpixels.segments import image_tensor, labels_tensor, slic_batch
 
 __all__ = [
@@ -151,17 +147,9 @@ def _segment_median(depth: torch.Tensor, labels_flat: torch.Tensor, count: torch
     return out
 
 
-def build_superpixel_graph(
-    image: torch.Tensor,
-    sparse: torch.Tensor,
-    n_segments: int = 5500,
-    aggregate: Aggregate = "mean",
-    labels: torch.Tensor | np.ndarray | None = None,
-    *,
-    compactness: float = 20.0,
-    sigma: float = 1.0,
-    max_num_iter: int = 5,
-) -> SuperpixelGraph:
+def build_superpixel_graph(image: torch.Tensor, sparse: torch.Tensor, n_segments: int = 5500,
+                           aggregate: Aggregate = "mean", labels: torch.Tensor | np.ndarray | None = None, *,
+                           compactness: float = 20.0, sigma: float = 1.0, max_num_iter: int = 5) -> SuperpixelGraph:
     """Superpixel graph of one frame: segments, node features and the paper's edges.
 
     Nodes and features as in docs/design.md section 2; edges by
@@ -263,17 +251,10 @@ def build_checked_graphs(image: torch.Tensor, depth: torch.Tensor, seg: torch.Te
     return graphs
 
 
-def build_superpixel_graphs(
-    image: torch.Tensor,
-    sparse: torch.Tensor,
-    n_segments: int = 5500,
-    aggregate: Aggregate = "mean",
-    labels: torch.Tensor | None = None,
-    *,
-    compactness: float = 20.0,
-    sigma: float = 1.0,
-    max_num_iter: int = 5,
-) -> list[SuperpixelGraph]:
+def build_superpixel_graphs(image: torch.Tensor, sparse: torch.Tensor, n_segments: int = 5500,
+                            aggregate: Aggregate = "mean", labels: torch.Tensor | None = None, *,
+                            compactness: float = 20.0, sigma: float = 1.0, max_num_iter: int = 5
+                            ) -> list[SuperpixelGraph]:
     """Batched :func:`build_superpixel_graph`: one graph per frame, built for all frames at once.
 
     Args:

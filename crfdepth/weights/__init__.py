@@ -20,12 +20,7 @@ from crfdepth.weights.files import (
     write_weights,
 )
 from crfdepth.weights.state import load_state
-from crfdepth.weights.torch_files import (
-    BARE_STATE_DICT,
-    MODEL_FORMAT,
-    MODEL_VERSION,
-    write_model_file,
-)
+from crfdepth.weights.torch_files import BARE_STATE_DICT, MODEL_FORMAT, MODEL_VERSION, write_model_file
 
 __all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
            "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "load_state", "pretrained_state", "read_checkpoint", "read_weights",

@@ -30,12 +30,7 @@ import torch
 from crfdepth.config import flat_view, is_grouped
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_output_file
-from crfdepth.weights.torch_files import (
-    check_device,
-    is_config,
-    load_torch_file,
-    unpack_torch_file,
-)
+from crfdepth.weights.torch_files import check_device, is_config, load_torch_file, unpack_torch_file
 
 __all__ = ["DEFAULT_WEIGHTS", "LEARNED", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state",
            "read_checkpoint", "read_weights", "weights_path", "write_weights"]

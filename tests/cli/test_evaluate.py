@@ -31,14 +31,7 @@ from crfdepth.cli.completion import complete_batch_with_cli_advice
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
-from crfdepth.metrics import (
-    METRICS,
-    UNCERTAINTY_METRICS,
-    UNITS,
-    average_metrics,
-    depth_metrics,
-    uncertainty_metrics,
-)
+from crfdepth.metrics import METRICS, UNCERTAINTY_METRICS, UNITS, average_metrics, depth_metrics, uncertainty_metrics
 from crfdepth.model import CRFDepth
 
 COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")

@@ -17,11 +17,7 @@ import pytest
 import crfdepth.io
 from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
-from crfdepth.geometry.projection import (
-    project_points,
-    project_to_depth,
-    project_velodyne,
-)
+from crfdepth.geometry.projection import project_points, project_to_depth, project_velodyne
 from crfdepth.io.calibration import (
     Calibration,
     RigCalibration,

@@ -11,15 +11,7 @@ from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import project_to_depth
 from crfdepth.pictures.figures import targets_picture
-from crfdepth.sequences.targets import (
-    KEPT,
-    MOVED,
-    OCCLUDED,
-    OUTSIDE,
-    REASON_COLOURS,
-    accumulate,
-    camera_view_targets,
-)
+from crfdepth.sequences.targets import KEPT, MOVED, OCCLUDED, OUTSIDE, REASON_COLOURS, accumulate, camera_view_targets
 
 # ----------------------------------------------------------------------------- two planes
 

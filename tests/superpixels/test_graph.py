@@ -11,17 +11,8 @@ from skimage.graph import rag_mean_color
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import grid_edge_index
-from crfdepth.superpixels.edges import (
-    DIRECTIONS_DEG,
-    four_neighbour_picks,
-    region_adjacency,
-    undirected_edges,
-)
-from crfdepth.superpixels.graph import (
-    batch_edge_index,
-    build_superpixel_graph,
-    build_superpixel_graphs,
-)
+from crfdepth.superpixels.edges import DIRECTIONS_DEG, four_neighbour_picks, region_adjacency, undirected_edges
+from crfdepth.superpixels.graph import batch_edge_index, build_superpixel_graph, build_superpixel_graphs
 from crfdepth.superpixels.segments import slic_segments
 
 RIGHT, DOWN, LEFT, UP = range(4)  # columns of four_neighbour_picks (y points down)

@@ -10,15 +10,7 @@ from crfdepth import CRFDepth, complete_depth
 from crfdepth.checkpoints import load_pretrained
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
-from crfdepth.weights import (
-    LEARNED,
-    WEIGHTS,
-    files,
-    pretrained_state,
-    read_weights,
-    torch_files,
-    weights_path,
-)
+from crfdepth.weights import LEARNED, WEIGHTS, files, pretrained_state, read_weights, torch_files, weights_path
 
 
 def _close(a: dict[str, float], b: dict[str, float], rtol: float = 1e-5) -> bool:

@@ -8,14 +8,7 @@ import json
 import pytest
 import torch
 
-from crfdepth.checkpoints import (
-    describe,
-    load_model,
-    load_pretrained,
-    own_structure,
-    save_model,
-    save_weights,
-)
+from crfdepth.checkpoints import describe, load_model, load_pretrained, own_structure, save_model, save_weights
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights import LEARNED, files, weights_path

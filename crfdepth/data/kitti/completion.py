@@ -13,15 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from crfdepth.data.kitti.loading import (
-    FrameDataset,
-    PathLike,
-    Transform,
-    load_sample,
-    no_frames,
-    require_dir,
-    require_root,
-)
+from crfdepth.data.kitti import loading
+from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop
 from crfdepth.errors import InputError
@@ -101,14 +94,14 @@ class KittiDepthCompletion(FrameDataset):
         layout = "KittiDepthCompletion"
         if split not in ("train", "val"):
             raise InputError(f"split: expected 'train' or 'val', got {split!r}")
-        self.root = require_root(root)
+        self.root = loading.require_root(root)
         self.split = split
         self.cameras = _check_cameras(camera)
-        self.raw_root = require_root(self.root.parent / "raw" if raw_root is None else raw_root, "raw_root")
+        self.raw_root = loading.require_root(self.root.parent / "raw" if raw_root is None else raw_root, "raw_root")
         self.transform = transform
 
-        velodyne_dir = require_dir(self.root / "data_depth_velodyne" / split, self.root, layout)
-        annotated_dir = require_dir(self.root / "data_depth_annotated" / split, self.root, layout)
+        velodyne_dir = loading.require_dir(self.root / "data_depth_velodyne" / split, self.root, layout)
+        annotated_dir = loading.require_dir(self.root / "data_depth_annotated" / split, self.root, layout)
 
         frames: list[_CompletionFrame] = []
         for drive_dir in sorted(p for p in velodyne_dir.iterdir() if p.is_dir()):
@@ -133,7 +126,7 @@ class KittiDepthCompletion(FrameDataset):
                         day_dir=day_dir,
                     ))
         if not frames:
-            raise no_frames(self.root, layout,
+            raise loading.no_frames(self.root, layout,
                              f"data_depth_velodyne/{split}/<drive>/proj_depth/velodyne_raw/"
                              f"{{{','.join(self.cameras)}}}/*.png")
         frames.sort(key=lambda f: f.name)
@@ -163,7 +156,7 @@ class KittiDepthCompletion(FrameDataset):
 
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
-        return load_sample(
+        return loading.load_sample(
             rgb=read_rgb(f.image),
             sparse=read_depth_png(f.sparse),
             target=read_depth_png(f.target),

@@ -36,15 +36,8 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import torch
 
-from crfdepth.data.kitti.loading import (
-    FrameDataset,
-    PathLike,
-    Transform,
-    load_sample,
-    no_frames,
-    require_dir,
-    require_root,
-)
+from crfdepth.data.kitti import loading
+from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
 from crfdepth.errors import InputError
@@ -164,20 +157,10 @@ class KittiRawScans(FrameDataset):
             a scan without its image or calibration (path named); bad option values.
     """
 
-    def __init__(
-        self,
-        root: PathLike,
-        layout: Literal["raw", "object"] = "raw",
-        holdout: Literal["fraction", "rings", "drop_rings"] = "fraction",
-        holdout_fraction: float = 0.2,
-        keep_every_ring: int = 4,
-        drop_every_ring: int = 4,
-        seed: int = 0,
-        keep_fraction: float = 1.0,
-        camera: int = 2,
-        transform: Transform | None = BottomCenterCrop(),
-        clean_target: bool = True,
-    ) -> None:
+    def __init__(self, root: PathLike, layout: Literal["raw", "object"] = "raw",
+                 holdout: Literal["fraction", "rings", "drop_rings"] = "fraction", holdout_fraction: float = 0.2,
+                 keep_every_ring: int = 4, drop_every_ring: int = 4, seed: int = 0, keep_fraction: float = 1.0,
+                 camera: int = 2, transform: Transform | None = BottomCenterCrop(), clean_target: bool = True) -> None:
         if layout not in ("raw", "object"):
             raise InputError(f"layout: expected 'raw' or 'object', got {layout!r}")
         if holdout not in ("fraction", "rings", "drop_rings"):
@@ -196,7 +179,7 @@ class KittiRawScans(FrameDataset):
             raise InputError(f"camera: expected 2 or 3 (KITTI colour cameras), got {camera!r}")
         if not isinstance(clean_target, bool):
             raise InputError(f"clean_target: expected True or False, got {clean_target!r}")
-        self.root = require_root(root)
+        self.root = loading.require_root(root)
         self.layout = layout
         self.holdout = holdout
         self.holdout_fraction = float(holdout_fraction)
@@ -234,21 +217,21 @@ class KittiRawScans(FrameDataset):
                         calib=day_dir,
                     ))
         if not frames:
-            raise no_frames(self.root, "KittiRawScans(raw)", "<date>/<drive>/velodyne_points/data/*.bin")
+            raise loading.no_frames(self.root, "KittiRawScans(raw)", "<date>/<drive>/velodyne_points/data/*.bin")
         return frames
 
     def _list_object(self) -> list[_ScanFrame]:
         layout = "KittiRawScans(object)"
-        velodyne_dir = require_dir(self.root / "velodyne", self.root, layout)
-        image_dir = require_dir(self.root / f"image_{self.camera}", self.root, layout)
-        calib_dir = require_dir(self.root / "calib", self.root, layout)
+        velodyne_dir = loading.require_dir(self.root / "velodyne", self.root, layout)
+        image_dir = loading.require_dir(self.root / f"image_{self.camera}", self.root, layout)
+        calib_dir = loading.require_dir(self.root / "calib", self.root, layout)
         frames = [
             _ScanFrame(name=scan.stem, image=image_dir / f"{scan.stem}.png", velodyne=scan,
                        calib=calib_dir / f"{scan.stem}.txt")
             for scan in sorted(velodyne_dir.glob("*.bin"))
         ]
         if not frames:
-            raise no_frames(self.root, layout, "velodyne/*.bin")
+            raise loading.no_frames(self.root, layout, "velodyne/*.bin")
         return frames
 
     def _calibration(self, f: _ScanFrame) -> Calibration:
@@ -303,7 +286,7 @@ class KittiRawScans(FrameDataset):
         target[blocked > 0] = 0.0
         if self.clean_target:
             target = remove_see_through(target, projection.project_velodyne(points, calib, size))
-        return load_sample(
+        return loading.load_sample(
             rgb=rgb, sparse=sparse, target=target, K=calib.K, name=f.name,
             files={"image": f.image, "sparse": f.velodyne, "target": f.velodyne},
             transform=self.transform,

@@ -10,15 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from crfdepth.data.kitti.loading import (
-    FrameDataset,
-    PathLike,
-    Transform,
-    load_sample,
-    no_frames,
-    require_dir,
-    require_root,
-)
+from crfdepth.data.kitti import loading
+from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
@@ -50,20 +43,20 @@ class _SelectionDataset(FrameDataset):
     _with_target = True
 
     def __init__(self, root: PathLike, transform: Transform | None = None) -> None:
-        self.root = _resolve_subfolder(require_root(root), self._folder, "velodyne_raw")
+        self.root = _resolve_subfolder(loading.require_root(root), self._folder, "velodyne_raw")
         self.transform = transform
         layout = self._layout
-        sparse_dir = require_dir(self.root / "velodyne_raw", self.root, layout)
-        image_dir = require_dir(self.root / "image", self.root, layout)
-        intrinsics_dir = require_dir(self.root / "intrinsics", self.root, layout)
-        target_dir = (require_dir(self.root / "groundtruth_depth", self.root, layout)
+        sparse_dir = loading.require_dir(self.root / "velodyne_raw", self.root, layout)
+        image_dir = loading.require_dir(self.root / "image", self.root, layout)
+        intrinsics_dir = loading.require_dir(self.root / "intrinsics", self.root, layout)
+        target_dir = (loading.require_dir(self.root / "groundtruth_depth", self.root, layout)
                       if self._with_target else None)
 
         frames = []
         for sparse in sorted(sparse_dir.glob("*.png")):
             frames.append(self._frame(sparse, image_dir, target_dir, intrinsics_dir))
         if not frames:
-            raise no_frames(self.root, layout, "velodyne_raw/*.png")
+            raise loading.no_frames(self.root, layout, "velodyne_raw/*.png")
         for f in frames:
             for path, what in ((f.image, "RGB image"), (f.intrinsics, "intrinsics"), (f.target, "ground truth")):
                 if path is not None and not path.is_file():
@@ -75,7 +68,7 @@ class _SelectionDataset(FrameDataset):
 
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
-        return load_sample(
+        return loading.load_sample(
             rgb=read_rgb(f.image),
             sparse=read_depth_png(f.sparse),
             target=read_depth_png(f.target) if f.target is not None else None,
@@ -178,7 +171,7 @@ def open_completion_folder(
         FileNotFoundError: ``root`` does not exist.
         InputError: ``root`` matches neither layout, or holds no frame (as the datasets).
     """
-    folder = require_root(root)
+    folder = loading.require_root(root)
     val_folder = KittiValSelection._folder
     if (folder / "groundtruth_depth").is_dir() or (folder / val_folder / "groundtruth_depth").is_dir():
         return KittiValSelection(folder, transform=transform)

@@ -44,12 +44,7 @@ from crfdepth.data.synthetic.camera import KITTI_CROP_WIDTH, KITTI_FOCAL_PX, cam
 from crfdepth.data.synthetic.dataset import SyntheticScenes
 from crfdepth.data.synthetic.lidar_sim import LIDAR_IN_CAMERA_M, MIN_RANGE_M, lidar_elevations
 from crfdepth.data.synthetic.scene import EVAL_MAX_DEPTH_M, SyntheticScene, make_scene
-from crfdepth.data.synthetic.sequence import (
-    SyntheticFrame,
-    SyntheticSequence,
-    ego_pose,
-    make_sequence,
-)
+from crfdepth.data.synthetic.sequence import SyntheticFrame, SyntheticSequence, ego_pose, make_sequence
 from crfdepth.data.synthetic.world import CAMERA_HEIGHT_M
 
 __all__ = [

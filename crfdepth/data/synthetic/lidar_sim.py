@@ -15,12 +15,7 @@ import math
 import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int
-from crfdepth.data.synthetic.raycast import (
-    boxes_in_frame,
-    cast_rays,
-    rotate_rays,
-    surface_normals,
-)
+from crfdepth.data.synthetic.raycast import boxes_in_frame, cast_rays, rotate_rays, surface_normals
 from crfdepth.data.synthetic.world import PLANE, ROAD, TINY, World, road_markings
 
 __all__ = ["LIDAR_IN_CAMERA_M", "MIN_RANGE_M", "lidar_elevations", "lidar_to_camera", "scan_lidar"]

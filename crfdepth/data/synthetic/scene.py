@@ -123,18 +123,9 @@ def render_frame(world, rng, K, T_cam_lidar, height, width, beams, azimuth_step_
     return image, depth, pixel_index, points, rings, point_index, sparse
 
 
-def make_scene(
-    seed: int = 0,
-    height: int = 352,
-    width: int = 1216,
-    beams: int = 64,
-    *,
-    azimuth_step_deg: float = 0.17,
-    max_range: float = 100.0,
-    range_noise_std: float = 0.02,
-    dropout: float = 0.03,
-    image_noise_std: float = 0.008,
-) -> SyntheticScene:
+def make_scene(seed: int = 0, height: int = 352, width: int = 1216, beams: int = 64, *, azimuth_step_deg: float = 0.17,
+               max_range: float = 100.0, range_noise_std: float = 0.02, dropout: float = 0.03,
+               image_noise_std: float = 0.008) -> SyntheticScene:
     """Generate and render one synthetic street frame.
 
     Args:

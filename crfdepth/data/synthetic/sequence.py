@@ -209,23 +209,10 @@ def _mover_velocities(movers, n_cars: int, speed: float, rng) -> np.ndarray:
     return v
 
 
-def make_sequence(
-    n_frames: int = 10,
-    seed: int = 0,
-    *,
-    speed: float = 10.0,
-    rate: float = 10.0,
-    yaw_rate: float = 0.0,
-    movers=0,
-    height: int = 352,
-    width: int = 1216,
-    beams: int = 64,
-    azimuth_step_deg: float = 0.17,
-    max_range: float = 100.0,
-    range_noise_std: float = 0.02,
-    dropout: float = 0.03,
-    image_noise_std: float = 0.008,
-) -> SyntheticSequence:
+def make_sequence(n_frames: int = 10, seed: int = 0, *, speed: float = 10.0, rate: float = 10.0, yaw_rate: float = 0.0,
+                  movers=0, height: int = 352, width: int = 1216, beams: int = 64, azimuth_step_deg: float = 0.17,
+                  max_range: float = 100.0, range_noise_std: float = 0.02, dropout: float = 0.03,
+                  image_noise_std: float = 0.008) -> SyntheticSequence:
     """Render the synthetic street along the ego car's path.
 
     Args:

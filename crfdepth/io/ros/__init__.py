@@ -14,12 +14,7 @@ Only ``bag`` and ``writer`` need the optional ``rosbags`` package (``pip install
 
 from crfdepth.io.ros.bag import Pairing, Recording, camera_info_topic, pair_nearest
 from crfdepth.io.ros.images import decode_image
-from crfdepth.io.ros.messages import (
-    CameraModel,
-    camera_from_info,
-    points_from_cloud,
-    stamp_ns,
-)
+from crfdepth.io.ros.messages import CameraModel, camera_from_info, points_from_cloud, stamp_ns
 from crfdepth.io.ros.tf import TransformError, TransformTree
 
 __all__ = ["CameraModel", "Pairing", "Recording", "TransformError", "TransformTree", "camera_from_info",

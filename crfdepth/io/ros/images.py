@@ -17,12 +17,7 @@ import cv2
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.io.ros.fields import (
-    message_bytes,
-    message_field,
-    message_rows,
-    message_size,
-)
+from crfdepth.io.ros.fields import message_bytes, message_field, message_rows, message_size
 
 __all__ = ["IMAGE_ENCODINGS", "decode_image"]
 

@@ -19,13 +19,7 @@ import pytest
 
 from crfdepth.errors import InputError
 from crfdepth.io.ros.images import IMAGE_ENCODINGS, decode_image
-from crfdepth.io.ros.messages import (
-    CameraModel,
-    camera_from_info,
-    depth_image_fields,
-    points_from_cloud,
-    stamp_ns,
-)
+from crfdepth.io.ros.messages import CameraModel, camera_from_info, depth_image_fields, points_from_cloud, stamp_ns
 
 WHERE = "--image-topic /cam/image_raw (image at 1700000000123456789 ns)"
 STORES = ["ROS1_NOETIC", "ROS2_HUMBLE"]
