@@ -103,7 +103,8 @@ def bad_frames(dataset: Dataset, workers: int, check: Callable[[Sample, int], No
 
 
 def frame_batches(dataset: Dataset, batch_size: int, workers: int,
-                  check: Callable[[Sample, int], None] = _check_any) -> Iterator[Batch]:
+                  check: Callable[[Sample, int], None] = _check_any, starts: set[int] | None = None
+                  ) -> Iterator[Batch]:
     """The frames of ``dataset`` in order, as :class:`~crfdepth.data.sample.Batch` es of up
     to ``batch_size`` consecutive frames of one size (a size change starts a new batch).
 
@@ -111,18 +112,19 @@ def frame_batches(dataset: Dataset, batch_size: int, workers: int,
     on it (default :func:`check_sample`). A frame that fails (``BAD_INPUT``) ends the
     iteration: the frames before it are yielded first, then its exception is raised with
     the type and message it had where it was read, so the error reads the same for any
-    ``workers`` and ``batch_size``. Results do not depend on how the frames are batched
+    ``workers`` and ``batch_size``. ``starts``: indices of frames that start a batch besides
+    (a resumed run's plan, :func:`crfdepth.cli.resume.batch_plan`). Results do not depend on how the frames are batched
     beyond :func:`~crfdepth.cli.completion.complete_batch_with_cli_advice`'s solver tolerance.
     """
     loader = DataLoader(_CheckedFrames(dataset, check), batch_size=None, shuffle=False, num_workers=workers,
                         collate_fn=_as_is)
     pending: list[Sample] = []
-    for item in loader:
+    for index, item in enumerate(loader):
         if isinstance(item, _Failure):
             if pending:
                 yield collate_samples(pending)
             raise item.error(item.message)
-        if pending and item.size != pending[0].size:
+        if pending and (item.size != pending[0].size or (starts is not None and index in starts)):
             yield collate_samples(pending)
             pending = []
         pending.append(item)

@@ -80,7 +80,9 @@ nothing removes an earlier one) and in the summary, and exits 0. The extra read 
 23-56 ms per 1216x352 frame, under 10% of its completion (docs/design.md section 10).
 A failure that only the model reveals (a non-finite depth) or Ctrl-C stops the run
 midway; the message says how many frames were written (``interrupted after 3 of 10
-frame(s) written to OUT``, exit status 130), and they stay.
+frame(s) written to OUT; --resume completes the others``, exit status 130), and they stay.
+The same command with ``--resume`` completes the others, and the folders end as one
+uninterrupted run's, byte for byte (:mod:`crfdepth.cli.resume`).
 
 The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders are locked while the run writes
 (``.crfdepth.lock``: pid, host, start time, command; :func:`crfdepth.io.files.lock_folder`):
@@ -168,6 +170,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "makes the run write nothing and exit 2, listing the bad frames. With --skip-bad the "
                              "bad frames are left out instead, listed with the reason in <out-dir>/skipped.csv "
                              "and in the summary, and the run exits 0")
+    parser.add_argument("--resume", action="store_true",
+                        help="--input-dir: leave out the frames an earlier run of the same model and options "
+                             "finished in these folders (every output file there; <out-dir>/run.json says which "
+                             "model and options wrote them, and another run's folder is refused), and complete "
+                             "the others: a run stopped part-way and resumed writes the same files as one "
+                             "uninterrupted run")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)
@@ -185,6 +193,9 @@ def run(args: argparse.Namespace) -> int:
     if args.sparse_units is not None and (args.bag is not None or args.input_dir is not None):
         raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
                          f"{'--input-dir reads KITTI velodyne_raw PNGs (metres * 256)' if args.bag is None else '--bag reads point clouds in metres'}")
+    if args.resume and args.input_dir is None:
+        raise InputError("--resume: applies to --input-dir (a folder of frames); a single frame is simply run "
+                         "again" + (", and --bag writes its index.csv afresh" if args.bag is not None else ""))
     if args.bag is not None:
         return run_bag(args)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]

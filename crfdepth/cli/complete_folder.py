@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import logging
 import os
 import sys
@@ -20,7 +21,15 @@ from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
-from crfdepth.cli.skip_bad import skipped_frames, write_skipped
+from crfdepth.cli.resume import (
+    batch_plan,
+    check_resumable,
+    finished_frames,
+    remove_run_record,
+    run_record,
+    write_run_record,
+)
+from crfdepth.cli.skip_bad import skipped_frames, write_failed, write_skipped
 from crfdepth.data.kitti import open_completion_folder
 from crfdepth.errors import InputError
 
@@ -60,22 +69,28 @@ def _open_folder(path: str):
         raise InputError(f"--input-dir {path}: {exc}") from None
 
 
-def _check_frames(dataset, args, total: int) -> list[tuple[int, type[BaseException], str]]:
-    """Pass 1 of folder mode: every frame read and checked (:func:`~crfdepth.cli.batches.bad_frames`); each
-    message names its frame (``frame 3/6 <name>: ...``; a check names the file too)."""
-    progress = tqdm(total=total, unit="frame", desc="check", disable=args.quiet or not sys.stderr.isatty())
+def _check_frames(dataset, args, positions: list[int]) -> list[tuple[int, type[BaseException], str]]:
+    """Pass 1 of folder mode: frames ``positions`` of the folder ``dataset`` read and checked
+    (:func:`~crfdepth.cli.batches.bad_frames`); each message names its frame (``frame 3/6 <name>: ...``; a check
+    names the file too). Returns (folder index, error, message) of the bad ones."""
+    total = len(dataset)
+    progress = tqdm(total=len(positions), unit="frame", desc="check", disable=args.quiet or not sys.stderr.isatty())
     checked = []
 
     def step(index: int) -> None:
         checked.append(index)
         progress.update(1)
 
+    frames = dataset if len(positions) == total else Subset(dataset, positions)
     try:
-        bad = bad_frames(dataset, args.workers, functools.partial(_check_frame, total=total), step)
-        return [(i, error, message if message.startswith(_where(i, total, dataset.names[i]))
-                 else f"{_where(i, total, dataset.names[i])}: {message}") for i, error, message in bad]
+        bad = bad_frames(frames, args.workers, functools.partial(_check_frame, total=total, positions=positions), step)
+        found = []
+        for k, error, message in bad:
+            where = _where(positions[k], total, dataset.names[positions[k]])
+            found.append((positions[k], error, message if message.startswith(where) else f"{where}: {message}"))
+        return found
     except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"while checking the frames ({len(checked)} of {total} checked); nothing "
+        raise KeyboardInterrupt(f"while checking the frames ({len(checked)} of {len(positions)} checked); nothing "
                                 f"written") from None
     finally:
         progress.close()
@@ -101,65 +116,119 @@ def run_folder(args: argparse.Namespace) -> int:
     targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
     model = build_model(args)
     total = len(dataset)
-    bad = _check_frames(dataset, args, total)
-    skipped = skipped_frames(bad, total, f"--input-dir {args.input_dir}", args.skip_bad)
-    good = [i for i in range(total) if i not in skipped]
-    names = [dataset.names[i] for i in good]
-    frames = Subset(dataset, good) if skipped else dataset
     with_std = args.out_std_dir is not None or args.vis is not None
+    record = run_record(args, model, with_std)
+    finished = _finished(args, dataset, targets, record, with_std) if args.resume else set()
+    todo = [i for i in range(total) if i not in finished]
+    bad = _check_frames(dataset, args, todo)
+    skipped = skipped_frames(bad, len(todo), f"--input-dir {args.input_dir}", args.skip_bad)
+    good = [i for i in range(total) if i not in skipped]
+    # the uninterrupted run's batches; a resumed run redoes each one holding an unfinished frame, whole
+    plan = [batch for batch in batch_plan([dataset.sparse_path(i) for i in good], args.batch_size)
+            if any(good[k] not in finished for k in batch)]
+    run = [good[k] for batch in plan for k in batch]
+    starts = set(itertools.accumulate(len(batch) for batch in plan[:-1]))
+    names = [dataset.names[i] for i in run]
     start = time.perf_counter()
     with output_folders(targets) as folders:
         out_dir, std_dir = folders[0], folders[1]
         vis_dir = folders[2] if args.vis is not None else None
-        others = _other_pngs(out_dir, names)
+        others = _other_pngs(out_dir, [dataset.names[i] for i in range(total)])
         if others:
             logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
                            "run on other frames?); they stay", out_dir, others)
         skipped_csv = write_skipped(out_dir, [(dataset.names[i], m) for i, m in skipped.items()])
-        written = _complete_frames(args, model, frames, names, total, good, out_dir, std_dir, vis_dir, with_std)
+        failed: list[tuple[str, str]] = []
+        try:
+            written = _complete_frames(args, model, Subset(dataset, run), names, total, run,
+                                       (out_dir, std_dir, vis_dir), with_std, starts,
+                                       lambda: write_run_record(out_dir, record), failed) if run else 0
+        finally:  # also when the run stops: the frames that failed are listed for --resume
+            failed_csv = write_failed(out_dir, failed)
+        if not failed:
+            remove_run_record(out_dir)
     seconds = time.perf_counter() - start
     if not args.quiet:
         print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
               + (f", pictures to {vis_dir}" if vis_dir else "") + f" in {seconds:.1f} s")
+        if finished:
+            redone = len(run) - (len(good) - len(finished & set(good)))
+            print(f"{len(finished)} of {total} frame(s) were finished by an earlier run (--resume)"
+                  + (f"; {redone} of them done again with the unfinished frames of their batch" if redone else ""))
         if skipped:
             print(f"skipped {len(skipped)} bad frame(s) of {total} (--skip-bad), listed with the reasons in "
                   f"{skipped_csv}")
+        if failed:
+            print(f"{len(failed)} frame(s) failed (--skip-bad), listed with the reasons in {failed_csv}; "
+                  f"--resume completes them once fixed")
     return 0
 
 
-def _complete_frames(args, model, frames, names: list[str], total: int, positions: list[int], out_dir: Path,
-                     std_dir: Path | None, vis_dir: Path | None, with_std: bool) -> int:
-    """Pass 2 of folder mode: complete and write ``frames`` (frame ``k`` is frame ``positions[k]`` of the
-    folder's ``total``); returns the number written. A failure now (the frame changed since pass 1, a
-    non-finite model output) stops the run saying how many frames were written, as does Ctrl-C."""
+def _finished(args, dataset, targets, record: dict, with_std: bool) -> set[int]:
+    """``--resume``: the frames whose outputs an earlier run of this model and options left complete."""
+    folders = dict(targets)
+    out_dir = Path(folders["--out-dir"])
+    if not out_dir.is_dir():
+        return set()
+    std_dir = Path(folders["--out-std-dir"]) if folders.get("--out-std-dir") else None
+    vis_dir = Path(folders["--vis"]) if folders.get("--vis") is not None else None
+    check_resumable(out_dir, record)
+    return finished_frames(dataset.names, out_dir, std_dir, vis_dir, with_std)
+
+
+def _complete_frames(args, model, frames, names: list[str], total: int, positions: list[int], folders: tuple,
+                     with_std: bool, starts: set[int], first_write, failed: list[tuple[str, str]]) -> int:
+    """Pass 2 of folder mode: complete and write ``frames`` in batches that start at ``starts`` besides
+    size changes and ``--batch-size`` (frame ``k`` is frame ``positions[k]`` of the folder's ``total``);
+    returns the number written. ``first_write()`` runs before the first file is written.
+
+    A failure now (the frame changed since pass 1, a non-finite model output, a batch too large for the
+    memory) is added to ``failed`` (name, reason) for each frame of its batch; with ``--skip-bad`` the
+    run goes on, without it the run stops saying how many frames were written, as Ctrl-C does."""
+    out_dir, std_dir, vis_dir = folders
     progress = tqdm(total=len(names), unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
     check = functools.partial(_check_frame, total=total, positions=positions)
-    batches = frame_batches(frames, args.batch_size, args.workers, check)
-    written = 0
-    where = _where(positions[0], total, names[0])
+    batches = frame_batches(frames, args.batch_size, args.workers, check, starts)
+    done = written = 0
+    where, batch_names = _where(positions[0], total, names[0]), names[:1]
     try:
         for batch in batches:  # a frame that fails to read or check is raised here, after the frames before it
+            batch_names = batch.names
             if len(batch) > 1:
-                where = (f"frames {positions[written] + 1}-{positions[written + len(batch) - 1] + 1}/{total} "
+                where = (f"frames {positions[done] + 1}-{positions[done + len(batch) - 1] + 1}/{total} "
                          f"({', '.join(batch.names)})")
-            depth, std = complete_batch_with_cli_advice(model, batch, with_std)
-            depth = depth.cpu().numpy()  # float32, as the one-frame mode writes it
-            std = std.cpu().numpy() if std is not None else [None] * len(batch)
-            for name, frame_depth, frame_std in zip(batch.names, depth, std):
-                where = _where(positions[written], total, name)
-                write_frame(frame_depth, frame_std, out_dir / f"{name}.png",
-                            std_dir / f"{name}.png" if std_dir is not None else None, vis_dir, name,
-                            args.vis_range)
-                written += 1
-                progress.update(1)
-            if written < len(names):
-                where = _where(positions[written], total, names[written])
+            try:
+                written += _complete_batch(args, model, batch, with_std, folders, first_write if not written else None)
+            except BAD_INPUT as exc:
+                if not args.skip_bad:
+                    raise
+                failed.extend((name, f"{where}: {exc}") for name in batch.names)
+            done += len(batch)
+            progress.update(len(batch))
+            if done < len(names):
+                where, batch_names = _where(positions[done], total, names[done]), names[done:done + 1]
     except BAD_INPUT as exc:
+        failed.extend((name, f"{where}: {exc}") for name in batch_names)
         raise type(exc)(f"{exc} [stopped at {where}; {written} of {len(names)} frame(s) written to "
-                        f"{out_dir}]") from None
+                        f"{out_dir}; --resume completes the others]") from None
     except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"after {written} of {len(names)} frame(s) written to {out_dir}") from None
+        raise KeyboardInterrupt(f"after {written} of {len(names)} frame(s) written to {out_dir}; --resume "
+                                f"completes the others") from None
     finally:
         batches.close()  # stops the DataLoader workers
         progress.close()
     return written
+
+
+def _complete_batch(args, model, batch, with_std: bool, folders: tuple, first_write) -> int:
+    """Complete and write one batch; returns the number of frames written."""
+    out_dir, std_dir, vis_dir = folders
+    depth, std = complete_batch_with_cli_advice(model, batch, with_std)
+    depth = depth.cpu().numpy()  # float32, as the one-frame mode writes it
+    std = std.cpu().numpy() if std is not None else [None] * len(batch)
+    if first_write is not None:
+        first_write()
+    for name, frame_depth, frame_std in zip(batch.names, depth, std):
+        write_frame(frame_depth, frame_std, out_dir / f"{name}.png", std_dir / f"{name}.png" if std_dir else None,
+                    vis_dir, name, args.vis_range)
+    return len(batch)

@@ -10,9 +10,10 @@ from pathlib import Path
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
 
-__all__ = ["LISTED_BAD", "SKIPPED_CSV", "skipped_frames", "write_skipped"]
+__all__ = ["FAILED_CSV", "LISTED_BAD", "SKIPPED_CSV", "skipped_frames", "write_failed", "write_skipped"]
 
 SKIPPED_CSV = "skipped.csv"  # --skip-bad: the frames left out and why (folder and bag modes)
+FAILED_CSV = "failed.csv"  # folder mode: the frames that passed the checks but failed when completed
 # How many bad frames the error of a run without --skip-bad lists (the first line names the first one).
 LISTED_BAD = 20
 
@@ -21,14 +22,23 @@ def write_skipped(out_dir: Path, skipped: list[tuple[str, str]]) -> Path | None:
     """``<out-dir>/skipped.csv`` (columns ``frame``, ``reason``) of the frames ``--skip-bad`` left out,
     written atomically; with none, a ``skipped.csv`` of an earlier run is removed, so that the folder
     describes this run. Returns the file written, or None."""
-    path = out_dir / SKIPPED_CSV
-    if not skipped:
+    return _write_frame_list(out_dir / SKIPPED_CSV, skipped)
+
+
+def write_failed(out_dir: Path, failed: list[tuple[str, str]]) -> Path | None:
+    """``<out-dir>/failed.csv`` (columns ``frame``, ``reason``) of the frames that passed the checks but failed
+    when completed, as :func:`write_skipped` writes its list; ``--resume`` completes them once fixed."""
+    return _write_frame_list(out_dir / FAILED_CSV, failed)
+
+
+def _write_frame_list(path: Path, rows: list[tuple[str, str]]) -> Path | None:
+    if not rows:
         path.unlink(missing_ok=True)
         return None
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(("frame", "reason"))
-    writer.writerows(skipped)
+    writer.writerows(rows)
     atomic_write_bytes(path, text.getvalue().encode())
     return path
 

@@ -10,6 +10,7 @@ import pytest
 
 from crfdepth import api
 from crfdepth.cli import complete_bag, complete_folder, outputs
+from crfdepth.cli.resume import RUN_RECORD
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 
@@ -34,8 +35,10 @@ def test_folder_run_reports_the_frames_written(tmp_path, monkeypatch, batch_size
     code, stdout, err = run(["complete", "--input-dir", data, "--out-dir", out, "--batch-size", batch_size, *FAST])
     written = 2 * batch_size
     assert code == 130 and stdout == ""
-    assert err == f"crfdepth complete: interrupted after {written} of 5 frame(s) written to {out}\n"
-    assert files(out) == [png(i) for i in range(written)]  # no lock, no temporary file
+    assert err == (f"crfdepth complete: interrupted after {written} of 5 frame(s) written to {out}; --resume "
+                   f"completes the others\n")
+    # no lock, no temporary file; the record of the unfinished run for --resume
+    assert files(out) == sorted([png(i) for i in range(written)] + [RUN_RECORD])
 
 
 def test_folder_run_interrupted_while_checking_writes_nothing(tmp_path, monkeypatch):
@@ -53,7 +56,8 @@ def test_folder_run_interrupted_before_its_first_frame_leaves_no_folder(tmp_path
     (tmp_path / "new").mkdir()
     _interrupt_after(monkeypatch, complete_folder, "complete_batch_with_cli_advice", 0)
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", out, "--vis", *FAST])
-    assert code == 130 and err == f"crfdepth complete: interrupted after 0 of 2 frame(s) written to {out}\n"
+    assert code == 130 and err == (f"crfdepth complete: interrupted after 0 of 2 frame(s) written to {out}; "
+                                   f"--resume completes the others\n")
     assert list((tmp_path / "new").iterdir()) == []  # the empty folders it had created (out, out_vis) are gone
 
 

@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 
 from crfdepth.cli import complete_folder
+from crfdepth.cli.resume import RUN_RECORD
+from crfdepth.cli.skip_bad import FAILED_CSV
 from crfdepth.io.files import LOCK_NAME, FolderLockedError, lock_folder
 from tests.cli.frames import FAST, files, png, run, write_folder
 
@@ -154,8 +156,10 @@ def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path
 
     monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", nan_second)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])
-    assert code == 2 and "non-finite" in err and "1 of 3 frame(s) written" in err
-    assert files(tmp_path / "out") == [png(0)]  # no lock left
+    assert code == 2 and "non-finite" in err and "1 of 3 frame(s) written" in err and "--resume completes" in err
+    # no lock left; the failed frame listed, and the record of the unfinished run for --resume
+    assert files(tmp_path / "out") == sorted([png(0), RUN_RECORD, FAILED_CSV])
+    assert (tmp_path / "out" / FAILED_CSV).read_text().splitlines()[1].startswith(png(1)[:-4])
 
 
 def test_evaluate_out_dir_is_locked(folder, tmp_path, sleeper):

@@ -66,6 +66,10 @@ class _SelectionDataset(FrameDataset):
     def _frame(self, sparse: Path, image_dir: Path, target_dir: Path | None, intrinsics_dir: Path) -> _SelectionFrame:
         raise NotImplementedError
 
+    def sparse_path(self, index: int) -> Path:
+        """The ``velodyne_raw`` PNG of frame ``index`` (it names the frame and gives its size)."""
+        return self._frames[index].sparse
+
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
         return loading.load_sample(

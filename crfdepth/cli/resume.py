@@ -1,0 +1,113 @@
+"""``complete --input-dir --resume``: what an earlier run into the same folders already finished, and the
+batches of a run planned so that a resumed run writes the same files as an uninterrupted one.
+
+- :func:`finished_frames`: the frames whose every output (depth PNG, std PNG, pictures, as this run
+  would write them) exists. Each file is written atomically (:mod:`crfdepth.io.files`), so one that
+  exists is whole; a frame cut short has some of its files and is done again.
+- :func:`run_record` / :func:`check_resumable` / :func:`write_run_record`: ``<out-dir>/.crfdepth-run.json``,
+  what decides the files' bytes (the model's configuration and a digest of its weights, the dtype, the
+  device type, the batch size, the std and the pictures asked for), written before a run's first file and
+  removed when the run has written every frame, so that a finished folder holds the outputs alone (a
+  KITTI submission is the PNGs). A resumed run that would write other bytes than the unfinished run
+  before it is refused, naming what differs; a folder without the record was finished (or written by
+  hand), and its outputs are taken as they are.
+- :func:`batch_plan`: the batches of the uninterrupted run (consecutive frames of one size, up to
+  ``--batch-size``: :func:`crfdepth.cli.batches.frame_batches`' rule, the size read from each PNG's
+  header). A resumed run redoes every batch that holds an unfinished frame, whole, so each frame is
+  solved in the batch it would have had: CG iterations of a batch run together, and a frame's depth
+  depends on its batch within the solver tolerance (docs/design.md section 10).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from crfdepth.errors import InputError
+from crfdepth.io.files import atomic_write_bytes
+from crfdepth.io.image_size import read_image_size
+
+__all__ = ["RUN_RECORD", "batch_plan", "check_resumable", "finished_frames", "remove_run_record", "run_record",
+           "write_run_record"]
+
+RUN_RECORD = ".crfdepth-run.json"
+
+
+def frame_outputs(name: str, out_dir: Path, std_dir: Path | None, vis_dir: Path | None, with_std: bool
+                  ) -> list[Path]:
+    """The files a run writes for frame ``name`` (:func:`crfdepth.cli.outputs.write_frame`)."""
+    paths = [out_dir / f"{name}.png"]
+    if std_dir is not None:
+        paths.append(std_dir / f"{name}.png")
+    if vis_dir is not None:
+        paths.append(vis_dir / f"{name}_vis_depth.png")
+        if with_std:
+            paths.append(vis_dir / f"{name}_vis_std.png")
+    return paths
+
+
+def finished_frames(names: list[str], out_dir: Path, std_dir: Path | None, vis_dir: Path | None,
+                    with_std: bool) -> set[int]:
+    """Indices of ``names`` whose every output exists."""
+    return {i for i, name in enumerate(names)
+            if all(p.is_file() for p in frame_outputs(name, out_dir, std_dir, vis_dir, with_std))}
+
+
+def run_record(args: argparse.Namespace, model, with_std: bool) -> dict:
+    """What decides the bytes of a run's files: the model (configuration and SHA-256 of its weights), the
+    dtype and device type it runs in, the batch size, and the outputs asked for."""
+    digest = hashlib.sha256()
+    for key, tensor in sorted(model.state_dict().items()):
+        digest.update(key.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    param = next(model.parameters())
+    return {"model": json.loads(json.dumps(model.config)), "weights_sha256": digest.hexdigest(),
+            "dtype": str(param.dtype).removeprefix("torch."), "device": torch.device(args.device).type,
+            "batch_size": args.batch_size, "std": with_std, "vis": args.vis is not None,
+            "vis_range": list(args.vis_range) if args.vis_range is not None else None}
+
+
+def check_resumable(out_dir: Path, record: dict) -> None:
+    """Refuse ``--resume`` into ``out_dir`` when the unfinished run that wrote it would write other bytes than
+    this one (its record differs from ``record``)."""
+    path = out_dir / RUN_RECORD
+    if not path.is_file():
+        return
+    try:
+        earlier = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--resume: cannot read {path} ({exc}); remove it to write every frame again") from None
+    differ = sorted(key for key in record.keys() | earlier.keys() if record.get(key) != earlier.get(key))
+    if differ:
+        what = ", ".join(f"{key} {earlier.get(key)!r} -> {record.get(key)!r}" if key != "model" else "model"
+                         for key in differ)
+        raise InputError(f"--resume: {out_dir} holds the unfinished run of another model or options ({what}; "
+                         f"{path}); resume with its options, or complete into another --out-dir")
+
+
+def write_run_record(out_dir: Path, record: dict) -> None:
+    atomic_write_bytes(out_dir / RUN_RECORD, (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())
+
+
+def remove_run_record(out_dir: Path) -> None:
+    """The run has written every frame: the folder holds its outputs alone."""
+    (out_dir / RUN_RECORD).unlink(missing_ok=True)
+
+
+def batch_plan(sparse_files: list[Path], batch_size: int) -> list[list[int]]:
+    """The batches (lists of indices into ``sparse_files``) of consecutive frames of one size, up to
+    ``batch_size`` each; a frame whose PNG header does not parse starts and ends a batch of its own (the
+    reader says why when it is read)."""
+    batches: list[list[int]] = []
+    size = None
+    for index, path in enumerate(sparse_files):
+        here = read_image_size(path)
+        if not batches or here is None or here != size or len(batches[-1]) == batch_size:
+            batches.append([])
+        batches[-1].append(index)
+        size = here if here is not None else object()
+    return batches

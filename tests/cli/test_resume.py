@@ -1,0 +1,136 @@
+"""``complete --input-dir --resume``: a run stopped part-way and resumed writes the same files as one
+uninterrupted run, byte for byte, for any batch size; the frames an earlier run finished are not done
+again; another model or other options are refused; a frame that fails when completed is listed in
+failed.csv (and, with --skip-bad, the others are completed)."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+
+import pytest
+
+from crfdepth.cli import complete_folder
+from crfdepth.cli.resume import RUN_RECORD
+from crfdepth.errors import InputError
+from tests.cli.frames import FAST, files, png, run, write_folder
+
+COUNT = 5
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return write_folder(tmp_path_factory.mktemp("resume") / "val_selection_cropped", COUNT)
+
+
+def _argv(data, out, *extra, quiet: bool = True) -> list:
+    return ["complete", "--input-dir", data, "--out-dir", out / "d", "--out-std-dir", out / "s", "--vis", out / "v",
+            *extra, *(FAST if quiet else [f for f in FAST if f != "--quiet"])]
+
+
+def _stop_after(monkeypatch, batches: int) -> list:
+    """The model step raises KeyboardInterrupt on call ``batches + 1``; returns the list of the batches' names."""
+    real, seen = complete_folder.complete_batch_with_cli_advice, []
+
+    def step(model, batch, return_std):
+        if len(seen) == batches:
+            raise KeyboardInterrupt
+        seen.append(list(batch.names))
+        return real(model, batch, return_std)
+
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", step)
+    return seen
+
+
+def _same_tree(a, b) -> None:
+    assert files(a) == files(b)
+    for name in files(a):
+        if name.endswith(".png"):
+            assert filecmp.cmp(a / name, b / name, shallow=False), name
+
+
+@pytest.mark.parametrize("batch_size", [1, 2])
+def test_stopped_and_resumed_equals_uninterrupted_file_for_file(folder, tmp_path, monkeypatch, batch_size):
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    assert run(_argv(folder, whole, "--batch-size", batch_size))[0] == 0
+    seen = _stop_after(monkeypatch, 1)
+    code, _, err = run(_argv(folder, parts, "--batch-size", batch_size))
+    assert code == 130 and f"after {batch_size} of {COUNT} frame(s) written" in err
+    monkeypatch.undo()
+    done_first = set(seen[0])
+    seen = []
+    real = complete_folder.complete_batch_with_cli_advice
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice",
+                        lambda model, batch, std: seen.append(list(batch.names)) or real(model, batch, std))
+    code, _, _ = run(_argv(folder, parts, "--batch-size", batch_size, "--resume"))
+    assert code == 0
+    assert not done_first & {name for names in seen for name in names}  # the finished frames are not done again
+    assert sum(len(names) for names in seen) == COUNT - batch_size
+    for sub in ("d", "s", "v"):
+        _same_tree(whole / sub, parts / sub)
+
+
+def test_a_batch_cut_short_is_done_again_whole(folder, tmp_path, monkeypatch):
+    """Stopped between the frames of a batch of 2: the batch is redone with its partner, as it was planned."""
+    out = tmp_path / "o"
+    assert run(_argv(folder, out, "--batch-size", "2"))[0] == 0
+    (out / "s" / png(3)).unlink()  # frame 3 lost its std PNG: frames 2-3 (one batch) are unfinished
+    seen = []
+    real = complete_folder.complete_batch_with_cli_advice
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice",
+                        lambda model, batch, std: seen.append(len(batch)) or real(model, batch, std))
+    code, stdout, _ = run(_argv(folder, out, "--batch-size", "2", "--resume", quiet=False))
+    assert code == 0 and seen == [2] and (out / "s" / png(3)).is_file()
+    assert f"{COUNT - 1} of {COUNT} frame(s) were finished by an earlier run (--resume); 1 of them done again" in stdout
+
+
+def test_resume_refuses_the_unfinished_run_of_another_model_or_options(folder, tmp_path, monkeypatch):
+    out = tmp_path / "o"
+    _stop_after(monkeypatch, 2)
+    assert run(_argv(folder, out))[0] == 130
+    monkeypatch.undo()
+    record = json.loads((out / "d" / RUN_RECORD).read_text())  # the stopped run says what it was
+    assert record["batch_size"] == 1 and record["std"] is True and len(record["weights_sha256"]) == 64
+    code, _, err = run(_argv(folder, out, "--resume", "--batch-size", "2"))
+    assert code == 2 and err.startswith(f"crfdepth complete: error: --resume: {out / 'd'} holds the unfinished run "
+                                        f"of another model or options (batch_size 1 -> 2; ")
+    code, _, err = run(_argv(folder, out, "--resume", "--weights", "paper"))
+    assert code == 2 and "of another model or options (model, weights_sha256 " in err
+    assert run(_argv(folder, out, "--resume"))[0] == 0
+    assert not (out / "d" / RUN_RECORD).exists()  # finished: the folder holds the outputs alone
+
+
+def test_a_finished_folder_is_left_as_it_is(folder, tmp_path, monkeypatch):
+    out = tmp_path / "o"
+    assert run(_argv(folder, out))[0] == 0
+    assert not any(name.startswith(".") for name in files(out / "d"))
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", None)  # must not be called
+    code, stdout, _ = run(_argv(folder, out, "--resume", "--batch-size", "3", quiet=False))
+    assert code == 0 and f"{COUNT} of {COUNT} frame(s) were finished by an earlier run" in stdout
+
+
+def test_resume_applies_to_a_folder_only(tmp_path):
+    code, _, err = run(["complete", "--image", "a.png", "--sparse", "b.png", "--intrinsics", "k.txt", "--out",
+                        tmp_path / "o.png", "--resume"])
+    assert code == 2 and "--resume: applies to --input-dir" in err
+
+
+def test_a_frame_that_fails_is_listed_and_the_others_completed(folder, tmp_path, monkeypatch):
+    real = complete_folder.complete_batch_with_cli_advice
+
+    def step(model, batch, return_std):
+        if png(2)[:-4] in batch.names:
+            raise InputError("the model returned 3 non-finite depth value(s)")
+        return real(model, batch, return_std)
+
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", step)
+    out = tmp_path / "o"
+    code, stdout, _ = run(_argv(folder, out, "--skip-bad", quiet=False))
+    assert code == 0 and "1 frame(s) failed (--skip-bad)" in stdout
+    failed = (out / "d" / "failed.csv").read_text().splitlines()
+    assert failed[0] == "frame,reason" and len(failed) == 2 and failed[1].startswith(png(2)[:-4])
+    assert not (out / "d" / png(2)).exists() and len([f for f in files(out / "d") if f.endswith(".png")]) == COUNT - 1
+    monkeypatch.undo()
+    code, stdout, _ = run(_argv(folder, out, "--resume", quiet=False))  # fixed: the failed frame alone is completed
+    assert code == 0 and f"{COUNT - 1} of {COUNT} frame(s) were finished by an earlier run" in stdout
+    assert (out / "d" / png(2)).is_file() and not (out / "d" / "failed.csv").exists()
