@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import json
 import re
 from pathlib import Path
 
@@ -221,3 +222,28 @@ def test_the_layout_check_finds_a_missing_file_and_a_missing_name_in_a_descripti
         assert old in readme
         assert set(_layout_missing(readme.replace(old, new))) - set(_layout_missing(readme)) == {found}
 
+
+def _paths_named(text: str) -> list[str]:
+    """The ``crfdepth/...`` and ``tests/...`` paths a text names: files (.py, .md, .json) and folders."""
+    return re.findall(r"(?<![\w/.])((?:crfdepth|tests)/[\w/.-]*?(?:\.(?:py|md|json)\b|/(?![\w.])))", text)
+
+
+def test_every_crfdepth_and_tests_path_the_docs_and_code_name_exists():
+    """README.md, docs/, notebooks' markdown cells and the comments and docstrings of crfdepth/,
+    benchmarks/ and train/ name files by their path from the repository root."""
+    texts = {str(p.relative_to(ROOT)): p.read_text() for p in
+             [ROOT / "README.md", *ROOT.glob("docs/**/*.md"), *PACKAGE.rglob("*.py"),
+              *ROOT.glob("benchmarks/*.py"), *ROOT.glob("train/*.py")]}
+    for nb in ROOT.glob("notebooks/*.ipynb"):
+        cells = json.loads(nb.read_text())["cells"]
+        texts[str(nb.relative_to(ROOT))] = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "markdown")
+    named = {(source, path) for source, text in texts.items() for path in _paths_named(text)}
+    assert {path for _, path in named} >= {"tests/superpixels/test_slic.py", "crfdepth/linalg/system.py"}
+    missing = sorted((source, path) for source, path in named if not _exists(path))
+    assert not missing, missing
+
+
+def test_the_path_finder_finds_files_and_folders_but_not_topics():
+    text = "(`tests/test_slic.py`), crfdepth/io/ros/: the topic /crfdepth/depth, crfdepth/weights/kitti.json."
+    assert _paths_named(text) == ["tests/test_slic.py", "crfdepth/io/ros/", "crfdepth/weights/kitti.json"]
+    assert not _exists("tests/test_slic.py")
