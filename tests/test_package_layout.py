@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import ast
+import json
+import re
 from pathlib import Path
 
 import crfdepth
@@ -101,8 +103,6 @@ def test_the_model_builds_from_files_without_the_functions_that_build_it():
 
 def _concept_table() -> list[tuple[str, list[str]]]:
     """The rows of docs/design.md section 8's concept table: (concept, files named)."""
-    import re
-
     text = (PACKAGE.parent / "docs" / "design.md").read_text()
     section = text[text.index("## 8. How the code is organised"):text.index("## 9.")]
     rows = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| concept")]
@@ -159,3 +159,91 @@ def test_no_module_is_over_400_lines():
     long = {str(f.relative_to(PACKAGE.parent)): n for f in PACKAGE.rglob("*.py")
             if (n := len(f.read_text().splitlines())) > 400}
     assert not long, long
+
+
+ROOT = PACKAGE.parent
+
+
+def _exists(path: str) -> bool:
+    """Whether ``path`` (from the repository root) is a folder, when it ends in /, or else a file."""
+    return (ROOT / path).is_dir() if path.endswith("/") else (ROOT / path).is_file()
+
+
+def _layout_entries(readme: str) -> list[tuple[str, str]]:
+    """README.md's Layout block as (path, description) pairs, paths relative to the repository.
+
+    A line at indent 0 names a folder or file of the repository, one at indent 2 a file or
+    folder inside the last indent-0 folder; a deeper line continues the description above."""
+    block = readme[readme.index("## Layout"):]
+    block = block[block.index("```\n") + 4:]
+    block = block[:block.index("```")]
+    entries: list[tuple[str, str]] = []
+    top = ""
+    for line in block.splitlines():
+        indent = len(line) - len(line.lstrip(" "))
+        name, _, text = line.strip().partition(" ")
+        if indent >= 4:
+            entries[-1] = (entries[-1][0], entries[-1][1] + " " + line.strip())
+            continue
+        assert re.fullmatch(r"[\w.]+/?", name) and indent in (0, 2), line
+        top = name if indent == 0 else top
+        entries.append((name if indent == 0 else top + name, text.strip()))
+    return entries
+
+
+def _names_in(text: str) -> list[str]:
+    """The files (``graph.py``, ``kitti.json``) and folders (``ros/``) a description names."""
+    return re.findall(r"(?<![\w./])([\w/]*\w\.(?:py|json|md)\b|[a-z_]+/(?=[\s:),;]|$))", text)
+
+
+def _layout_missing(readme: str) -> list[str]:
+    missing = []
+    for path, text in _layout_entries(readme):
+        folder = path if path.endswith("/") else path[:path.rfind("/") + 1]  # a file's line names its neighbours
+        missing += [name for name in [path] + [folder + n for n in _names_in(text)] if not _exists(name)]
+    return missing
+
+
+def test_every_path_the_readme_layout_names_exists():
+    readme = (ROOT / "README.md").read_text()
+    paths = [path for path, _ in _layout_entries(readme)]
+    for path in ("crfdepth/", "crfdepth/linalg/", "crfdepth/io/", "crfdepth/api.py", "train/", "tests/", "docs/"):
+        assert path in paths, path
+    packages = {f.parent.name + "/" for f in PACKAGE.glob("*/__init__.py")}
+    assert {p.removeprefix("crfdepth/") for p in paths} >= packages, "a package the Layout does not list"
+    assert not _layout_missing(readme), _layout_missing(readme)
+
+
+def test_the_layout_check_finds_a_missing_file_and_a_missing_name_in_a_description():
+    readme = (ROOT / "README.md").read_text()
+    for old, new, found in [("\n  api.py ", "\n  apx.py ", "crfdepth/apx.py"),
+                            ("(adjoint.py)", "(adjoin.py)", "crfdepth/linalg/adjoin.py"),
+                            ("ros/:", "rox/:", "crfdepth/io/rox/")]:
+        assert old in readme
+        assert set(_layout_missing(readme.replace(old, new))) - set(_layout_missing(readme)) == {found}
+
+
+def _paths_named(text: str) -> list[str]:
+    """The ``crfdepth/...`` and ``tests/...`` paths a text names: files (.py, .md, .json) and folders."""
+    return re.findall(r"(?<![\w/.])((?:crfdepth|tests)/[\w/.-]*?(?:\.(?:py|md|json)\b|/(?![\w.])))", text)
+
+
+def test_every_crfdepth_and_tests_path_the_docs_and_code_name_exists():
+    """README.md, docs/, notebooks' markdown cells and the comments and docstrings of crfdepth/,
+    benchmarks/ and train/ name files by their path from the repository root."""
+    texts = {str(p.relative_to(ROOT)): p.read_text() for p in
+             [ROOT / "README.md", *ROOT.glob("docs/**/*.md"), *PACKAGE.rglob("*.py"),
+              *ROOT.glob("benchmarks/*.py"), *ROOT.glob("train/*.py")]}
+    for nb in ROOT.glob("notebooks/*.ipynb"):
+        cells = json.loads(nb.read_text())["cells"]
+        texts[str(nb.relative_to(ROOT))] = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "markdown")
+    named = {(source, path) for source, text in texts.items() for path in _paths_named(text)}
+    assert {path for _, path in named} >= {"tests/superpixels/test_slic.py", "crfdepth/linalg/system.py"}
+    missing = sorted((source, path) for source, path in named if not _exists(path))
+    assert not missing, missing
+
+
+def test_the_path_finder_finds_files_and_folders_but_not_topics():
+    text = "(`tests/test_slic.py`), crfdepth/io/ros/: the topic /crfdepth/depth, crfdepth/weights/kitti.json."
+    assert _paths_named(text) == ["tests/test_slic.py", "crfdepth/io/ros/", "crfdepth/weights/kitti.json"]
+    assert not _exists("tests/test_slic.py")

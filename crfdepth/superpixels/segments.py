@@ -122,7 +122,7 @@ def slic_segments(
       fragments join their largest neighbour instead of the neighbour met last by
       scikit-image's scan, so the labels differ, but on the real frames the segment
       count is within 1, boundary recall within 0.001 and undersegmentation error within
-      0.0006 of scikit-image's (tests/test_slic.py).
+      0.0006 of scikit-image's (tests/superpixels/test_slic.py).
     - ``backend="auto"`` (default): ``"torch"`` for images on a GPU (or any non-CPU
       device); on the CPU also ``"torch"``, the faster one at 1216x352 (below).
 
