@@ -100,7 +100,7 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.cli.arguments import vis_range_type
+from crfdepth.cli.arguments import int_at_least, vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
@@ -176,6 +176,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "model and options wrote them, and another run's folder is refused), and complete "
                              "the others: a run stopped part-way and resumed writes the same files as one "
                              "uninterrupted run")
+    folder.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
+                        help="complete with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
+                             "sharing the cores), the planned batches dealt to them in turn: the PNGs of one process "
+                             "(within one code: the threads' summation order)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)
@@ -193,6 +197,8 @@ def run(args: argparse.Namespace) -> int:
     if args.sparse_units is not None and (args.bag is not None or args.input_dir is not None):
         raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
                          f"{'--input-dir reads KITTI velodyne_raw PNGs (metres * 256)' if args.bag is None else '--bag reads point clouds in metres'}")
+    if args.devices != 1 and args.input_dir is None:
+        raise InputError(f"--devices {args.devices}: applies to --input-dir (a folder of frames)")
     if args.resume and args.input_dir is None:
         raise InputError("--resume: applies to --input-dir (a folder of frames); a single frame is simply run "
                          "again" + (", and --bag writes its index.csv afresh" if args.bag is not None else ""))

@@ -21,6 +21,7 @@ from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
+from crfdepth.cli.processes import check_devices, complete_in_processes
 from crfdepth.cli.resume import (
     batch_plan,
     check_resumable,
@@ -35,7 +36,7 @@ from crfdepth.errors import InputError
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["run_folder"]
+__all__ = ["complete_planned", "run_folder"]
 
 
 def _where(index: int, total: int, name: str) -> str:
@@ -111,6 +112,8 @@ def run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
+    if args.devices > 1:
+        check_devices(args.devices, args.device)
     dataset = _open_folder(args.input_dir)
     inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
     targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
@@ -124,11 +127,9 @@ def run_folder(args: argparse.Namespace) -> int:
     skipped = skipped_frames(bad, len(todo), f"--input-dir {args.input_dir}", args.skip_bad)
     good = [i for i in range(total) if i not in skipped]
     # the uninterrupted run's batches; a resumed run redoes each one holding an unfinished frame, whole
-    plan = [batch for batch in batch_plan([dataset.sparse_path(i) for i in good], args.batch_size)
+    plan = [[good[k] for k in batch] for batch in batch_plan([dataset.sparse_path(i) for i in good], args.batch_size)
             if any(good[k] not in finished for k in batch)]
-    run = [good[k] for batch in plan for k in batch]
-    starts = set(itertools.accumulate(len(batch) for batch in plan[:-1]))
-    names = [dataset.names[i] for i in run]
+    run = [i for batch in plan for i in batch]
     start = time.perf_counter()
     with output_folders(targets) as folders:
         out_dir, std_dir = folders[0], folders[1]
@@ -139,14 +140,23 @@ def run_folder(args: argparse.Namespace) -> int:
                            "run on other frames?); they stay", out_dir, others)
         skipped_csv = write_skipped(out_dir, [(dataset.names[i], m) for i, m in skipped.items()])
         failed: list[tuple[str, str]] = []
+        counts = {"written": 0}
         try:
-            written = _complete_frames(args, model, Subset(dataset, run), names, total, run,
-                                       (out_dir, std_dir, vis_dir), with_std, starts,
-                                       lambda: write_run_record(out_dir, record), failed) if run else 0
+            if args.devices > 1 and plan:
+                write_run_record(out_dir, record)
+                written_now, failed[:], stopped = complete_in_processes(
+                    args, dataset, plan, (out_dir, std_dir, vis_dir), with_std, complete_planned)
+                counts["written"] = written_now
+                if stopped:
+                    raise _stopped(stopped, counts["written"], len(run), out_dir)
+            elif plan:
+                complete_planned(args, model, dataset, plan, (out_dir, std_dir, vis_dir), with_std, failed, counts,
+                                 lambda: write_run_record(out_dir, record))
         finally:  # also when the run stops: the frames that failed are listed for --resume
             failed_csv = write_failed(out_dir, failed)
         if not failed:
             remove_run_record(out_dir)
+    written = counts["written"]
     seconds = time.perf_counter() - start
     if not args.quiet:
         print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
@@ -176,8 +186,28 @@ def _finished(args, dataset, targets, record: dict, with_std: bool) -> set[int]:
     return finished_frames(dataset.names, out_dir, std_dir, vis_dir, with_std)
 
 
+def complete_planned(args, model, dataset, plan: list[list[int]], folders: tuple, with_std: bool,
+                     failed: list[tuple[str, str]], counts: dict, first_write=None) -> None:
+    """Complete and write the frames of ``plan`` (batches of indices into the folder ``dataset``), each batch
+    as planned (:func:`_complete_frames`); ``counts["written"]`` counts the frames written as they are."""
+    run = [i for batch in plan for i in batch]
+    starts = set(itertools.accumulate(len(batch) for batch in plan[:-1]))
+    _complete_frames(args, model, Subset(dataset, run), [dataset.names[i] for i in run], len(dataset), run, folders,
+                     with_std, starts, first_write, failed, counts)
+
+
+def _stopped(stopped: list[tuple[str, bool]], written: int, planned: int, out_dir: Path) -> BaseException:
+    """The error of a run whose processes stopped early (``stopped``: (message, interrupted) of each):
+    KeyboardInterrupt when one was interrupted, else an InputError; the other processes' frames stay written."""
+    note = f"{written} of {planned} frame(s) written to {out_dir}; --resume completes the others"
+    if any(interrupted for _, interrupted in stopped):
+        return KeyboardInterrupt(f"after {note}")
+    return InputError(f"{stopped[0][0]} [{len(stopped)} process(es) stopped; {note}]")
+
+
 def _complete_frames(args, model, frames, names: list[str], total: int, positions: list[int], folders: tuple,
-                     with_std: bool, starts: set[int], first_write, failed: list[tuple[str, str]]) -> int:
+                     with_std: bool, starts: set[int], first_write, failed: list[tuple[str, str]], counts: dict
+                     ) -> int:
     """Pass 2 of folder mode: complete and write ``frames`` in batches that start at ``starts`` besides
     size changes and ``--batch-size`` (frame ``k`` is frame ``positions[k]`` of the folder's ``total``);
     returns the number written. ``first_write()`` runs before the first file is written.
@@ -199,6 +229,7 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
                          f"({', '.join(batch.names)})")
             try:
                 written += _complete_batch(args, model, batch, with_std, folders, first_write if not written else None)
+                counts["written"] = written
             except BAD_INPUT as exc:
                 if not args.skip_bad:
                     raise
