@@ -21,7 +21,7 @@ from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
-from crfdepth.cli.processes import check_devices, complete_in_processes
+from crfdepth.cli.processes import check_devices, deal, in_processes
 from crfdepth.cli.resume import (
     batch_plan,
     check_resumable,
@@ -36,7 +36,7 @@ from crfdepth.errors import InputError
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["complete_planned", "run_folder"]
+__all__ = ["complete_planned", "complete_share", "run_folder"]
 
 
 def _where(index: int, total: int, name: str) -> str:
@@ -144,9 +144,12 @@ def run_folder(args: argparse.Namespace) -> int:
         try:
             if args.devices > 1 and plan:
                 write_run_record(out_dir, record)
-                written_now, failed[:], stopped = complete_in_processes(
-                    args, dataset, plan, (out_dir, std_dir, vis_dir), with_std, complete_planned)
-                counts["written"] = written_now
+                shares = [(dataset, batches, (out_dir, std_dir, vis_dir), with_std)
+                          for batches in deal(plan, args.devices)]
+                done = in_processes(args, shares, complete_share)
+                counts["written"] = sum(partial.get("written", 0) for partial, _ in done)
+                failed[:] = [row for partial, _ in done for row in partial.get("failed", [])]
+                stopped = [stop for _, stop in done if stop is not None]
                 if stopped:
                     raise _stopped(stopped, counts["written"], len(run), out_dir)
             elif plan:
@@ -194,6 +197,14 @@ def complete_planned(args, model, dataset, plan: list[list[int]], folders: tuple
     starts = set(itertools.accumulate(len(batch) for batch in plan[:-1]))
     _complete_frames(args, model, Subset(dataset, run), [dataset.names[i] for i in run], len(dataset), run, folders,
                      with_std, starts, first_write, failed, counts)
+
+
+def complete_share(args, model, share: tuple, partial: dict) -> None:
+    """One process's part of a ``--devices`` run (:func:`crfdepth.cli.processes.in_processes`): its batches of
+    the folder completed and written; ``partial`` counts them (``written``) and lists the ``failed`` frames."""
+    dataset, batches, folders, with_std = share
+    partial["written"] = 0
+    complete_planned(args, model, dataset, batches, folders, with_std, partial.setdefault("failed", []), partial)
 
 
 def _stopped(stopped: list[tuple[str, bool]], written: int, planned: int, out_dir: Path) -> BaseException:

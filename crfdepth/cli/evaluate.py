@@ -82,10 +82,11 @@ from torch.utils.data import Subset
 from crfdepth.checkpoints import describe
 from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.cli.batches import add_batch_arguments
-from crfdepth.cli.evaluate_frames import evaluate_frames
+from crfdepth.cli.evaluate_frames import evaluate_frames, evaluate_in_processes
 from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
 from crfdepth.cli.outputs import output_folders
+from crfdepth.cli.processes import check_devices
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -141,6 +142,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--limit", type=int_at_least(1), default=None, metavar="N",
                       help="evaluate only the first N frames")
     add_batch_arguments(data)
+    data.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
+                      help="evaluate with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
+                           "sharing the cores), consecutive batches dealt to them in turn; the CSV and JSON are "
+                           "those of one process (frames in input order, means over all frames)")
     out = parser.add_argument_group("output")
     out.add_argument("--out-dir", default="evaluation", metavar="DIR",
                      help=f"folder for {CSV_NAME}, {JSON_NAME} and {PNG_FOLDER}/ (created if missing; "
@@ -224,6 +229,8 @@ def run(args: argparse.Namespace) -> int:
     Bad input raises InputError / FileNotFoundError / PermissionError naming the option
     or file, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
     """
+    if args.devices > 1:
+        check_devices(args.devices, args.device)
     options = _dataset_options(args)
     dataset, root = _open_dataset(args, options)
     out_dir = _check_out_dir(args, root)
@@ -241,7 +248,8 @@ def _evaluate_and_write(args: argparse.Namespace, options: dict, dataset, root: 
         png_dir.mkdir(parents=True, exist_ok=True)
 
     start = time.perf_counter()
-    rows, skipped = evaluate_frames(model, dataset, args, png_dir)
+    rows, skipped = evaluate_frames(model, dataset, args, png_dir) if args.devices == 1 else \
+        evaluate_in_processes(dataset, args, png_dir)
     seconds = time.perf_counter() - start
     if not rows:
         raise InputError(f"none of the {len(dataset)} frame(s) has a ground-truth pixel; nothing to evaluate")

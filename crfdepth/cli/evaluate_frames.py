@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import sys
 from pathlib import Path
@@ -17,20 +18,23 @@ from tqdm import tqdm
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.batches import frame_batches
 from crfdepth.cli.completion import complete_batch_with_cli_advice
+from crfdepth.cli.processes import deal, in_processes
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
 
 logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
 
-__all__ = ["evaluate_frames"]
+__all__ = ["evaluate_frames", "evaluate_in_processes", "evaluate_share"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 
 
-def evaluate_frames(model, dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
-    """Per-frame metrics rows (in dataset order) and the names of skipped frames."""
-    batches = frame_batches(dataset, args.batch_size, args.workers)
+def evaluate_frames(model, dataset, args, png_dir: Path | None, starts: set[int] | None = None
+                    ) -> tuple[list[dict[str, Any]], list[str]]:
+    """Per-frame metrics rows (in dataset order) and the names of skipped frames; ``starts``: frames that start
+    a batch besides size changes and ``--batch-size`` (:func:`~crfdepth.cli.batches.frame_batches`)."""
+    batches = frame_batches(dataset, args.batch_size, args.workers, starts=starts)
     rows: list[dict[str, Any]] = []
     skipped: list[str] = []
     progress = tqdm(total=len(dataset), unit="frame", desc="evaluate",
@@ -73,6 +77,37 @@ def evaluate_frames(model, dataset, args, png_dir: Path | None) -> tuple[list[di
         batches.close()  # stops the DataLoader workers
         progress.close()
     return rows, skipped
+
+
+def evaluate_in_processes(dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
+    """:func:`evaluate_frames` with ``--devices`` processes (:func:`crfdepth.cli.processes.in_processes`): runs of
+    ``--batch-size`` consecutive frames dealt to them in turn, each evaluated as one batch (or split where the
+    size changes), the rows and skipped frames merged back into input order. Every metric is per frame and
+    the report's means are taken over the merged rows, so the CSV and JSON are those of one process."""
+    chunks = [list(range(i, min(i + args.batch_size, len(dataset)))) for i in range(0, len(dataset), args.batch_size)]
+    shares = [(dataset, batches, png_dir) for batches in deal(chunks, args.devices)]
+    done = in_processes(args, shares, evaluate_share)
+    stopped = [stop for _, stop in done if stop is not None]
+    if any(interrupted for _, interrupted in stopped):
+        raise KeyboardInterrupt("while evaluating; nothing written")
+    if stopped:
+        raise InputError(stopped[0][0])
+    order = {index: position for position, index in enumerate(i for chunk in chunks for i in chunk)}
+    rows = sorted((row for partial, _ in done for row in partial["rows"]), key=lambda row: order[row["index"]])
+    skipped = sorted((item for partial, _ in done for item in partial["skipped"]), key=lambda item: order[item[0]])
+    return [{k: v for k, v in row.items() if k != "index"} for row in rows], [name for _, name in skipped]
+
+
+def evaluate_share(args, model, share: tuple, partial: dict) -> None:
+    """One process's part of :func:`evaluate_in_processes`: its batches of ``dataset`` evaluated; ``partial``
+    gets the ``rows`` and ``skipped`` frames, each with its index in ``dataset``."""
+    dataset, batches, png_dir = share
+    indices = [i for batch in batches for i in batch]
+    starts = set(itertools.accumulate(len(batch) for batch in batches[:-1]))
+    rows, skipped = evaluate_frames(model, Subset(dataset, indices), args, png_dir, starts)
+    index_of = {name: i for i, name in zip(indices, _names(Subset(dataset, indices)) or [])}
+    partial["rows"] = [{**row, "index": index_of[row["name"]]} for row in rows]
+    partial["skipped"] = [(index_of[name], name) for name in skipped]
 
 
 def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:

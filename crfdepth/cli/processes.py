@@ -1,5 +1,5 @@
-"""``complete --input-dir --devices N``: the planned batches of a folder run completed by N processes, one
-per device (CUDA GPUs, or CPU processes sharing the cores).
+"""``--devices N`` of ``complete --input-dir`` and ``evaluate``: the planned batches of a run done by N
+processes, one per device (CUDA GPUs, or CPU processes sharing the cores).
 
 The launching process does everything that decides what is written (the checks of every frame,
 ``--skip-bad``, ``--resume``, the batch plan: :mod:`crfdepth.cli.complete_folder`) and holds the output
@@ -24,7 +24,7 @@ import torch.multiprocessing as mp
 
 from crfdepth.errors import InputError
 
-__all__ = ["check_devices", "complete_in_processes"]
+__all__ = ["check_devices", "deal", "in_processes"]
 
 
 def check_devices(devices: int, device: str) -> None:
@@ -41,40 +41,38 @@ def check_devices(devices: int, device: str) -> None:
                              f"this machine has {cores}; give at most {cores}")
 
 
-def complete_in_processes(args: argparse.Namespace, dataset, batches: list[list[int]], folders: tuple,
-                          with_std: bool, complete: Callable
-                          ) -> tuple[int, list[tuple[str, str]], list[tuple[str, bool]]]:
-    """Complete the frames ``batches`` (lists of indices into the folder ``dataset``, which is sent to the
-    processes as it is: they read the frames the launching process checked) by ``complete`` (the one-process
-    step, :func:`crfdepth.cli.complete_folder.complete_planned`, a module-level function the processes import) with
-    ``args.devices`` processes. Returns (frames written, failed frames as (name, reason), (message, interrupted)
-    of each process that stopped early)."""
-    count = min(args.devices, len(batches))
-    shares = [batches[rank::count] for rank in range(count)]
+def in_processes(args: argparse.Namespace, shares: list, work: Callable) -> list[tuple[dict, tuple[str, bool] | None]]:
+    """``work(args, model, share, partial)`` for each of ``shares`` in a process of its own (``--device cuda``: on
+    GPU ``rank``; cpu: the threads divided among the processes), the model built there from ``args``. ``work`` is
+    a module-level function (the processes import it) that fills the dict ``partial`` as it goes, so that what
+    a process did before it stopped is known. Returns, in share order, ``(partial, stop)``: ``stop`` is None, or
+    the one-line message of the error that stopped the process and whether it was an interrupt."""
+    count = len(shares)
     context = mp.get_context("spawn")
     results = context.SimpleQueue()
     threads = max(1, torch.get_num_threads() // count) if args.device != "cuda" else torch.get_num_threads()
     try:
-        mp.start_processes(_complete_share, nprocs=count, join=True, start_method="spawn",
-                           args=(count, args, dataset, shares, folders, with_std, threads, complete, results))
+        mp.start_processes(_run_share, nprocs=count, join=True, start_method="spawn",
+                           args=(count, args, shares, work, threads, results))
     except mp.ProcessRaisedException as exc:  # an error the process could not report (a bug): its last line
-        raise RuntimeError(f"a completion process failed: {str(exc).strip().splitlines()[-1]}") from None
+        raise RuntimeError(f"a process of --devices {args.devices} failed: {str(exc).strip().splitlines()[-1]}") \
+            from None
     except mp.ProcessExitedException as exc:  # killed (out of memory, a signal) before it could report
-        raise InputError(f"--devices {args.devices}: a completion process ended without reporting ({exc}); the "
-                         f"frames the others wrote stay; --resume completes the rest") from None
-    written, failed, stopped = 0, [], []
-    for _ in range(count):
-        rank_written, rank_failed, stop = results.get()
-        written += rank_written
-        failed += rank_failed
-        if stop is not None:
-            stopped.append(stop)
-    return written, failed, stopped
+        raise InputError(f"--devices {args.devices}: a process ended without reporting ({exc}); what the others "
+                         f"wrote stays") from None
+    reported = dict(results.get() for _ in range(count))
+    return [reported[rank] for rank in range(count)]
 
 
-def _complete_share(rank: int, count: int, args: argparse.Namespace, dataset, shares: list, folders: tuple,
-                    with_std: bool, threads: int, complete: Callable, results) -> None:
-    """One process: its share of the batches on its device; puts (written, failed, stop message) on ``results``."""
+def deal(batches: list[list[int]], devices: int) -> list[list[list[int]]]:
+    """The batches dealt to ``devices`` processes in turn (batch ``j`` to process ``j mod devices``)."""
+    count = min(devices, len(batches))
+    return [batches[rank::count] for rank in range(count)]
+
+
+def _run_share(rank: int, count: int, args: argparse.Namespace, shares: list, work: Callable, threads: int,
+               results) -> None:
+    """One process of :func:`in_processes`: puts ``(rank, (partial, stop))`` on ``results``."""
     from crfdepth.cli.arguments import BAD_INPUT
     from crfdepth.cli.model_options import build_model
 
@@ -83,16 +81,16 @@ def _complete_share(rank: int, count: int, args: argparse.Namespace, dataset, sh
     mine.quiet = True  # one model line and one summary, from the launching process
     if args.device == "cuda":
         torch.cuda.set_device(rank)
-    failed: list[tuple[str, str]] = []
-    counts, stop = {"written": 0}, None
+    partial: dict = {}
+    stop = None
     try:
-        complete(mine, build_model(mine), dataset, shares[rank], folders, with_std, failed, counts)
+        work(mine, build_model(mine), shares[rank], partial)
     except BAD_INPUT as exc:
         stop = (f"process {rank + 1}/{count}: {exc}", False)
     except KeyboardInterrupt as exc:
         stop = (f"process {rank + 1}/{count}: interrupted {exc}", True)
     finally:
         try:
-            results.put((counts["written"], failed, stop))
+            results.put((rank, (partial, stop)))
         except (OSError, queue_module.Full):  # the launching process is gone
             pass

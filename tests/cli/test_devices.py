@@ -4,12 +4,16 @@ that fails on a frame does not lose the other processes' frames, and ``--resume`
 
 from __future__ import annotations
 
+import csv
+import io
+import json
 import os
 
 import numpy as np
 import pytest
 
 from crfdepth.cli import complete_folder
+from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
 from crfdepth.io.kitti import read_depth_png
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
@@ -50,13 +54,13 @@ def test_a_process_failing_on_a_frame_keeps_the_others_work(folder, tmp_path, mo
     other writes frames 1 and 3; frame 2 is listed in failed.csv, and --resume completes frames 2 and 4."""
     image = folder / "image" / f"{stem('image', 2)}.png"
     hidden = image.with_suffix(".bak")
-    real = complete_folder.complete_in_processes
+    real = complete_folder.in_processes
 
     def after_the_checks(*args, **kwargs):
         image.rename(hidden)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(complete_folder, "complete_in_processes", after_the_checks)
+    monkeypatch.setattr(complete_folder, "in_processes", after_the_checks)
     out = tmp_path / "o"
     try:
         code, _, err = run(_argv(folder, out, "--devices", "2"))
@@ -83,3 +87,35 @@ def test_more_devices_than_the_machine_has_is_refused(folder, tmp_path):
     code, _, err = run(["complete", "--image", "a.png", "--sparse", "b.png", "--intrinsics", "k.txt", "--out",
                         tmp_path / "o.png", "--devices", "2"])
     assert code == 2 and "--devices 2: applies to --input-dir" in err
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPU cores")
+@pytest.mark.parametrize("batch_size", [1, 2])
+def test_evaluate_with_two_processes_reports_what_one_reports(folder, tmp_path, batch_size):
+    """Same CSV rows in input order and the same JSON (means over all frames), within float tolerance."""
+    reports = {}
+    for devices in (1, 2):
+        out = tmp_path / f"e{devices}"
+        code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", out, "--std",
+                            "--batch-size", batch_size, "--devices", devices, "--potentials", "colour", "--quiet"])
+        assert code == 0, err
+        reports[devices] = (json.loads((out / JSON_NAME).read_text()),
+                            list(csv.DictReader(io.StringIO((out / CSV_NAME).read_text()))))
+    (one, one_rows), (two, two_rows) = reports[1], reports[2]
+    assert [r["name"] for r in two_rows] == [r["name"] for r in one_rows] and len(one_rows) == COUNT
+    for a, b in zip(one_rows, two_rows):
+        for key in a:
+            if key != "name":
+                assert float(b[key]) == pytest.approx(float(a[key]), rel=1e-6, abs=1e-9), key
+    assert two.keys() == one.keys()
+    for key in one:
+        if key not in ("seconds",):
+            assert _close(two[key], one[key]), key
+
+
+def _close(a, b) -> bool:
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, float):
+        return b == pytest.approx(a, rel=1e-6, abs=1e-9)
+    return a == b
