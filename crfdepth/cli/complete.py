@@ -105,6 +105,7 @@ from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
 from crfdepth.cli.complete_folder import run_folder
+from crfdepth.cli.complete_list import run_list
 from crfdepth.cli.complete_one import run_one
 from crfdepth.cli.model_options import add_model_arguments
 from crfdepth.errors import InputError
@@ -176,6 +177,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "model and options wrote them, and another run's folder is refused), and complete "
                              "the others: a run stopped part-way and resumed writes the same files as one "
                              "uninterrupted run")
+    folder.add_argument("--input-list", metavar="FILE",
+                        help="complete many inputs in turn: FILE names one per line (a KITTI depth-completion "
+                             "folder, as --input-dir takes, or a ROS recording, as --bag takes; # comments), each "
+                             "completed into <out-dir>/<its name>; every line is checked first")
     folder.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
                         help="complete with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
                              "sharing the cores), the planned batches dealt to them in turn: the PNGs of one process "
@@ -191,17 +196,25 @@ def run(args: argparse.Namespace) -> int:
     Bad input raises InputError / FileNotFoundError / PermissionError naming the file or
     option, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
     """
-    if args.skip_bad and args.bag is None and args.input_dir is None:
-        raise InputError("--skip-bad: applies to the runs over many frames (--input-dir or --bag); a single frame "
-                         "is either completed or refused")
-    if args.sparse_units is not None and (args.bag is not None or args.input_dir is not None):
+    many = args.bag is not None or args.input_dir is not None or args.input_list is not None
+    given = [flag for flag, value in (("--input-list", args.input_list), ("--input-dir", args.input_dir),
+                                      ("--bag", args.bag)) if value is not None]
+    if len(given) > 1:
+        raise InputError(f"{' / '.join(given)}: give one of them (--input-list names folders and recordings itself)")
+    if args.skip_bad and not many:
+        raise InputError("--skip-bad: applies to the runs over many frames (--input-dir, --bag or --input-list); a "
+                         "single frame is either completed or refused")
+    if args.sparse_units is not None and many:
         raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
-                         f"{'--input-dir reads KITTI velodyne_raw PNGs (metres * 256)' if args.bag is None else '--bag reads point clouds in metres'}")
-    if args.devices != 1 and args.input_dir is None:
-        raise InputError(f"--devices {args.devices}: applies to --input-dir (a folder of frames)")
-    if args.resume and args.input_dir is None:
-        raise InputError("--resume: applies to --input-dir (a folder of frames); a single frame is simply run "
-                         "again" + (", and --bag writes its index.csv afresh" if args.bag is not None else ""))
+                         f"{'--bag reads point clouds in metres' if args.bag is not None else '--input-dir and --input-list read KITTI velodyne_raw PNGs (metres * 256)'}")
+    if args.devices != 1 and args.input_dir is None and args.input_list is None:
+        raise InputError(f"--devices {args.devices}: applies to --input-dir and --input-list (folders of frames)")
+    if args.resume and args.input_dir is None and args.input_list is None:
+        raise InputError("--resume: applies to --input-dir and --input-list (folders of frames); a single frame is "
+                         "simply run again" + (", and --bag writes its index.csv afresh" if args.bag is not None
+                                               else ""))
+    if args.input_list is not None:
+        return run_list(args, run_folder, run_bag)
     if args.bag is not None:
         return run_bag(args)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]

@@ -1,0 +1,122 @@
+"""``crfdepth complete --input-list FILE``: many inputs in one run, one after the other.
+
+FILE names one input per line: a KITTI depth-completion folder (``val_selection_cropped``,
+``test_depth_completion_anonymous`` or their parent, as ``--input-dir`` takes) or a ROS 1 / ROS 2
+recording (as ``--bag`` takes, with the same topics for every recording). Blank lines and lines
+starting with ``#`` are skipped; a relative path is relative to FILE's folder. Every line is checked
+before anything runs: a path that is missing, unreadable or of another kind is refused naming FILE
+and the line number.
+
+Each input is completed into a subfolder of ``--out-dir`` (and of ``--out-std-dir`` and ``--vis``
+when given) named after it (``<folder or recording name>``, with ``-<line>`` added where two inputs
+share a name), by the folder or bag mode with the run's options, ``--resume``, ``--skip-bad`` and
+``--devices`` included. One input is held at a time, so the memory is that of the largest input's
+run, not of the list. An input that fails stops the run, naming its line, unless ``--skip-bad``:
+then the others go on and the summary lists the failed lines. ``--resume`` continues a stopped
+list: each folder input resumes (:mod:`crfdepth.cli.resume`), and a recording is completed again whole
+(its ``index.csv`` lists the frames of one run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+from pathlib import Path
+
+from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.errors import InputError
+
+__all__ = ["read_input_list", "run_list"]
+
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+COMPLETION_FOLDERS = ("val_selection_cropped", "test_depth_completion_anonymous")
+
+
+def read_input_list(path: str) -> list[tuple[int, Path, str]]:
+    """``(line number, path, kind)`` of each input of the list file ``path``; kind is "folder" or "bag"."""
+    listing = Path(path)
+    if not listing.is_file():
+        raise FileNotFoundError(f"--input-list: no such file: {path}")
+    try:
+        lines = listing.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"--input-list: cannot read {path} as text ({exc})") from None
+    entries = []
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        entry = Path(text) if Path(text).is_absolute() else listing.parent / text
+        entries.append((number, entry, _kind(entry, f"--input-list {path}, line {number}: {text}")))
+    if not entries:
+        raise InputError(f"--input-list: {path} names no input (one KITTI depth-completion folder or ROS "
+                         f"recording per line)")
+    return entries
+
+
+def _kind(entry: Path, where: str) -> str:
+    if not entry.exists():
+        raise FileNotFoundError(f"{where}: no such file or folder")
+    if not os.access(entry, os.R_OK | (os.X_OK if entry.is_dir() else 0)):
+        raise PermissionError(f"{where}: cannot be read (permission denied)")
+    if entry.is_file():
+        if entry.suffix in BAG_SUFFIXES:
+            return "bag"
+        raise InputError(f"{where}: expected a KITTI depth-completion folder or a ROS recording "
+                         f"({', '.join(BAG_SUFFIXES)} or a ROS 2 bag folder), got a {entry.suffix or 'plain'} file")
+    if (entry / "metadata.yaml").is_file():
+        return "bag"
+    if any((folder / "velodyne_raw").is_dir() for folder in (entry, *(entry / n for n in COMPLETION_FOLDERS))):
+        return "folder"
+    raw = "; a KITTI raw drive is completed a frame at a time (--points, --calib)" \
+        if (entry / "image_02").is_dir() and (entry / "velodyne_points").is_dir() else ""
+    raise InputError(f"{where}: expected a KITTI depth-completion folder (velodyne_raw/, image/, intrinsics/) or a "
+                     f"ROS recording, got a folder without them{raw}")
+
+
+def _names(entries: list[tuple[int, Path, str]]) -> list[str]:
+    """The output subfolder of each input: its name, with ``-<line>`` where two inputs share one."""
+    base = [(p.stem if kind == "bag" and p.is_file() else p.name) for _, p, kind in entries]
+    return [name if base.count(name) == 1 else f"{name}-{number}" for name, (number, _, _) in zip(base, entries)]
+
+
+def run_list(args: argparse.Namespace, run_folder, run_bag) -> int:
+    """Complete every input of ``--input-list`` in turn (module docstring); returns 0."""
+    if args.out_dir is None:
+        raise InputError("--input-list needs --out-dir (a subfolder per input is written there)")
+    if args.out_bag is not None:
+        raise InputError("--out-bag: one output recording per input is not supported with --input-list; complete "
+                         "each recording with --bag")
+    stray = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse), ("--points", args.points),
+                                      ("--out", args.out), ("--out-std", args.out_std)) if value is not None]
+    if stray:
+        raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-list")
+    entries = read_input_list(args.input_list)
+    names = _names(entries)
+    failed, done = [], 0
+    for (number, entry, kind), name in zip(entries, names):
+        mine = copy.copy(args)
+        mine.input_list = None
+        mine.input_dir = str(entry) if kind == "folder" else None
+        mine.bag = str(entry) if kind == "bag" else None
+        mine.out_dir = str(Path(args.out_dir) / name)
+        mine.out_std_dir = str(Path(args.out_std_dir) / name) if args.out_std_dir is not None else None
+        mine.vis = str(Path(args.vis) / name) if args.vis else args.vis
+        if kind == "bag" and args.resume:  # a recording is completed whole again: its index.csv lists one run
+            mine.overwrite, mine.resume = True, False
+        try:
+            (run_folder if kind == "folder" else run_bag)(mine)
+        except BAD_INPUT as exc:
+            message = f"--input-list line {number} ({entry}): {exc}"
+            if not args.skip_bad:
+                raise type(exc)(f"{message} [{done} of {len(entries)} input(s) completed before it; --resume "
+                                f"continues]") from None
+            failed.append(message)
+            continue
+        done += 1
+    if not args.quiet:
+        print(f"completed {done} of {len(entries)} input(s) of --input-list {args.input_list} into {args.out_dir}")
+        for message in failed:
+            print(f"failed: {message}")
+    return 0
