@@ -185,6 +185,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="complete with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
                              "sharing the cores), the planned batches dealt to them in turn: the PNGs of one process "
                              "(within one code: the threads' summation order)")
+    folder.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
+                        help="--input-dir on M machines of N --devices each: start the same command on every node "
+                             "with torchrun --nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks "
+                             "and plans, every rank completes its dealt batches into the shared output folders")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)
@@ -213,6 +217,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--resume: applies to --input-dir and --input-list (folders of frames); a single frame is "
                          "simply run again" + (", and --bag writes its index.csv afresh" if args.bag is not None
                                                else ""))
+    if args.num_nodes != 1 and args.input_dir is None:
+        raise InputError(f"--num-nodes {args.num_nodes}: applies to --input-dir (one folder of frames)")
     if args.input_list is not None:
         return run_list(args, run_folder, run_bag)
     if args.bag is not None:

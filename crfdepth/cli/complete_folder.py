@@ -5,6 +5,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import copy
 import functools
 import itertools
 import logging
@@ -22,6 +24,7 @@ from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
 from crfdepth.cli.processes import check_devices, deal, in_processes
+from crfdepth.cli.ranks import Ranks, ranks_from_environment
 from crfdepth.cli.resume import (
     batch_plan,
     check_resumable,
@@ -112,12 +115,62 @@ def run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
-    if args.devices > 1:
+    ranks = ranks_from_environment(args)
+    try:
+        return _run(args, ranks)
+    finally:
+        if ranks is not None:
+            ranks.close()
+
+
+def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
+    """:func:`run_folder` alone, with ``--devices`` local processes, or as one rank of a torchrun group."""
+    if ranks is None and args.devices > 1:
         check_devices(args.devices, args.device)
+    main = ranks is None or ranks.is_main
+    built: dict = {}
+    start = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        # what decides the files: checked and planned once (rank 0), the folders created and locked there
+        run = _prepare(args, stack, built, eager_record=ranks is not None) if ranks is None else \
+            ranks.share(lambda: _prepare(args, stack, built, eager_record=True))
+        dataset, plan, folders, with_std = run["dataset"], run["plan"], run["folders"], run["with_std"]
+        out_dir = folders[0]
+        failed: list[tuple[str, str]] = []
+        counts = {"written": 0}
+        try:
+            if ranks is not None or (args.devices > 1 and plan):
+                if ranks is None:
+                    write_run_record(out_dir, run["record"])
+                    done = in_processes(args, [(dataset, batches, folders, with_std)
+                                               for batches in deal(plan, args.devices)], complete_share)
+                else:
+                    done = ranks.gather(_rank_share(args, ranks, built.get("model"), dataset, plan, folders, with_std))
+                counts["written"] = sum(partial.get("written", 0) for partial, _ in done)
+                failed[:] = [row for partial, _ in done for row in partial.get("failed", [])]
+                stopped = [stop for _, stop in done if stop is not None]
+                if stopped:
+                    raise _stopped(stopped, counts["written"], sum(map(len, plan)), out_dir)
+            elif plan:
+                complete_planned(args, built["model"], dataset, plan, folders, with_std, failed, counts,
+                                 lambda: write_run_record(out_dir, run["record"]))
+        finally:  # also when the run stops: the frames that failed are listed for --resume
+            failed_csv = write_failed(out_dir, failed) if main else None
+        if main and not failed:
+            remove_run_record(out_dir)
+    if main and not args.quiet:
+        _summary(args, run, counts["written"], failed, failed_csv, time.perf_counter() - start)
+    return 0
+
+
+def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict, eager_record: bool) -> dict:
+    """The folder opened and checked, the model built (kept in ``built``), the frames checked and the batches
+    planned (``--resume``, ``--skip-bad``), the output folders created and locked (on ``stack``) and
+    ``skipped.csv`` written; with ``eager_record``, the run's record too. Returns what the ranks share."""
     dataset = _open_folder(args.input_dir)
     inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
     targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
-    model = build_model(args)
+    model = built["model"] = build_model(args)
     total = len(dataset)
     with_std = args.out_std_dir is not None or args.vis is not None
     record = run_record(args, model, with_std)
@@ -129,52 +182,54 @@ def run_folder(args: argparse.Namespace) -> int:
     # the uninterrupted run's batches; a resumed run redoes each one holding an unfinished frame, whole
     plan = [[good[k] for k in batch] for batch in batch_plan([dataset.sparse_path(i) for i in good], args.batch_size)
             if any(good[k] not in finished for k in batch)]
-    run = [i for batch in plan for i in batch]
-    start = time.perf_counter()
-    with output_folders(targets) as folders:
-        out_dir, std_dir = folders[0], folders[1]
-        vis_dir = folders[2] if args.vis is not None else None
-        others = _other_pngs(out_dir, [dataset.names[i] for i in range(total)])
-        if others:
-            logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
-                           "run on other frames?); they stay", out_dir, others)
-        skipped_csv = write_skipped(out_dir, [(dataset.names[i], m) for i, m in skipped.items()])
-        failed: list[tuple[str, str]] = []
-        counts = {"written": 0}
-        try:
-            if args.devices > 1 and plan:
-                write_run_record(out_dir, record)
-                shares = [(dataset, batches, (out_dir, std_dir, vis_dir), with_std)
-                          for batches in deal(plan, args.devices)]
-                done = in_processes(args, shares, complete_share)
-                counts["written"] = sum(partial.get("written", 0) for partial, _ in done)
-                failed[:] = [row for partial, _ in done for row in partial.get("failed", [])]
-                stopped = [stop for _, stop in done if stop is not None]
-                if stopped:
-                    raise _stopped(stopped, counts["written"], len(run), out_dir)
-            elif plan:
-                complete_planned(args, model, dataset, plan, (out_dir, std_dir, vis_dir), with_std, failed, counts,
-                                 lambda: write_run_record(out_dir, record))
-        finally:  # also when the run stops: the frames that failed are listed for --resume
-            failed_csv = write_failed(out_dir, failed)
-        if not failed:
-            remove_run_record(out_dir)
-    written = counts["written"]
-    seconds = time.perf_counter() - start
-    if not args.quiet:
-        print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
-              + (f", pictures to {vis_dir}" if vis_dir else "") + f" in {seconds:.1f} s")
-        if finished:
-            redone = len(run) - (len(good) - len(finished & set(good)))
-            print(f"{len(finished)} of {total} frame(s) were finished by an earlier run (--resume)"
-                  + (f"; {redone} of them done again with the unfinished frames of their batch" if redone else ""))
-        if skipped:
-            print(f"skipped {len(skipped)} bad frame(s) of {total} (--skip-bad), listed with the reasons in "
-                  f"{skipped_csv}")
-        if failed:
-            print(f"{len(failed)} frame(s) failed (--skip-bad), listed with the reasons in {failed_csv}; "
-                  f"--resume completes them once fixed")
-    return 0
+    created = stack.enter_context(output_folders(targets))
+    folders = (created[0], created[1], created[2] if args.vis is not None else None)
+    others = _other_pngs(folders[0], [dataset.names[i] for i in range(total)])
+    if others:
+        logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
+                       "run on other frames?); they stay", folders[0], others)
+    skipped_csv = write_skipped(folders[0], [(dataset.names[i], m) for i, m in skipped.items()])
+    if eager_record and plan:
+        write_run_record(folders[0], record)
+    return {"dataset": dataset, "plan": plan, "folders": folders, "with_std": with_std, "record": record,
+            "finished": finished, "good": good, "skipped": skipped, "skipped_csv": skipped_csv, "total": total}
+
+
+def _rank_share(args: argparse.Namespace, ranks: Ranks, model, dataset, plan: list[list[int]], folders: tuple,
+                with_std: bool) -> tuple[dict, tuple[str, bool] | None]:
+    """This rank's batches (dealt in turn) completed and written: ``(partial, stop)`` as a local process reports
+    them (:func:`crfdepth.cli.processes.in_processes`), for :meth:`Ranks.gather`."""
+    shares = deal(plan, ranks.world)
+    mine = shares[ranks.rank] if ranks.rank < len(shares) else []
+    quiet = copy.copy(args)
+    quiet.quiet = True
+    partial: dict = {"written": 0, "failed": []}
+    try:
+        if mine:
+            complete_planned(quiet, model if model is not None else build_model(quiet), dataset, mine, folders,
+                             with_std, partial["failed"], partial)
+    except BAD_INPUT as exc:
+        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: {exc}", False)
+    except KeyboardInterrupt as exc:
+        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: interrupted {exc}", True)
+    return partial, None
+
+
+def _summary(args: argparse.Namespace, run: dict, written: int, failed: list, failed_csv, seconds: float) -> None:
+    out_dir, std_dir, vis_dir = run["folders"]
+    finished, good, skipped, total = run["finished"], run["good"], run["skipped"], run["total"]
+    print(f"wrote {written} depth PNG(s) to {out_dir}" + (f", std to {std_dir}" if std_dir else "")
+          + (f", pictures to {vis_dir}" if vis_dir else "") + f" in {seconds:.1f} s")
+    if finished:
+        redone = sum(map(len, run["plan"])) - (len(good) - len(finished & set(good)))
+        print(f"{len(finished)} of {total} frame(s) were finished by an earlier run (--resume)"
+              + (f"; {redone} of them done again with the unfinished frames of their batch" if redone else ""))
+    if skipped:
+        print(f"skipped {len(skipped)} bad frame(s) of {total} (--skip-bad), listed with the reasons in "
+              f"{run['skipped_csv']}")
+    if failed:
+        print(f"{len(failed)} frame(s) failed (--skip-bad), listed with the reasons in {failed_csv}; "
+              f"--resume completes them once fixed")
 
 
 def _finished(args, dataset, targets, record: dict, with_std: bool) -> set[int]:

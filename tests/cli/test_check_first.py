@@ -110,7 +110,7 @@ def test_skip_bad_needs_a_run_over_many_frames(tmp_path):
     code, _, err = run(["complete", "--image", "a.png", "--sparse", "b.png", "--intrinsics", "k.txt", "--out",
                         tmp_path / "d.png", "--skip-bad"])
     assert code == 2 and err == ("crfdepth complete: error: --skip-bad: applies to the runs over many frames "
-                                 "(--input-dir or --bag); a single frame is either completed or refused\n")
+                                 "(--input-dir, --bag or --input-list); a single frame is either completed or refused\n")
     assert list(tmp_path.iterdir()) == []
 
 

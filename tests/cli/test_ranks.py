@@ -1,0 +1,85 @@
+"""``complete --input-dir --num-nodes 2``: two ranks joined as torchrun joins them (its environment, gloo)
+write what one process writes; rank 0's refusal of a bad frame stops every rank alike; a run without the
+launcher's environment, or with a group of another size, is refused in one line."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crfdepth.io.kitti import read_depth_png
+from tests.cli.frames import FAST, files, run, write_folder
+
+ROOT = Path(__file__).resolve().parents[2]
+COUNT = 5
+CODE = 1 / 256  # one unit of a KITTI depth PNG, metres
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return write_folder(tmp_path_factory.mktemp("ranks") / "val_selection_cropped", COUNT)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _two_nodes(argv: list) -> list[subprocess.CompletedProcess]:
+    """``python -m crfdepth`` twice, as rank 0 and 1 of a group of 2 (one process per node), as torchrun starts
+    them."""
+    port = str(_free_port())
+    procs = []
+    for rank in range(2):
+        env = {**os.environ, "WORLD_SIZE": "2", "RANK": str(rank), "LOCAL_RANK": "0", "LOCAL_WORLD_SIZE": "1",
+               "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port, "OMP_NUM_THREADS": "1"}
+        procs.append(subprocess.Popen([sys.executable, "-m", "crfdepth", *map(str, argv)], cwd=ROOT, env=env,
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    done = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=300)
+        done.append(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
+    return done
+
+
+def _argv(data, out, *extra) -> list:
+    return ["complete", "--input-dir", data, "--out-dir", out / "d", "--out-std-dir", out / "s", *extra, *FAST]
+
+
+def test_two_nodes_write_what_one_process_writes(folder, tmp_path):
+    assert run(_argv(folder, tmp_path / "one", "--batch-size", "2"))[0] == 0
+    ranks = _two_nodes(_argv(folder, tmp_path / "two", "--batch-size", "2", "--num-nodes", "2"))
+    assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
+    for sub in ("d", "s"):
+        assert files(tmp_path / "one" / sub) == files(tmp_path / "two" / sub)  # no lock or record left
+        for name in files(tmp_path / "one" / sub):
+            diff = np.abs(read_depth_png(tmp_path / "one" / sub / name) - read_depth_png(tmp_path / "two" / sub / name))
+            assert diff.max() <= CODE + 1e-9, name
+
+
+def test_a_bad_frame_stops_every_rank_alike(folder, tmp_path):
+    bad = write_folder(tmp_path / "bad" / "val_selection_cropped", 3, bad={1: "zero sparse"})
+    ranks = _two_nodes(_argv(bad, tmp_path / "o", "--num-nodes", "2"))
+    assert [r.returncode for r in ranks] == [2, 2]
+    assert ranks[0].stderr.splitlines()[-1] == ranks[1].stderr.splitlines()[-1]
+    assert "every pixel is 0 (no LiDAR point)" in ranks[1].stderr and "nothing written" in ranks[1].stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_num_nodes_needs_the_launcher_and_a_group_of_its_size(folder, tmp_path, monkeypatch):
+    for name in ("WORLD_SIZE", "RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(name, raising=False)
+    code, _, err = run(_argv(folder, tmp_path / "o", "--num-nodes", "2"))
+    assert code == 2 and err.startswith("crfdepth complete: error: --num-nodes 2: start the command on every node "
+                                        "with torchrun")
+    monkeypatch.setenv("WORLD_SIZE", "3")
+    code, _, err = run(_argv(folder, tmp_path / "o", "--num-nodes", "2"))
+    assert code == 2 and "--num-nodes 2 --devices 1: expected 2 process(es) in all, the launcher started 3" in err
+    assert not (tmp_path / "o").exists()
