@@ -20,34 +20,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from crfdepth.data.synthetic import make_scene  # noqa: E402
-from crfdepth.io.kitti import write_depth_png  # noqa: E402
-
-DRIVE = "2011_09_26_drive_0001_sync"
+from crfdepth.data.synthetic import make_scene, write_selection_folder  # noqa: E402
 
 
 def write_frames(root: Path, count: int, size: tuple[int, int], distinct: int = 20) -> Path:
     """``count`` frames in the val_selection_cropped layout; ``distinct`` scenes repeated (rendering is the slow
     part and the run's memory does not depend on the pixels)."""
-    for sub in ("image", "velodyne_raw", "groundtruth_depth", "intrinsics"):
-        (root / sub).mkdir(parents=True)
     scenes = [make_scene(seed, *size, beams=16) for seed in range(min(count, distinct))]
-    for index in range(count):
-        scene = scenes[index % len(scenes)]
-        stem = f"{DRIVE}_{{}}_{index:010d}_image_02"
-        rgb = np.round(scene.image * 255).astype(np.uint8)
-        cv2.imwrite(str(root / "image" / f"{stem.format('image')}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        write_depth_png(root / "velodyne_raw" / f"{stem.format('velodyne_raw')}.png", scene.sparse)
-        write_depth_png(root / "groundtruth_depth" / f"{stem.format('groundtruth_depth')}.png", scene.target())
-        np.savetxt(root / "intrinsics" / f"{stem.format('image')}.txt", scene.K.reshape(1, 9))
-    return root
+    return write_selection_folder(root, (scenes[index % len(scenes)] for index in range(count)))
 
 
 # Runs a command and prints the peak resident set (KiB) of the largest process below it: a fresh parent per

@@ -11,12 +11,11 @@ import contextlib
 import io
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
 from crfdepth import cli
-from crfdepth.data.synthetic import make_scene
+from crfdepth.data.synthetic import make_scene, selection_stem, write_selection_folder
 from crfdepth.io.kitti import write_depth_png
 
 DRIVE = "2011_09_26_drive_0001_sync"
@@ -27,7 +26,7 @@ COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
 
 
 def stem(kind: str, index: int) -> str:
-    return f"{DRIVE}_{kind}_{index:010d}_image_02"
+    return selection_stem(kind, index, DRIVE)
 
 
 def png(index: int) -> str:
@@ -38,19 +37,12 @@ def png(index: int) -> str:
 def write_folder(root: Path, count: int, bad: dict[int, str] | None = None) -> Path:
     """``count`` frames; ``bad`` maps a frame index to "zero sparse" (no LiDAR point) or "unreadable image"."""
     bad = bad or {}
-    for sub in ("image", "velodyne_raw", "groundtruth_depth", "intrinsics"):
-        (root / sub).mkdir(parents=True)
-    for index in range(count):
-        scene = make_scene(index, *SIZE, beams=16)
-        rgb = np.round(scene.image * 255).astype(np.uint8)
-        image = root / "image" / f"{stem('image', index)}.png"
-        cv2.imwrite(str(image), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        sparse = np.zeros(SIZE) if bad.get(index) == "zero sparse" else scene.sparse
-        write_depth_png(root / "velodyne_raw" / png(index), sparse)
-        write_depth_png(root / "groundtruth_depth" / f"{stem('groundtruth_depth', index)}.png", scene.target())
-        np.savetxt(root / "intrinsics" / f"{stem('image', index)}.txt", scene.K.reshape(1, 9))
-        if bad.get(index) == "unreadable image":
-            image.write_bytes(b"not a png")
+    write_selection_folder(root, (make_scene(index, *SIZE, beams=16) for index in range(count)), DRIVE)
+    for index, kind in bad.items():
+        if kind == "zero sparse":
+            write_depth_png(root / "velodyne_raw" / png(index), np.zeros(SIZE))
+        elif kind == "unreadable image":
+            (root / "image" / f"{stem('image', index)}.png").write_bytes(b"not a png")
     return root
 
 

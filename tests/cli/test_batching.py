@@ -27,7 +27,7 @@ from crfdepth.cli.completion import check_sample
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.sample import Sample
-from crfdepth.data.synthetic import make_scene
+from crfdepth.data.synthetic import make_scene, selection_stem, write_selection_folder
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS
@@ -49,21 +49,12 @@ METRIC_RELATIVE = 1e-5
 
 
 def _stem(kind: str, index: int) -> str:
-    return f"{DRIVE}_{kind}_{index:010d}_image_02"
+    return selection_stem(kind, index, DRIVE)
 
 
 def _write_folder(root: Path, sizes=SIZES) -> Path:
     """Synthetic scenes 0, 1, ... of ``sizes`` as a ``val_selection_cropped`` folder."""
-    for sub in ("image", "velodyne_raw", "groundtruth_depth", "intrinsics"):
-        (root / sub).mkdir(parents=True)
-    for index, (height, width) in enumerate(sizes):
-        scene = make_scene(index, height, width, beams=16)
-        rgb = np.round(scene.image * 255).astype(np.uint8)
-        cv2.imwrite(str(root / "image" / f"{_stem('image', index)}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        write_depth_png(root / "velodyne_raw" / f"{_stem('velodyne_raw', index)}.png", scene.sparse)
-        write_depth_png(root / "groundtruth_depth" / f"{_stem('groundtruth_depth', index)}.png", scene.target())
-        np.savetxt(root / "intrinsics" / f"{_stem('image', index)}.txt", scene.K.reshape(1, 9))
-    return root
+    return write_selection_folder(root, (make_scene(index, h, w, beams=16) for index, (h, w) in enumerate(sizes)))
 
 
 @pytest.fixture(scope="module")

@@ -37,11 +37,13 @@ Modules, one job each:
 - :mod:`~crfdepth.data.synthetic.scene`: :func:`make_scene` and :class:`SyntheticScene`;
 - :mod:`~crfdepth.data.synthetic.sequence`: :func:`make_sequence`, the street along a
   camera path with true poses and moving cars (:class:`SyntheticSequence`);
-- :mod:`~crfdepth.data.synthetic.dataset`: :class:`SyntheticScenes`, a torch Dataset.
+- :mod:`~crfdepth.data.synthetic.dataset`: :class:`SyntheticScenes`, a torch Dataset;
+- :mod:`~crfdepth.data.synthetic.folder`: scenes written as a KITTI ``val_selection_cropped`` folder.
 """
 
 from crfdepth.data.synthetic.camera import KITTI_CROP_WIDTH, KITTI_FOCAL_PX, camera_intrinsics
 from crfdepth.data.synthetic.dataset import SyntheticScenes
+from crfdepth.data.synthetic.folder import selection_stem, write_selection_folder
 from crfdepth.data.synthetic.lidar_sim import LIDAR_IN_CAMERA_M, MIN_RANGE_M, lidar_elevations
 from crfdepth.data.synthetic.scene import EVAL_MAX_DEPTH_M, SyntheticScene, make_scene
 from crfdepth.data.synthetic.sequence import SyntheticFrame, SyntheticSequence, ego_pose, make_sequence
@@ -63,4 +65,6 @@ __all__ = [
     "lidar_elevations",
     "make_scene",
     "make_sequence",
+    "selection_stem",
+    "write_selection_folder",
 ]
