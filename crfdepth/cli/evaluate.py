@@ -69,6 +69,8 @@ Needs no Lightning: a machine with the crfdepth library alone can evaluate a ``.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import copy
 import json
 import logging
 import os
@@ -80,13 +82,20 @@ import torch
 from torch.utils.data import Subset
 
 from crfdepth.checkpoints import describe
-from crfdepth.cli.arguments import fraction, int_at_least
+from crfdepth.cli.arguments import BAD_INPUT, fraction, int_at_least
 from crfdepth.cli.batches import add_batch_arguments
-from crfdepth.cli.evaluate_frames import evaluate_frames, evaluate_in_processes
+from crfdepth.cli.evaluate_frames import (
+    evaluate_frames,
+    evaluate_in_processes,
+    evaluate_share,
+    frame_chunks,
+    merge_shares,
+)
 from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
 from crfdepth.cli.outputs import output_folders
-from crfdepth.cli.processes import check_devices
+from crfdepth.cli.processes import check_devices, deal
+from crfdepth.cli.ranks import Ranks, ranks_from_environment
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -146,6 +155,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="evaluate with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
                            "sharing the cores), consecutive batches dealt to them in turn; the CSV and JSON are "
                            "those of one process (frames in input order, means over all frames)")
+    data.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
+                      help="on M machines of N --devices each: start the same command on every node with torchrun "
+                           "--nnodes M --nproc-per-node N; rank 0 writes the report")
     out = parser.add_argument_group("output")
     out.add_argument("--out-dir", default="evaluation", metavar="DIR",
                      help=f"folder for {CSV_NAME}, {JSON_NAME} and {PNG_FOLDER}/ (created if missing; "
@@ -228,29 +240,75 @@ def run(args: argparse.Namespace) -> int:
 
     Bad input raises InputError / FileNotFoundError / PermissionError naming the option
     or file, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
+    With ``--num-nodes`` under torchrun, rank 0 opens, checks and locks, the ranks evaluate the runs of
+    frames dealt to them, and rank 0 merges their rows and writes the report (:mod:`crfdepth.cli.ranks`).
     """
-    if args.devices > 1:
+    ranks = ranks_from_environment(args)
+    try:
+        return _run(args, ranks)
+    finally:
+        if ranks is not None:
+            ranks.close()
+
+
+def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
+    if ranks is None and args.devices > 1:
         check_devices(args.devices, args.device)
+    built: dict = {}
+    with contextlib.ExitStack() as stack:
+        prepared = _prepare(args, stack, built) if ranks is None else \
+            ranks.share(lambda: _prepare(args, stack, built))
+        options, dataset, root, out_dir, png_dir = prepared
+        start = time.perf_counter()
+        if ranks is not None:
+            chunks = frame_chunks(len(dataset), args.batch_size)
+            shares = deal(chunks, ranks.world)
+            share = (dataset, shares[ranks.rank] if ranks.rank < len(shares) else [], png_dir)
+            rows, skipped = merge_shares(chunks, ranks.gather(_rank_share(args, ranks, built.get("model"), share)))
+        elif args.devices > 1:
+            rows, skipped = evaluate_in_processes(dataset, args, png_dir)
+        else:
+            rows, skipped = evaluate_frames(built["model"], dataset, args, png_dir)
+        if ranks is None or ranks.is_main:
+            return _write_report(args, options, dataset, root, built["model"], out_dir, png_dir, rows, skipped,
+                                 time.perf_counter() - start)
+    return 0
+
+
+def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict) -> tuple:
+    """The dataset opened, the output folder checked, the model built (kept in ``built``), the folder created
+    and locked for the run (``.crfdepth.lock``, on ``stack``) and the PNG folder made: what the ranks share."""
     options = _dataset_options(args)
     dataset, root = _open_dataset(args, options)
     out_dir = _check_out_dir(args, root)
-    model = build_model(args)  # prints the model line: after every refusal of the options
-    with output_folders([("--out-dir", args.out_dir)]):  # created and locked for the run (.crfdepth.lock)
-        return _evaluate_and_write(args, options, dataset, root, model, out_dir)
-
-
-def _evaluate_and_write(args: argparse.Namespace, options: dict, dataset, root: Path | None, model,
-                        out_dir: Path) -> int:
-    """:func:`run` once the inputs are checked and ``out_dir`` is locked: evaluate, print, write."""
+    built["model"] = build_model(args)  # prints the model line: after every refusal of the options
+    stack.enter_context(output_folders([("--out-dir", args.out_dir)]))
     png_dir = None
     if args.save_png:
         png_dir = out_dir / PNG_FOLDER
         png_dir.mkdir(parents=True, exist_ok=True)
+    return options, dataset, root, out_dir, png_dir
 
-    start = time.perf_counter()
-    rows, skipped = evaluate_frames(model, dataset, args, png_dir) if args.devices == 1 else \
-        evaluate_in_processes(dataset, args, png_dir)
-    seconds = time.perf_counter() - start
+
+def _rank_share(args: argparse.Namespace, ranks: Ranks, model, share: tuple) -> tuple[dict, tuple[str, bool] | None]:
+    """This rank's runs of frames evaluated (:func:`~crfdepth.cli.evaluate_frames.evaluate_share`): ``(partial,
+    stop)`` for :meth:`Ranks.gather`."""
+    quiet = copy.copy(args)
+    quiet.quiet = True
+    partial: dict = {"rows": [], "skipped": []}
+    try:
+        if share[1]:
+            evaluate_share(quiet, model if model is not None else build_model(quiet), share, partial)
+    except BAD_INPUT as exc:
+        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: {exc}", False)
+    except KeyboardInterrupt as exc:
+        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: interrupted {exc}", True)
+    return partial, None
+
+
+def _write_report(args: argparse.Namespace, options: dict, dataset, root: Path | None, model, out_dir: Path,
+                  png_dir: Path | None, rows: list, skipped: list, seconds: float) -> int:
+    """Print the table and write the CSV and JSON of the evaluated ``rows``."""
     if not rows:
         raise InputError(f"none of the {len(dataset)} frame(s) has a ground-truth pixel; nothing to evaluate")
 

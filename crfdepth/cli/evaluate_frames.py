@@ -25,7 +25,7 @@ from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
 
 logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
 
-__all__ = ["evaluate_frames", "evaluate_in_processes", "evaluate_share"]
+__all__ = ["evaluate_frames", "evaluate_in_processes", "evaluate_share", "frame_chunks", "merge_shares"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 
@@ -84,9 +84,19 @@ def evaluate_in_processes(dataset, args, png_dir: Path | None) -> tuple[list[dic
     ``--batch-size`` consecutive frames dealt to them in turn, each evaluated as one batch (or split where the
     size changes), the rows and skipped frames merged back into input order. Every metric is per frame and
     the report's means are taken over the merged rows, so the CSV and JSON are those of one process."""
-    chunks = [list(range(i, min(i + args.batch_size, len(dataset)))) for i in range(0, len(dataset), args.batch_size)]
+    chunks = frame_chunks(len(dataset), args.batch_size)
     shares = [(dataset, batches, png_dir) for batches in deal(chunks, args.devices)]
-    done = in_processes(args, shares, evaluate_share)
+    return merge_shares(chunks, in_processes(args, shares, evaluate_share))
+
+
+def frame_chunks(count: int, batch_size: int) -> list[list[int]]:
+    """Runs of ``batch_size`` consecutive frames of ``count``, the units dealt to processes and ranks."""
+    return [list(range(i, min(i + batch_size, count))) for i in range(0, count, batch_size)]
+
+
+def merge_shares(chunks: list[list[int]], done: list[tuple[dict, tuple[str, bool] | None]]
+                 ) -> tuple[list[dict[str, Any]], list[str]]:
+    """The rows and skipped frames the processes (or ranks) reported, in input order; the first stop raised."""
     stopped = [stop for _, stop in done if stop is not None]
     if any(interrupted for _, interrupted in stopped):
         raise KeyboardInterrupt("while evaluating; nothing written")

@@ -4,6 +4,7 @@ launcher's environment, or with a group of another size, is refused in one line.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
 from crfdepth.io.kitti import read_depth_png
 from tests.cli.frames import FAST, files, run, write_folder
 
@@ -83,3 +85,20 @@ def test_num_nodes_needs_the_launcher_and_a_group_of_its_size(folder, tmp_path, 
     code, _, err = run(_argv(folder, tmp_path / "o", "--num-nodes", "2"))
     assert code == 2 and "--num-nodes 2 --devices 1: expected 2 process(es) in all, the launcher started 3" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_evaluate_on_two_nodes_reports_what_one_process_reports(folder, tmp_path):
+    argv = ["evaluate", "--layout", "val_selection", "--data", folder, "--std", "--potentials", "colour", "--quiet"]
+    code, _, err = run([*argv, "--out-dir", tmp_path / "one"])
+    assert code == 0, err
+    ranks = _two_nodes([*argv, "--out-dir", tmp_path / "two", "--num-nodes", "2"])
+    assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
+    one = json.loads((tmp_path / "one" / JSON_NAME).read_text())
+    two = json.loads((tmp_path / "two" / JSON_NAME).read_text())
+    assert two.keys() == one.keys() and two["frames"] == one["frames"] == COUNT
+    for group in ("metrics", "uncertainty"):
+        assert two[group].keys() == one[group].keys()
+        for key, value in one[group].items():
+            assert two[group][key] == pytest.approx(value, rel=1e-6, abs=1e-9), (group, key)
+    rows = [(tmp_path / d / CSV_NAME).read_text().splitlines() for d in ("one", "two")]
+    assert [r.split(",")[0] for r in rows[0]] == [r.split(",")[0] for r in rows[1]]  # frames in input order
