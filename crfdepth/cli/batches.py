@@ -26,8 +26,9 @@ MAX_WORKERS = 64
 
 
 def add_batch_arguments(group: argparse._ActionsContainer) -> None:
-    """``--batch-size B`` and ``--workers N`` (read by :func:`frame_batches`), shared by
-    ``complete --input-dir`` and ``evaluate``."""
+    """``--batch-size B`` and ``--workers N`` (read by :func:`frame_batches`), and ``--devices N`` and ``--num-nodes
+    M`` (:mod:`crfdepth.cli.processes`, :mod:`crfdepth.cli.ranks`), shared by ``complete --input-dir`` and
+    ``evaluate``."""
     group.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
                        help="frames per model call (default 1, the fastest on CPU as measured; batches are "
                             "meant for --device cuda); consecutive frames of the same size go together, a size "
@@ -39,6 +40,14 @@ def add_batch_arguments(group: argparse._ActionsContainer) -> None:
                             f"num_workers, 0 to {MAX_WORKERS}; default 0: this process, enough for local KITTI "
                             f"frames, which read in about 20 ms; more help when reading is slow, e.g. from "
                             f"network storage)")
+    group.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
+                       help="N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes sharing the "
+                            "cores), the batches dealt to them in turn: the outputs are one process's (depth within "
+                            "one PNG code: the threads' summation order)")
+    group.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
+                       help="M machines of N --devices each: start the same command on every node with torchrun "
+                            "--nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks, plans and "
+                            "reports, every rank does its dealt batches (the output folder shared)")
 
 
 @dataclass(frozen=True)

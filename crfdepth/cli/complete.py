@@ -100,7 +100,7 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.cli.arguments import int_at_least, vis_range_type
+from crfdepth.cli.arguments import vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
@@ -181,14 +181,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="complete many inputs in turn: FILE names one per line (a KITTI depth-completion "
                              "folder, as --input-dir takes, or a ROS recording, as --bag takes; # comments), each "
                              "completed into <out-dir>/<its name>; every line is checked first")
-    folder.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
-                        help="complete with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
-                             "sharing the cores), the planned batches dealt to them in turn: the PNGs of one process "
-                             "(within one code: the threads' summation order)")
-    folder.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
-                        help="--input-dir on M machines of N --devices each: start the same command on every node "
-                             "with torchrun --nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks "
-                             "and plans, every rank completes its dealt batches into the shared output folders")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
     add_model_arguments(parser)

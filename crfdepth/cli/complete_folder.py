@@ -23,8 +23,8 @@ from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
-from crfdepth.cli.processes import check_devices, deal, in_processes
-from crfdepth.cli.ranks import Ranks, ranks_from_environment
+from crfdepth.cli.processes import deal, in_processes
+from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.cli.resume import (
     batch_plan,
     check_resumable,
@@ -115,18 +115,11 @@ def run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
-    ranks = ranks_from_environment(args)
-    try:
-        return _run(args, ranks)
-    finally:
-        if ranks is not None:
-            ranks.close()
+    return run_in_group(args, _run)
 
 
 def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
     """:func:`run_folder` alone, with ``--devices`` local processes, or as one rank of a torchrun group."""
-    if ranks is None and args.devices > 1:
-        check_devices(args.devices, args.device)
     main = ranks is None or ranks.is_main
     built: dict = {}
     start = time.perf_counter()

@@ -94,8 +94,8 @@ from crfdepth.cli.evaluate_frames import (
 from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
 from crfdepth.cli.outputs import output_folders
-from crfdepth.cli.processes import check_devices, deal
-from crfdepth.cli.ranks import Ranks, ranks_from_environment
+from crfdepth.cli.processes import deal
+from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes
@@ -151,13 +151,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--limit", type=int_at_least(1), default=None, metavar="N",
                       help="evaluate only the first N frames")
     add_batch_arguments(data)
-    data.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
-                      help="evaluate with N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes "
-                           "sharing the cores), consecutive batches dealt to them in turn; the CSV and JSON are "
-                           "those of one process (frames in input order, means over all frames)")
-    data.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
-                      help="on M machines of N --devices each: start the same command on every node with torchrun "
-                           "--nnodes M --nproc-per-node N; rank 0 writes the report")
     out = parser.add_argument_group("output")
     out.add_argument("--out-dir", default="evaluation", metavar="DIR",
                      help=f"folder for {CSV_NAME}, {JSON_NAME} and {PNG_FOLDER}/ (created if missing; "
@@ -243,17 +236,10 @@ def run(args: argparse.Namespace) -> int:
     With ``--num-nodes`` under torchrun, rank 0 opens, checks and locks, the ranks evaluate the runs of
     frames dealt to them, and rank 0 merges their rows and writes the report (:mod:`crfdepth.cli.ranks`).
     """
-    ranks = ranks_from_environment(args)
-    try:
-        return _run(args, ranks)
-    finally:
-        if ranks is not None:
-            ranks.close()
+    return run_in_group(args, _run)
 
 
 def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
-    if ranks is None and args.devices > 1:
-        check_devices(args.devices, args.device)
     built: dict = {}
     with contextlib.ExitStack() as stack:
         prepared = _prepare(args, stack, built) if ranks is None else \

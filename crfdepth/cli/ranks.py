@@ -25,9 +25,10 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
+from crfdepth.cli.processes import check_devices
 from crfdepth.errors import InputError
 
-__all__ = ["Ranks", "ranks_from_environment"]
+__all__ = ["Ranks", "ranks_from_environment", "run_in_group"]
 
 # Rank 0 reads and checks every frame before the others get the plan (about 40 ms a KITTI frame:
 # half an hour for a 47,000-frame archive), so the group waits that long without giving up.
@@ -73,6 +74,19 @@ class Ranks:
     def close(self) -> None:
         if dist.is_initialized():
             dist.destroy_process_group()
+
+
+def run_in_group(args: argparse.Namespace, run: Callable[[argparse.Namespace, Ranks | None], int]) -> int:
+    """``run(args, ranks)``: alone (``ranks`` None; ``--devices`` local processes checked against the machine)
+    or as this process's rank of the torchrun group, which it leaves again afterwards."""
+    ranks = ranks_from_environment(args)
+    if ranks is None and args.devices > 1:
+        check_devices(args.devices, args.device)
+    try:
+        return run(args, ranks)
+    finally:
+        if ranks is not None:
+            ranks.close()
 
 
 def ranks_from_environment(args: argparse.Namespace) -> Ranks | None:
