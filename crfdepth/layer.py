@@ -45,6 +45,7 @@ from crfdepth.checks import check_map, check_scalar_tensor, describe
 from crfdepth.errors import InputError
 from crfdepth.linalg import SolveInfo, System, solve_system, solver_settings
 from crfdepth.potentials.energy import unary_system
+from crfdepth.precision import full_dtype, full_precision
 from crfdepth.superpixels.edges import boundary_pairs
 from crfdepth.superpixels.segments import batch_segments, slic_batch
 from crfdepth.uncertainty.posterior import posterior_std
@@ -57,7 +58,8 @@ class RefineOutput:
     """Result of :func:`crf_refine` / :class:`CRFRefine`.
 
     Attributes:
-        depth: (B, 1, H, W) refined depth in metres, dtype and device of the input depth.
+        depth: (B, 1, H, W) refined depth in metres, dtype (float32 for float16 / bfloat16)
+            and device of the input depth.
         std: (B, 1, H, W) predictive standard deviation in metres, or None unless asked.
         info: :class:`crfdepth.linalg.SolveInfo` of the solve (one entry per image).
     """
@@ -123,6 +125,7 @@ def crf_edge_weights(features: torch.Tensor, projection: torch.Tensor,
     return edge_scale * torch.exp(-dh), edge_scale * torch.exp(-dv)
 
 
+@full_precision
 def crf_refine(
     depth: torch.Tensor,
     confidence: torch.Tensor,
@@ -143,6 +146,10 @@ def crf_refine(
     on_nonconvergence: str = "warn",
 ) -> RefineOutput:
     """Refine a network's dense depth with a Gaussian CRF (energy in the module docstring).
+
+    Runs with ``torch.autocast`` off, float16 / bfloat16 tensors taken as float32
+    (:mod:`crfdepth.precision`): inside a network trained under autocast the edge weights,
+    the system and its solve stay in float32 or better, and the output is float32.
 
     Nothing is modified in place; the result is differentiable in ``depth``,
     ``confidence``, ``features``, ``sparse`` (its values at the LiDAR pixels; which pixels
@@ -328,7 +335,8 @@ class CRFRefine(nn.Module):
 
         ``image`` (B, 3, H, W) RGB in [0, 1] is used only with ``superpixels`` set and no
         ``labels``. Parameters are cast to ``depth``'s dtype (the module may stay float32
-        while the inputs are float64).
+        while the inputs are float64), never below float32: under ``torch.autocast`` or with
+        float16 / bfloat16 inputs the layer computes in float32 (:func:`crf_refine`).
         """
         channels = self.projection.in_channels
         if isinstance(features, torch.Tensor) and features.dim() == 4 and features.shape[1] != channels:
@@ -337,7 +345,7 @@ class CRFRefine(nn.Module):
                              f"in_channels={features.shape[1]} or give it {channels}-channel features")
         if labels is None and self.superpixels is not None:
             labels = self._segment(image, depth)
-        dtype = depth.dtype if isinstance(depth, torch.Tensor) and depth.is_floating_point() else None
+        dtype = full_dtype(depth.dtype) if isinstance(depth, torch.Tensor) and depth.is_floating_point() else None
         cast = (lambda t: t.to(dtype)) if dtype is not None else (lambda t: t)
         return crf_refine(
             depth, confidence, features, cast(self.projection.weight),

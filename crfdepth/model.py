@@ -31,6 +31,7 @@ from crfdepth.output import CRFOutput
 from crfdepth.potentials.energy import PotentialWeights, energy
 from crfdepth.potentials.head import PotentialHead
 from crfdepth.potentials.parameters import ConstrainedWeights
+from crfdepth.precision import widen
 from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
@@ -256,7 +257,9 @@ class CRFDepth(ConstrainedWeights):
             return_std: also compute the posterior standard deviation (extra solves).
 
         Returns:
-            :class:`CRFOutput`; tensors in the dtype of ``sparse`` on its device.
+            :class:`CRFOutput`; tensors in the dtype of ``sparse`` (float32 for float16 /
+            bfloat16) on its device. Under ``torch.autocast`` the whole CRF runs with autocast
+            off, so its depth is the one computed without autocast (:mod:`crfdepth.precision`).
 
         Raises:
             InputError: bad inputs (:func:`crfdepth.checks.check_frames`), a frame smaller
@@ -265,6 +268,7 @@ class CRFDepth(ConstrainedWeights):
                 device has available; size and memory are checked from the shape alone,
                 before anything is allocated.
         """
+        image, sparse, K = widen(image), widen(sparse), widen(K)
         if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
             # Size and memory first, from the shape alone: the checks below allocate per pixel.
             check_frame_size("image", *sparse.shape[2:])

@@ -8,6 +8,7 @@ arguments of the public functions; the library's own callers pass a trusted
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -21,6 +22,7 @@ from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.multigrid import GridMultigrid
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 from crfdepth.linalg.system import System
+from crfdepth.precision import HALF, autocast_off, full_dtype
 
 _METHODS = {"cg": conjugate_gradient, "cgs": conjugate_gradient_squared}
 
@@ -279,7 +281,22 @@ def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettin
     solve's :class:`SolveInfo`, without input checks; ``x0`` is a warm start, no gradient flows to it.
 
     A solve that will not be differentiated (inference runs under ``no_grad``) goes straight to the
-    Krylov loop, in the system's dtype; one that will goes through :class:`_LaplacianSolve`."""
+    Krylov loop, in the system's dtype; one that will goes through :class:`_LaplacianSolve`. Either
+    runs with ``torch.autocast`` off, and float16 / bfloat16 tensors of the system are solved and
+    returned in float32 (:mod:`crfdepth.precision`): a half-precision solve would be useless."""
+    tensors = (system.rhs, system.diagonal, *system.weights)
+    if any(t.dtype in HALF for t in tensors):  # autocast's matmuls and convolutions put them there
+        work = functools.reduce(torch.promote_types, (full_dtype(t.dtype) for t in tensors))
+        system = dataclasses.replace(system, diagonal=system.diagonal.to(work), rhs=system.rhs.to(work),
+                                     weights=tuple(w.to(work) for w in system.weights))
+    if x0 is not None and x0.dtype in HALF:
+        x0 = x0.to(system.rhs.dtype)
+    with autocast_off(system.rhs):
+        return _solve(system, x0, settings)
+
+
+def _solve(system: System, x0: torch.Tensor | None, settings: SolverSettings) -> tuple[torch.Tensor, SolveInfo]:
+    """:func:`solve_system` in the system's own dtype."""
     structure = PixelGrid(*system.rhs.shape) if system.is_grid else EdgeGraph(system.edge_index, system.ptr)
     tensors = (system.rhs, system.diagonal, *system.weights)
     if _differentiable(*tensors):

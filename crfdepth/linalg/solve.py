@@ -21,6 +21,7 @@ from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 from crfdepth.linalg.adjoint import _METHODS, GRAD_RTOL, SolveInfo, SolverSettings, solve_system
 from crfdepth.linalg.system import System
+from crfdepth.precision import full_precision
 
 Method = Literal["cg", "cgs"]
 OnFail = Literal["warn", "raise", "ignore"]
@@ -128,6 +129,7 @@ def _check_positive_definite(d: np.ndarray, src: np.ndarray, dst: np.ndarray, w:
 # public API
 # ----------------------------------------------------------------------------------------
 
+@full_precision
 def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor, *,
                     ptr: torch.Tensor | None = None, x0: torch.Tensor | None = None, method: Method = "cg",
                     rtol: float = 1e-6, max_iter: int | None = None, check_every: int = 8,
@@ -171,6 +173,8 @@ def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, 
     Returns:
         ``x`` (N,) with b's dtype and device, and :class:`SolveInfo` (per graph; the
         adjoint's diagnostics appear in its ``adjoint`` field once backward has run).
+        Float16 / bfloat16 tensors are solved and returned in float32, with
+        ``torch.autocast`` off (:mod:`crfdepth.precision`).
 
     Raises:
         InputError: on mismatched shapes, dtypes or devices, indices out of range or
@@ -222,6 +226,7 @@ def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, 
     return solve_system(System.graph(d, b, edge_index, edge_weight, ptr), x0, settings)
 
 
+@full_precision
 def solve_grid_laplacian(b: torch.Tensor, d: torch.Tensor, weight_h: torch.Tensor, weight_v: torch.Tensor, *,
                          x0: torch.Tensor | None = None, method: Method = "cg", rtol: float = 1e-6,
                          max_iter: int | None = None, check_every: int = 8, on_nonconvergence: OnFail = "warn",

@@ -1,4 +1,5 @@
-"""Fixtures of the trainer tests: run ``python -m train`` and read what it logged.
+"""Fixtures of the trainer tests: run ``python -m train`` and read what it logged; build the
+same CLI in this process and take one optimiser step.
 
 The folder is named like the ``train`` package it tests; ``pythonpath = ["."]`` in
 pyproject.toml puts the repository root first on ``sys.path`` so that ``import train``
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import torch
+from lightning.pytorch.callbacks import Callback
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -82,3 +85,53 @@ def train_cli():
 def env() -> dict[str, str]:
     """Environment for subprocesses (one OpenMP thread unless set)."""
     return subprocess_env()
+
+
+class GradientAtStep(Callback):
+    """Records every trainable parameter's gradient just before each optimiser step."""
+
+    def __init__(self) -> None:
+        self.grads: list[dict[str, torch.Tensor]] = []
+
+    def on_before_optimizer_step(self, trainer, pl_module, optimizer) -> None:
+        self.grads.append({n: p.grad.detach().clone() for n, p in pl_module.named_parameters() if p.requires_grad})
+
+
+@dataclass
+class Step:
+    """What :func:`one_step` leaves: the gradients at each optimiser step, the parameters after."""
+
+    grads: list[dict[str, torch.Tensor]]
+    params: dict[str, torch.Tensor]
+    cli: object
+
+
+def one_step(log_dir: Path, args: list[str]) -> Step:
+    """``python -m train fit`` built in this process (``CRFDepthCLI(..., run=False)``) on two synthetic
+    frames of 64 x 192 (pixel mode, no flip, no shuffle, no validation) with ``args`` last, fitted
+    until one optimiser step."""
+    from train.__main__ import CRFDepthCLI
+    from train.data import CRFDataModule
+    from train.module import CRFDepthModule
+
+    base = ["--config", str(CONFIGS / "synthetic.yaml"), "--config", str(CONFIGS / "debug.yaml"),
+            "--data.train_options", "{count: 2, height: 64, width: 192}",
+            "--data.val_options", "{count: 1, seed: 1000, height: 64, width: 192}",
+            "--data.flip", "0", "--data.shuffle", "false",
+            "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0", "--trainer.num_sanity_val_steps", "0",
+            "--trainer.logger", "false", "--trainer.default_root_dir", str(log_dir),
+            "--trainer.enable_progress_bar", "false", "--checkpoint.monitor", "null", "--checkpoint.save_last", "false"]
+    cli = CRFDepthCLI(CRFDepthModule, CRFDataModule, args=[*base, *args], run=False, seed_everything_default=0)
+    recorder = GradientAtStep()
+    cli.trainer.callbacks.append(recorder)
+    cli.trainer.fit(cli.model, cli.datamodule)
+    assert cli.trainer.global_step == 1
+    params = {n: p.detach().clone() for n, p in cli.model.named_parameters() if p.requires_grad}
+    return Step(recorder.grads, params, cli)
+
+
+@pytest.fixture
+def train_step(monkeypatch):
+    """:func:`one_step`, with ``sys.argv`` cleared (the CLI reads only its ``args``)."""
+    monkeypatch.setattr(sys, "argv", ["python -m train"])
+    return one_step
