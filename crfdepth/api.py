@@ -22,6 +22,7 @@ checks and conversions of the inputs live in :mod:`crfdepth.inputs`.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
@@ -37,6 +38,7 @@ from crfdepth.inference import PIPELINES
 from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.memory import check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory, out_of_memory
+from crfdepth.precision import autocast_off
 
 __all__ = ["check_frame", "complete_batch", "complete_checked", "complete_depth"]
 
@@ -298,21 +300,24 @@ def _on_model(model, *arrays) -> tuple[torch.Tensor, ...]:
 
 
 class _ModelStep:
-    """The model's pipeline run inside ``with``: under ``no_grad``, and with an allocator failure (the last
-    line of defence behind the up-front memory estimate) held back and raised by :meth:`result` as a one-line
+    """The model's pipeline run inside ``with``: under ``no_grad`` and with autocast off (the CRF in full
+    precision, :mod:`crfdepth.precision`), and with an allocator failure (the last line of defence behind the
+    up-front memory estimate) held back and raised by :meth:`result` as a one-line
     :class:`~crfdepth.memory.MemoryRefusal`, once the failed forward's tensors are released."""
 
     def __init__(self, model, sparse: torch.Tensor, return_std: bool):
         self.model, self.size, self.return_std = model, (sparse.shape[0], *sparse.shape[-2:]), return_std
         self.output, self.failure = None, None
-        self._no_grad = torch.no_grad()
+        self._contexts = contextlib.ExitStack()
+        self._sparse = sparse  # its device: where autocast is turned off
 
     def __enter__(self) -> "_ModelStep":
-        self._no_grad.__enter__()
+        self._contexts.enter_context(torch.no_grad())
+        self._contexts.enter_context(autocast_off(self._sparse))
         return self
 
     def __exit__(self, kind, exc, traceback) -> bool:
-        self._no_grad.__exit__(kind, exc, traceback)
+        self._contexts.__exit__(kind, exc, traceback)
         if exc is None or not isinstance(exc, (RuntimeError, MemoryError)) or not is_out_of_memory(exc):
             return False
         param = next(self.model.parameters())

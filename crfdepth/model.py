@@ -31,7 +31,7 @@ from crfdepth.output import CRFOutput
 from crfdepth.potentials.energy import PotentialWeights, energy
 from crfdepth.potentials.head import PotentialHead
 from crfdepth.potentials.parameters import ConstrainedWeights
-from crfdepth.precision import widen
+from crfdepth.precision import autocast_off, widen
 from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
@@ -277,7 +277,8 @@ class CRFDepth(ConstrainedWeights):
         image, sparse, K = check_frames(image, sparse, K)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
-        return PIPELINES[self.mode](self, image, sparse, K, return_std)
+        with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
+            return PIPELINES[self.mode](self, image, sparse, K, return_std)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

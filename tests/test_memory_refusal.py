@@ -278,5 +278,5 @@ def test_cli_folder_mode_refusal_is_one_line_with_the_folder_fix(main, capsys, t
     assert line.startswith(f"crfdepth complete: error: image: {frames} needs about 0.3 GB (pixel mode, float32: "
                            f"about 250 bytes per pixel), more than the memory available on cpu (0.2 GB); {advice} "
                            f"[stopped at ")
-    assert line.endswith(f"0 of 2 frame(s) written to {out_dir}]")
+    assert line.endswith(f"0 of 2 frame(s) written to {out_dir}; --resume completes the others]")
     assert not out_dir.exists()  # the run created it and removes it again when nothing was written

@@ -147,8 +147,9 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
             elif plan:
                 complete_planned(args, built["model"], dataset, plan, folders, with_std, failed, counts,
                                  lambda: write_run_record(out_dir, run["record"]))
-        finally:  # also when the run stops: the frames that failed are listed for --resume
-            failed_csv = write_failed(out_dir, failed) if main else None
+        finally:  # also when a run stops after writing frames: the failed ones are listed for --resume (a run
+            # stopped before its first frame writes nothing: its error names the frame)
+            failed_csv = write_failed(out_dir, failed if counts["written"] or args.skip_bad else []) if main else None
         if main and not failed:
             remove_run_record(out_dir)
     if main and not args.quiet:

@@ -11,7 +11,6 @@ from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
 from crfdepth.potentials.energy import GridTerms, grid_potentials, grid_system, std_in_metres, to_depth, to_unknown
 from crfdepth.potentials.robust import reweight
-from crfdepth.precision import full_precision
 from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.uncertainty.predictive import std_features
@@ -57,7 +56,6 @@ def pixel_solve(model: ModelSettings, image, sparse, K, prior, eps, infos: list[
     return geometry, t
 
 
-@full_precision
 def pixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                   return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""

@@ -28,7 +28,6 @@ from crfdepth.potentials.energy import (
     std_in_metres,
     to_depth,
 )
-from crfdepth.precision import full_precision
 from crfdepth.superpixels.graph import build_checked_graphs
 from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.count import node_count_uncertainty
@@ -68,7 +67,6 @@ def refit_geometry(model: ModelSettings, terms: EnergyTerms, x: torch.Tensor, no
         terms.delta = delta
 
 
-@full_precision
 def superpixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                        return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in superpixel mode, on checked inputs."""

@@ -284,29 +284,24 @@ def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettin
     Krylov loop, in the system's dtype; one that will goes through :class:`_LaplacianSolve`. Either
     runs with ``torch.autocast`` off, and float16 / bfloat16 tensors of the system are solved and
     returned in float32 (:mod:`crfdepth.precision`): a half-precision solve would be useless."""
-    tensors = (system.rhs, system.diagonal, *system.weights)
-    if any(t.dtype in HALF for t in tensors):  # autocast's matmuls and convolutions put them there
-        work = functools.reduce(torch.promote_types, (full_dtype(t.dtype) for t in tensors))
+    if any(t.dtype in HALF for t in (system.rhs, system.diagonal, *system.weights)):  # from autocast's ops
+        work = functools.reduce(torch.promote_types,
+                                (full_dtype(t.dtype) for t in (system.rhs, system.diagonal, *system.weights)))
         system = dataclasses.replace(system, diagonal=system.diagonal.to(work), rhs=system.rhs.to(work),
                                      weights=tuple(w.to(work) for w in system.weights))
     if x0 is not None and x0.dtype in HALF:
         x0 = x0.to(system.rhs.dtype)
-    with autocast_off(system.rhs):
-        return _solve(system, x0, settings)
-
-
-def _solve(system: System, x0: torch.Tensor | None, settings: SolverSettings) -> tuple[torch.Tensor, SolveInfo]:
-    """:func:`solve_system` in the system's own dtype."""
     structure = PixelGrid(*system.rhs.shape) if system.is_grid else EdgeGraph(system.edge_index, system.ptr)
     tensors = (system.rhs, system.diagonal, *system.weights)
-    if _differentiable(*tensors):
-        box: list[SolveInfo] = []
-        x = _LaplacianSolve.apply(structure, settings, box, None if x0 is None else x0.detach(), *tensors)
-        return x, box[0]
-    with torch.no_grad():
-        matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, settings, False, system.diagonal,
-                                                                   list(system.weights))
-        x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(system.rhs),
-                                     None if x0 is None else structure.to_rows(x0), settings, precondition)
+    with autocast_off(system.rhs):
+        if _differentiable(*tensors):
+            box: list[SolveInfo] = []
+            x = _LaplacianSolve.apply(structure, settings, box, None if x0 is None else x0.detach(), *tensors)
+            return x, box[0]
+        with torch.no_grad():
+            matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, settings, False, system.diagonal,
+                                                                       list(system.weights))
+            x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(system.rhs),
+                                         None if x0 is None else structure.to_rows(x0), settings, precondition)
     _report(info, settings, "solve")
     return structure.from_rows(x_rows), info
