@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import copy
 import functools
 import itertools
 import logging
@@ -23,7 +22,7 @@ from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
-from crfdepth.cli.processes import deal, in_processes
+from crfdepth.cli.processes import deal, in_processes, run_share
 from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.cli.resume import (
     batch_plan,
@@ -138,7 +137,10 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
                     done = in_processes(args, [(dataset, batches, folders, with_std)
                                                for batches in deal(plan, args.devices)], complete_share)
                 else:
-                    done = ranks.gather(_rank_share(args, ranks, built.get("model"), dataset, plan, folders, with_std))
+                    shares = deal(plan, ranks.world)
+                    mine = shares[ranks.rank] if ranks.rank < len(shares) else []
+                    done = ranks.gather(run_share(f"rank {ranks.rank + 1}/{ranks.world}", args, complete_share,
+                                                  (dataset, mine, folders, with_std), built.get("model")))
                 counts["written"] = sum(partial.get("written", 0) for partial, _ in done)
                 failed[:] = [row for partial, _ in done for row in partial.get("failed", [])]
                 stopped = [stop for _, stop in done if stop is not None]
@@ -189,26 +191,6 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict,
             "finished": finished, "good": good, "skipped": skipped, "skipped_csv": skipped_csv, "total": total}
 
 
-def _rank_share(args: argparse.Namespace, ranks: Ranks, model, dataset, plan: list[list[int]], folders: tuple,
-                with_std: bool) -> tuple[dict, tuple[str, bool] | None]:
-    """This rank's batches (dealt in turn) completed and written: ``(partial, stop)`` as a local process reports
-    them (:func:`crfdepth.cli.processes.in_processes`), for :meth:`Ranks.gather`."""
-    shares = deal(plan, ranks.world)
-    mine = shares[ranks.rank] if ranks.rank < len(shares) else []
-    quiet = copy.copy(args)
-    quiet.quiet = True
-    partial: dict = {"written": 0, "failed": []}
-    try:
-        if mine:
-            complete_planned(quiet, model if model is not None else build_model(quiet), dataset, mine, folders,
-                             with_std, partial["failed"], partial)
-    except BAD_INPUT as exc:
-        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: {exc}", False)
-    except KeyboardInterrupt as exc:
-        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: interrupted {exc}", True)
-    return partial, None
-
-
 def _summary(args: argparse.Namespace, run: dict, written: int, failed: list, failed_csv, seconds: float) -> None:
     out_dir, std_dir, vis_dir = run["folders"]
     finished, good, skipped, total = run["finished"], run["good"], run["skipped"], run["total"]
@@ -253,7 +235,8 @@ def complete_share(args, model, share: tuple, partial: dict) -> None:
     the folder completed and written; ``partial`` counts them (``written``) and lists the ``failed`` frames."""
     dataset, batches, folders, with_std = share
     partial["written"] = 0
-    complete_planned(args, model, dataset, batches, folders, with_std, partial.setdefault("failed", []), partial)
+    if batches:
+        complete_planned(args, model, dataset, batches, folders, with_std, partial.setdefault("failed", []), partial)
 
 
 def _stopped(stopped: list[tuple[str, bool]], written: int, planned: int, out_dir: Path) -> BaseException:

@@ -70,7 +70,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import copy
 import json
 import logging
 import os
@@ -82,7 +81,7 @@ import torch
 from torch.utils.data import Subset
 
 from crfdepth.checkpoints import describe
-from crfdepth.cli.arguments import BAD_INPUT, fraction, int_at_least
+from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.evaluate_frames import (
     evaluate_frames,
@@ -94,7 +93,7 @@ from crfdepth.cli.evaluate_frames import (
 from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
 from crfdepth.cli.outputs import output_folders
-from crfdepth.cli.processes import deal
+from crfdepth.cli.processes import deal, run_share
 from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
@@ -250,7 +249,8 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
             chunks = frame_chunks(len(dataset), args.batch_size)
             shares = deal(chunks, ranks.world)
             share = (dataset, shares[ranks.rank] if ranks.rank < len(shares) else [], png_dir)
-            rows, skipped = merge_shares(chunks, ranks.gather(_rank_share(args, ranks, built.get("model"), share)))
+            rows, skipped = merge_shares(chunks, ranks.gather(run_share(f"rank {ranks.rank + 1}/{ranks.world}", args,
+                                                                         evaluate_share, share, built.get("model"))))
         elif args.devices > 1:
             rows, skipped = evaluate_in_processes(dataset, args, png_dir)
         else:
@@ -274,22 +274,6 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict)
         png_dir = out_dir / PNG_FOLDER
         png_dir.mkdir(parents=True, exist_ok=True)
     return options, dataset, root, out_dir, png_dir
-
-
-def _rank_share(args: argparse.Namespace, ranks: Ranks, model, share: tuple) -> tuple[dict, tuple[str, bool] | None]:
-    """This rank's runs of frames evaluated (:func:`~crfdepth.cli.evaluate_frames.evaluate_share`): ``(partial,
-    stop)`` for :meth:`Ranks.gather`."""
-    quiet = copy.copy(args)
-    quiet.quiet = True
-    partial: dict = {"rows": [], "skipped": []}
-    try:
-        if share[1]:
-            evaluate_share(quiet, model if model is not None else build_model(quiet), share, partial)
-    except BAD_INPUT as exc:
-        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: {exc}", False)
-    except KeyboardInterrupt as exc:
-        return partial, (f"rank {ranks.rank + 1}/{ranks.world}: interrupted {exc}", True)
-    return partial, None
 
 
 def _write_report(args: argparse.Namespace, options: dict, dataset, root: Path | None, model, out_dir: Path,

@@ -112,6 +112,9 @@ def evaluate_share(args, model, share: tuple, partial: dict) -> None:
     """One process's part of :func:`evaluate_in_processes`: its batches of ``dataset`` evaluated; ``partial``
     gets the ``rows`` and ``skipped`` frames, each with its index in ``dataset``."""
     dataset, batches, png_dir = share
+    partial.update(rows=[], skipped=[])
+    if not batches:
+        return
     indices = [i for batch in batches for i in batch]
     starts = set(itertools.accumulate(len(batch) for batch in batches[:-1]))
     rows, skipped = evaluate_frames(model, Subset(dataset, indices), args, png_dir, starts)

@@ -22,9 +22,11 @@ from collections.abc import Callable
 import torch
 import torch.multiprocessing as mp
 
+from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.cli.model_options import build_model
 from crfdepth.errors import InputError
 
-__all__ = ["check_devices", "deal", "in_processes"]
+__all__ = ["check_devices", "deal", "in_processes", "run_share"]
 
 
 def check_devices(devices: int, device: str) -> None:
@@ -70,27 +72,32 @@ def deal(batches: list[list[int]], devices: int) -> list[list[list[int]]]:
     return [batches[rank::count] for rank in range(count)]
 
 
+def run_share(who: str, args: argparse.Namespace, work: Callable, share, model=None
+              ) -> tuple[dict, tuple[str, bool] | None]:
+    """``work(args, model, share, partial)`` for one process or rank (``who``, for messages), quietly (one model
+    line and one summary, from the launching process or rank 0), the model built here unless given. Returns
+    ``(partial, stop)``: what ``work`` recorded, and None or the one-line error that stopped it and whether it
+    was an interrupt."""
+    quiet = copy.copy(args)
+    quiet.quiet = True
+    partial: dict = {}
+    try:
+        work(quiet, model if model is not None else build_model(quiet), share, partial)
+    except BAD_INPUT as exc:
+        return partial, (f"{who}: {exc}", False)
+    except KeyboardInterrupt as exc:
+        return partial, (f"{who}: interrupted {exc}", True)
+    return partial, None
+
+
 def _run_share(rank: int, count: int, args: argparse.Namespace, shares: list, work: Callable, threads: int,
                results) -> None:
     """One process of :func:`in_processes`: puts ``(rank, (partial, stop))`` on ``results``."""
-    from crfdepth.cli.arguments import BAD_INPUT
-    from crfdepth.cli.model_options import build_model
-
     torch.set_num_threads(threads)
-    mine = copy.copy(args)
-    mine.quiet = True  # one model line and one summary, from the launching process
     if args.device == "cuda":
         torch.cuda.set_device(rank)
-    partial: dict = {}
-    stop = None
+    done = run_share(f"process {rank + 1}/{count}", args, work, shares[rank])
     try:
-        work(mine, build_model(mine), shares[rank], partial)
-    except BAD_INPUT as exc:
-        stop = (f"process {rank + 1}/{count}: {exc}", False)
-    except KeyboardInterrupt as exc:
-        stop = (f"process {rank + 1}/{count}: interrupted {exc}", True)
-    finally:
-        try:
-            results.put((rank, (partial, stop)))
-        except (OSError, queue_module.Full):  # the launching process is gone
-            pass
+        results.put((rank, done))
+    except (OSError, queue_module.Full):  # the launching process is gone
+        pass
