@@ -34,6 +34,7 @@ from collections.abc import Callable
 from typing import Any
 
 import lightning.pytorch as pl
+import torch
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Subset
 
 from crfdepth.checks import check_choice
@@ -41,6 +42,7 @@ from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, b
 from crfdepth.data.factory import LAYOUTS
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
+from train.sampling import Draw, EpochOrder, ResumableLoader, seeded_draws
 
 log = logging.getLogger(__name__)
 
@@ -54,20 +56,29 @@ SYNTHETIC_VAL_SEED = 1000
 class TransformedDataset(Dataset):
     """``dataset`` with ``transform`` applied to every sample (after the dataset's own).
 
+    An item asked for as a :class:`~train.sampling.Draw` (what the training loader's order yields) is
+    read and transformed under torch's CPU generator seeded with the draw's seed, so its random
+    draws are a function of the seed, the epoch and the frame (:mod:`train.sampling`); a plain index
+    draws from the generator as it stands.
+
     Args:
         dataset: a map-style dataset of :class:`~crfdepth.data.sample.Sample`.
-        transform: callable ``Sample -> Sample`` (e.g. ``HorizontalFlip``).
+        transform: callable ``Sample -> Sample`` (e.g. ``HorizontalFlip``), or None for none.
     """
 
-    def __init__(self, dataset: Dataset, transform: Callable[[Sample], Sample]) -> None:
+    def __init__(self, dataset: Dataset, transform: Callable[[Sample], Sample] | None = None) -> None:
         self.dataset = dataset
         self.transform = transform
 
     def __len__(self) -> int:
         return len(self.dataset)
 
-    def __getitem__(self, index: int) -> Sample:
-        return self.transform(self.dataset[index])
+    def __getitem__(self, index: int | Draw) -> Sample:
+        if isinstance(index, Draw):
+            with seeded_draws(index.seed):
+                return self[index.index]
+        sample = self.dataset[index]
+        return sample if self.transform is None else self.transform(sample)
 
     @property
     def names(self) -> list[str]:
@@ -151,6 +162,9 @@ class CRFDataModule(pl.LightningDataModule):
             ``val_names_contain`` are left out of every source, so a held-out drive stays
             held out. E.g. the same scans with another hold-out (``{layout: raw, root:
             ..., options: {holdout: rings}}``) or another folder (``object``).
+        seed: seed of the training order and of each frame's random draws, which are
+            functions of (seed, epoch, frame) (:mod:`train.sampling`); None = the run's seed
+            (``--seed_everything``, 0 by default) as torch holds it when the loader is made.
 
     Raises:
         InputError: unknown layout, a split option that does not apply, a split that
@@ -177,6 +191,7 @@ class CRFDataModule(pl.LightningDataModule):
         num_workers: int = 0,
         shuffle: bool = True,
         extra_train: list[dict[str, Any]] | None = None,
+        seed: int | None = None,
     ) -> None:
         super().__init__()
         for name, value in (("layout", layout), ("val_layout", val_layout)):
@@ -200,6 +215,8 @@ class CRFDataModule(pl.LightningDataModule):
                 raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
         if not isinstance(num_workers, int) or num_workers < 0:
             raise InputError(f"num_workers: expected an integer >= 0, got {num_workers!r}")
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
+            raise InputError(f"seed: expected an integer >= 0 or null, got {seed!r}")
         self.extra_train = [_check_source(i, source) for i, source in enumerate(extra_train or [])]
         self.save_hyperparameters()
         self.layout = layout
@@ -219,6 +236,7 @@ class CRFDataModule(pl.LightningDataModule):
         self.val_batch_size = val_batch_size or batch_size
         self.num_workers = num_workers
         self.shuffle = shuffle
+        self.seed = seed
         self.train_set: Dataset | None = None
         self.val_set: Dataset | None = None
 
@@ -313,22 +331,34 @@ class CRFDataModule(pl.LightningDataModule):
             augment.append(RandomCrop(*self.crop))
         if self.thin is not None:
             augment.append(RandomThinning(*self.thin))
-        if augment:
-            train = TransformedDataset(train, augment[0] if len(augment) == 1 else Compose(augment))
-        self.train_set, self.val_set = train, val
+        transform = (augment[0] if len(augment) == 1 else Compose(augment)) if augment else None
+        self.train_set, self.val_set = TransformedDataset(train, transform), val
         log.info("data: %d training frames (%s), %d validation frames (%s)",
                  len(train), self.layout, len(val), self.val_layout)
 
     # -- loaders --------------------------------------------------------------------------
-    def _loader(self, dataset: Dataset, batch_size: int, shuffle: bool) -> DataLoader:
-        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          collate_fn=collate_samples, persistent_workers=self.num_workers > 0)
+    def _loader_options(self, batch_size: int) -> dict[str, Any]:
+        return dict(batch_size=batch_size, num_workers=self.num_workers, collate_fn=collate_samples,
+                    persistent_workers=self.num_workers > 0)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_set, self.batch_size, self.shuffle)
+        """The training frames in :class:`~train.sampling.EpochOrder` (this process's share under DDP), in
+        a loader whose position Lightning checkpoints, so that a run resumed mid-epoch goes on where it
+        stopped (:mod:`train.sampling`)."""
+        trainer = self.trainer
+        order = EpochOrder(self.train_set, num_replicas=trainer.world_size if trainer else 1,
+                           rank=trainer.global_rank if trainer else 0, shuffle=self.shuffle,
+                           seed=torch.initial_seed() % 2**63 if self.seed is None else self.seed)
+        return ResumableLoader(self.train_set, order=order, trained=self._trained_batches,
+                               **self._loader_options(self.batch_size))
+
+    def _trained_batches(self) -> int:
+        """The batches the trainer has trained in the current epoch (0 outside a fit)."""
+        trainer = self.trainer
+        return 0 if trainer is None else trainer.fit_loop.epoch_loop.batch_progress.current.processed
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_set, self.val_batch_size, False)
+        return DataLoader(self.val_set, shuffle=False, **self._loader_options(self.val_batch_size))
 
 
 __all__ = ["CRFDataModule", "TransformedDataset", "dataset_names"]
