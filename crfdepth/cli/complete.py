@@ -45,7 +45,8 @@ Outputs (docs/design.md sections 1 and 7): the depth is a KITTI depth PNG of the
 the same way (metres * 256). Both are clipped below at 1/256 m, so that no pixel reads
 as 0 ("no value"), and the depth above at 65535/256 m by the PNG format. In folder mode
 each frame is written as ``<velodyne_raw file name>`` (the KITTI submission naming:
-``<drive>_velodyne_raw_<frame>_image_0X.png`` or ``0000000000.png`` ...).
+``<drive>_velodyne_raw_<frame>_image_0X.png`` or ``0000000000.png`` ...; a raw drive's frame as
+``<frame number>.png``).
 
 Pictures (``--vis``): ``<stem>_vis_depth.png`` (:func:`crfdepth.pictures.colour.colorize_depth`,
 TURBO on inverse depth, near = red) and ``<stem>_vis_std.png``
