@@ -1,8 +1,9 @@
 """A synthetic drive (:func:`crfdepth.data.synthetic.make_sequence`) written in KITTI's raw layout.
 
 Shared by the ``crfdepth targets`` tests (tests/cli/test_targets_cli.py), the sequence dataset's
-tests (tests/data/test_sequences.py) and the photometric training tests
-(tests/train/test_photometric_training.py).
+tests (tests/data/test_sequences.py), the photometric training tests
+(tests/train/test_photometric_training.py) and the raw drive's completion tests
+(tests/data/kitti/test_drive.py, tests/cli/test_complete_drive.py).
 """
 
 from __future__ import annotations

@@ -22,6 +22,12 @@ A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous``
     crfdepth complete --input-dir val_selection_cropped --out-dir pred/ [--out-std-dir std/] \\
         [--batch-size B] [--workers N]
 
+A KITTI raw drive folder the same way (:mod:`crfdepth.cli.complete_folder`): each scan projected whole
+into the ``--camera`` image (2 or 3, uncropped), as ``--points``/``--calib`` do for one frame, written as
+``<frame number>.png``::
+
+    crfdepth complete --input-dir 2011_09_26/2011_09_26_drive_0060_sync --out-dir pred/ [--camera 3]
+
 Folder mode reads the frames with a ``torch.utils.data.DataLoader``: ``--workers N``
 processes (default 0: this process) read, decode and check frames ahead of the model, and
 up to ``--batch-size B`` (default 1) consecutive frames of the same size are completed by
@@ -39,7 +45,8 @@ Outputs (docs/design.md sections 1 and 7): the depth is a KITTI depth PNG of the
 the same way (metres * 256). Both are clipped below at 1/256 m, so that no pixel reads
 as 0 ("no value"), and the depth above at 65535/256 m by the PNG format. In folder mode
 each frame is written as ``<velodyne_raw file name>`` (the KITTI submission naming:
-``<drive>_velodyne_raw_<frame>_image_0X.png`` or ``0000000000.png`` ...).
+``<drive>_velodyne_raw_<frame>_image_0X.png`` or ``0000000000.png`` ...; a raw drive's frame as
+``<frame number>.png``).
 
 Pictures (``--vis``): ``<stem>_vis_depth.png`` (:func:`crfdepth.pictures.colour.colorize_depth`,
 TURBO on inverse depth, near = red) and ``<stem>_vis_std.png``
@@ -114,12 +121,13 @@ from crfdepth.plausibility import SPARSE_UNITS
 # --------------------------------------------------------------------------- arguments
 
 
-HELP = "complete sparse LiDAR into dense depth (one frame, a KITTI folder or a ROS bag)"
+HELP = "complete sparse LiDAR into dense depth (one frame, a KITTI folder or raw drive, or a ROS bag)"
 DESCRIPTION = ("Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
                "metres * 256) with the CRF model, for one frame (--image, --sparse, "
                "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
                "cloud) or every frame of a val_selection_cropped / "
-               "test_depth_completion_anonymous folder (--input-dir, --out-dir), or every camera "
+               "test_depth_completion_anonymous folder or of a KITTI raw drive folder (--input-dir, "
+               "--out-dir), or every camera "
                "image of a ROS 1 / ROS 2 recording with the LiDAR cloud nearest in time (--bag, "
                "--image-topic, --points-topic, --out-dir).")
 
@@ -143,16 +151,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="with --points: rig calibration YAML/JSON (K, T_cam_lidar, optional distortion and "
                           "image_size) or a KITTI calibration (raw day folder, calib_*.txt, object calib file)")
     one.add_argument("--camera", type=int, choices=(0, 1, 2, 3), default=2,
-                     help="with a KITTI --calib: camera index (default: 2, left colour)")
+                     help="with a KITTI --calib, or --input-dir of a KITTI raw drive (2 or 3): camera index "
+                          "(default: 2, left colour)")
     one.add_argument("--out", metavar="DEPTH.png", help="output depth PNG (its folder must exist)")
     one.add_argument("--out-std", metavar="STD.png",
                      help="also write the std (metres * 256) to this PNG")
     folder = parser.add_argument_group("a folder")
     folder.add_argument("--input-dir", metavar="DIR",
                         help="folder with image/, velodyne_raw/, intrinsics/ (val_selection_cropped "
-                             "if it also has groundtruth_depth/, else test_depth_completion_anonymous)")
+                             "if it also has groundtruth_depth/, else test_depth_completion_anonymous), or a "
+                             "KITTI raw drive folder <day>/<day>_drive_NNNN_sync (velodyne_points/data/*.bin, "
+                             "image_0X/data/*.png, the day's calib_*.txt above it): each scan projected whole "
+                             "into the --camera image, uncropped")
     folder.add_argument("--out-dir", metavar="OUT",
-                        help="output folder (created if missing): one <velodyne_raw name>.png per frame")
+                        help="output folder (created if missing): one <velodyne_raw name>.png per frame "
+                             "(a raw drive: <frame number>.png)")
     folder.add_argument("--out-std-dir", metavar="OUT",
                         help="also write each frame's std PNG here (created if missing)")
     add_batch_arguments(folder)
@@ -179,7 +192,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "uninterrupted run")
     folder.add_argument("--input-list", metavar="FILE",
                         help="complete many inputs in turn: FILE names one per line (a KITTI depth-completion "
-                             "folder, as --input-dir takes, or a ROS recording, as --bag takes; # comments), each "
+                             "folder or raw drive folder, as --input-dir takes, or a ROS recording, as --bag "
+                             "takes; # comments), each "
                              "completed into <out-dir>/<its name>; every line is checked first")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_bag_arguments(parser)
@@ -202,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
                          "single frame is either completed or refused")
     if args.sparse_units is not None and many:
         raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
-                         f"{'--bag reads point clouds in metres' if args.bag is not None else '--input-dir and --input-list read KITTI velodyne_raw PNGs (metres * 256)'}")
+                         f"{'--bag reads point clouds in metres' if args.bag is not None else '--input-dir and --input-list read KITTI velodyne_raw PNGs (metres * 256) or raw scans (metres)'}")
     if args.devices != 1 and args.input_dir is None and args.input_list is None:
         raise InputError(f"--devices {args.devices}: applies to --input-dir and --input-list (folders of frames)")
     if args.resume and args.input_dir is None and args.input_list is None:

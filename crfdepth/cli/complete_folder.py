@@ -1,6 +1,16 @@
 """``crfdepth complete --input-dir``: every frame of a KITTI ``val_selection_cropped`` or
-``test_depth_completion_anonymous`` folder, checked first, then completed in batches (see
-:mod:`crfdepth.cli.complete`)."""
+``test_depth_completion_anonymous`` folder, or of a KITTI raw drive folder, checked first, then completed
+in batches (see :mod:`crfdepth.cli.complete`).
+
+A raw drive (``<day>/<day>_drive_<NNNN>_sync``: ``velodyne_points/data/<frame>.bin``,
+``image_0X/data/<frame>.png``, the day's ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the
+folder above) is read by :class:`~crfdepth.data.kitti.KittiDrive`: each scan projected whole into the
+``--camera`` image (2 or 3), uncropped, as ``--points SCAN --calib DAY`` does for one frame; outputs
+``<out-dir>/<frame>.png``. A day folder holding drives is refused, naming them. Everything else
+(batches, ``--resume``, ``--skip-bad``, ``--devices``) is the same for both kinds; resume's batch plan
+reads each frame's size from its image, the drive's scans being ``.bin`` files, and the run record
+holds the camera.
+"""
 
 from __future__ import annotations
 
@@ -33,7 +43,7 @@ from crfdepth.cli.resume import (
     write_run_record,
 )
 from crfdepth.cli.skip_bad import skipped_frames, write_failed, write_skipped
-from crfdepth.data.kitti import open_completion_folder
+from crfdepth.data.kitti import KittiDrive, is_raw_drive, open_completion_folder, raw_drives
 from crfdepth.errors import InputError
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
@@ -46,30 +56,61 @@ def _where(index: int, total: int, name: str) -> str:
     return f"frame {index + 1}/{total} {name}"
 
 
-def _check_frame(sample, index: int, *, total: int, positions: list[int] | None = None) -> None:
+_SELECTION_FILES = {"K": "intrinsics/", "sparse": "velodyne_raw/{name}.png", "image": "image/"}
+
+
+def _check_frame(sample, index: int, *, total: int, positions: list[int] | None = None,
+                 files: dict[str, str] = _SELECTION_FILES) -> None:
     """:func:`~crfdepth.cli.completion.check_sample` in the DataLoader workers, naming the frame's files
-    as the one-frame path names its flags (``frame 2/5 <name> (velodyne_raw/<name>.png): ...``);
+    as the one-frame path names its flags (``frame 2/5 <name> (velodyne_raw/<name>.png): ...``; ``files``:
+    where the ``K``, ``sparse`` and ``image`` of frame ``{name}`` lie, :func:`_frame_files`);
     ``positions[index]`` is the frame's place in the folder when the run leaves frames out (--skip-bad)."""
     try:
         check_sample(sample)
     except InputError as exc:
         where = _where(index if positions is None else positions[index], total, sample.name)
-        raise flag_names(exc, {"K": f"{where} (intrinsics/)", "sparse": f"{where} (velodyne_raw/{sample.name}.png)",
-                                "image": f"{where} (image/)"}) from None
+        raise flag_names(exc, {key: f"{where} ({label.format(name=sample.name)})"
+                               for key, label in files.items()}) from None
 
 
-def _open_folder(path: str):
-    """The ``depth_selection`` dataset of ``--input-dir`` (errors name the flag)."""
+def _frame_files(dataset) -> dict[str, str]:
+    """Where a frame's inputs lie in the folder ``dataset`` reads, for messages (:func:`_check_frame`)."""
+    if isinstance(dataset, KittiDrive):
+        return {"K": "../calib_cam_to_cam.txt", "sparse": "velodyne_points/data/{name}.bin",
+                "image": f"image_0{dataset.camera}/data/{{name}}.png"}
+    return _SELECTION_FILES
+
+
+def _open_folder(path: str, camera: int):
+    """The dataset of ``--input-dir``: a ``depth_selection`` folder or a raw drive (errors name the flag)."""
     folder = Path(path)
     if not folder.exists():
         raise FileNotFoundError(f"--input-dir: no such folder: {path}")
     if not folder.is_dir():
         raise InputError(f"--input-dir: expected a folder with image/, velodyne_raw/ and intrinsics/ (a KITTI "
-                         f"val_selection_cropped or test_depth_completion_anonymous folder), got a file: {path}")
+                         f"val_selection_cropped or test_depth_completion_anonymous folder) or a KITTI raw drive "
+                         f"folder (velodyne_points/, image_02/), got a file: {path}")
+    drive = is_raw_drive(folder) or bool(raw_drives(folder))
+    if drive and camera not in (2, 3):
+        raise InputError(f"--camera {camera}: expected 2 or 3 (a colour camera) for the KITTI raw drive {path}")
+    if not drive and camera != 2:
+        raise InputError(f"--camera {camera}: applies to a KITTI raw drive; {path} is a depth-completion folder, "
+                         f"whose file names say the camera")
     try:
-        return open_completion_folder(folder)
+        return KittiDrive(folder, camera=camera) if drive else open_completion_folder(folder)
     except InputError as exc:
         raise InputError(f"--input-dir {path}: {exc}") from None
+
+
+def _inputs(dataset) -> tuple[list[Path], list[Path]]:
+    """The input folders of ``dataset`` (no output folder may be one) and, per frame, the PNG whose header
+    gives its size (resume's batch plan: a drive's sparse input is a ``.bin`` scan, so its image)."""
+    if isinstance(dataset, KittiDrive):
+        cam = f"image_0{dataset.camera}"
+        subs = (cam, f"{cam}/data", "velodyne_points", "velodyne_points/data")
+        return [dataset.root / sub for sub in subs], [dataset.image_path(i) for i in range(len(dataset))]
+    subs = ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")
+    return [dataset.root / sub for sub in subs], [dataset.sparse_path(i) for i in range(len(dataset))]
 
 
 def _check_frames(dataset, args, positions: list[int]) -> list[tuple[int, type[BaseException], str]]:
@@ -86,7 +127,8 @@ def _check_frames(dataset, args, positions: list[int]) -> list[tuple[int, type[B
 
     frames = dataset if len(positions) == total else Subset(dataset, positions)
     try:
-        bad = bad_frames(frames, args.workers, functools.partial(_check_frame, total=total, positions=positions), step)
+        check = functools.partial(_check_frame, total=total, positions=positions, files=_frame_files(dataset))
+        bad = bad_frames(frames, args.workers, check, step)
         found = []
         for k, error, message in bad:
             where = _where(positions[k], total, dataset.names[positions[k]])
@@ -163,20 +205,22 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict,
     """The folder opened and checked, the model built (kept in ``built``), the frames checked and the batches
     planned (``--resume``, ``--skip-bad``), the output folders created and locked (on ``stack``) and
     ``skipped.csv`` written; with ``eager_record``, the run's record too. Returns what the ranks share."""
-    dataset = _open_folder(args.input_dir)
-    inputs = [dataset.root / sub for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")]
+    dataset = _open_folder(args.input_dir, args.camera)
+    inputs, size_files = _inputs(dataset)
     targets = check_output_folders(args, inputs, f"an input folder of {dataset.root}")
     model = built["model"] = build_model(args)
     total = len(dataset)
     with_std = args.out_std_dir is not None or args.vis is not None
     record = run_record(args, model, with_std)
+    if isinstance(dataset, KittiDrive):
+        record["camera"] = dataset.camera  # decides the files as the model does
     finished = _finished(args, dataset, targets, record, with_std) if args.resume else set()
     todo = [i for i in range(total) if i not in finished]
     bad = _check_frames(dataset, args, todo)
     skipped = skipped_frames(bad, len(todo), f"--input-dir {args.input_dir}", args.skip_bad)
     good = [i for i in range(total) if i not in skipped]
     # the uninterrupted run's batches; a resumed run redoes each one holding an unfinished frame, whole
-    plan = [[good[k] for k in batch] for batch in batch_plan([dataset.sparse_path(i) for i in good], args.batch_size)
+    plan = [[good[k] for k in batch] for batch in batch_plan([size_files[i] for i in good], args.batch_size)
             if any(good[k] not in finished for k in batch)]
     created = stack.enter_context(output_folders(targets))
     folders = (created[0], created[1], created[2] if args.vis is not None else None)
@@ -226,8 +270,9 @@ def complete_planned(args, model, dataset, plan: list[list[int]], folders: tuple
     as planned (:func:`_complete_frames`); ``counts["written"]`` counts the frames written as they are."""
     run = [i for batch in plan for i in batch]
     starts = set(itertools.accumulate(len(batch) for batch in plan[:-1]))
+    check = functools.partial(_check_frame, total=len(dataset), positions=run, files=_frame_files(dataset))
     _complete_frames(args, model, Subset(dataset, run), [dataset.names[i] for i in run], len(dataset), run, folders,
-                     with_std, starts, first_write, failed, counts)
+                     with_std, starts, first_write, failed, counts, check)
 
 
 def complete_share(args, model, share: tuple, partial: dict) -> None:
@@ -249,18 +294,18 @@ def _stopped(stopped: list[tuple[str, bool]], written: int, planned: int, out_di
 
 
 def _complete_frames(args, model, frames, names: list[str], total: int, positions: list[int], folders: tuple,
-                     with_std: bool, starts: set[int], first_write, failed: list[tuple[str, str]], counts: dict
-                     ) -> int:
+                     with_std: bool, starts: set[int], first_write, failed: list[tuple[str, str]], counts: dict,
+                     check) -> int:
     """Pass 2 of folder mode: complete and write ``frames`` in batches that start at ``starts`` besides
-    size changes and ``--batch-size`` (frame ``k`` is frame ``positions[k]`` of the folder's ``total``);
-    returns the number written. ``first_write()`` runs before the first file is written.
+    size changes and ``--batch-size`` (frame ``k`` is frame ``positions[k]`` of the folder's ``total``),
+    each checked by ``check(sample, k)`` (:func:`_check_frame`); returns the number written.
+    ``first_write()`` runs before the first file is written.
 
     A failure now (the frame changed since pass 1, a non-finite model output, a batch too large for the
     memory) is added to ``failed`` (name, reason) for each frame of its batch; with ``--skip-bad`` the
     run goes on, without it the run stops saying how many frames were written, as Ctrl-C does."""
     out_dir, std_dir, vis_dir = folders
     progress = tqdm(total=len(names), unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
-    check = functools.partial(_check_frame, total=total, positions=positions)
     batches = frame_batches(frames, args.batch_size, args.workers, check, starts)
     done = written = 0
     where, batch_names = _where(positions[0], total, names[0]), names[:1]

@@ -1,14 +1,16 @@
 """``crfdepth complete --input-list FILE``: many inputs in one run, one after the other.
 
 FILE names one input per line: a KITTI depth-completion folder (``val_selection_cropped``,
-``test_depth_completion_anonymous`` or their parent, as ``--input-dir`` takes) or a ROS 1 / ROS 2
-recording (as ``--bag`` takes, with the same topics for every recording). Blank lines and lines
-starting with ``#`` are skipped; a relative path is relative to FILE's folder. Every line is checked
-before anything runs: a path that is missing, unreadable or of another kind is refused naming FILE
-and the line number.
+``test_depth_completion_anonymous`` or their parent, as ``--input-dir`` takes), a KITTI raw drive
+folder (``<day>/<day>_drive_<NNNN>_sync``, as ``--input-dir`` takes it too, with ``--camera``) or a ROS
+1 / ROS 2 recording (as ``--bag`` takes, with the same topics for every recording). Blank lines and
+lines starting with ``#`` are skipped; a relative path is relative to FILE's folder. Every line is
+checked before anything runs: a path that is missing, unreadable or of another kind is refused naming
+FILE and the line number; so is a raw day folder (``2011_09_26``), with its drives named: each drive
+is a line of its own, completed into a subfolder of its own.
 
 Each input is completed into a subfolder of ``--out-dir`` (and of ``--out-std-dir`` and ``--vis``
-when given) named after it (``<folder or recording name>``, with ``-<line>`` added where two inputs
+when given) named after it (``<folder, drive or recording name>``, with ``-<line>`` added where two inputs
 share a name), by the folder or bag mode with the run's options, ``--resume``, ``--skip-bad`` and
 ``--devices`` included. One input is held at a time, so the memory is that of the largest input's
 run, not of the list. An input that fails stops the run, naming its line, unless ``--skip-bad``:
@@ -25,6 +27,7 @@ import os
 from pathlib import Path
 
 from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.data.kitti import is_raw_drive, raw_drives
 from crfdepth.errors import InputError
 
 __all__ = ["read_input_list", "run_list"]
@@ -50,8 +53,8 @@ def read_input_list(path: str) -> list[tuple[int, Path, str]]:
         entry = Path(text) if Path(text).is_absolute() else listing.parent / text
         entries.append((number, entry, _kind(entry, f"--input-list {path}, line {number}: {text}")))
     if not entries:
-        raise InputError(f"--input-list: {path} names no input (one KITTI depth-completion folder or ROS "
-                         f"recording per line)")
+        raise InputError(f"--input-list: {path} names no input (one KITTI depth-completion folder, raw drive "
+                         f"folder or ROS recording per line)")
     return entries
 
 
@@ -63,16 +66,23 @@ def _kind(entry: Path, where: str) -> str:
     if entry.is_file():
         if entry.suffix in BAG_SUFFIXES:
             return "bag"
-        raise InputError(f"{where}: expected a KITTI depth-completion folder or a ROS recording "
-                         f"({', '.join(BAG_SUFFIXES)} or a ROS 2 bag folder), got a {entry.suffix or 'plain'} file")
+        raise InputError(f"{where}: expected a KITTI depth-completion folder, a KITTI raw drive folder or a ROS "
+                         f"recording ({', '.join(BAG_SUFFIXES)} or a ROS 2 bag folder), got a "
+                         f"{entry.suffix or 'plain'} file")
     if (entry / "metadata.yaml").is_file():
         return "bag"
     if any((folder / "velodyne_raw").is_dir() for folder in (entry, *(entry / n for n in COMPLETION_FOLDERS))):
         return "folder"
-    raw = "; a KITTI raw drive is completed a frame at a time (--points, --calib)" \
-        if (entry / "image_02").is_dir() and (entry / "velodyne_points").is_dir() else ""
-    raise InputError(f"{where}: expected a KITTI depth-completion folder (velodyne_raw/, image/, intrinsics/) or a "
-                     f"ROS recording, got a folder without them{raw}")
+    if is_raw_drive(entry):
+        return "folder"
+    drives = raw_drives(entry)
+    if drives:
+        raise InputError(f"{where}: expected one KITTI raw drive folder, got a day folder holding {len(drives)} "
+                         f"drive(s); list each on a line of its own ({', '.join(p.name for p in drives[:3])}"
+                         f"{', ...' if len(drives) > 3 else ''})")
+    raise InputError(f"{where}: expected a KITTI depth-completion folder (velodyne_raw/, image/, intrinsics/), a "
+                     f"KITTI raw drive folder (velodyne_points/, image_02/) or a ROS recording, got a folder "
+                     f"without them")
 
 
 def _names(entries: list[tuple[int, Path, str]]) -> list[str]:

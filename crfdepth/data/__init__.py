@@ -10,6 +10,7 @@ builds one by layout name. Sub-modules: :mod:`~crfdepth.data.kitti`,
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.data.kitti import (
     KittiDepthCompletion,
+    KittiDrive,
     KittiRawScans,
     KittiTestCompletion,
     KittiValSelection,
@@ -34,6 +35,7 @@ __all__ = [
     "Compose",
     "HorizontalFlip",
     "KittiDepthCompletion",
+    "KittiDrive",
     "KittiRawScans",
     "KittiTestCompletion",
     "KittiValSelection",

@@ -165,8 +165,8 @@ def test_input_dir_given_a_file(tmp_path, no_model):
     code, _, err = run(["complete", "--input-dir", file, "--out-dir", tmp_path / "out"])
     assert code == 2
     assert err == (f"crfdepth complete: error: --input-dir: expected a folder with image/, velodyne_raw/ and "
-                   f"intrinsics/ (a KITTI val_selection_cropped or test_depth_completion_anonymous folder), got a "
-                   f"file: {file}\n")
+                   f"intrinsics/ (a KITTI val_selection_cropped or test_depth_completion_anonymous folder) or a "
+                   f"KITTI raw drive folder (velodyne_points/, image_02/), got a file: {file}\n")
     assert not (tmp_path / "out").exists()
 
 

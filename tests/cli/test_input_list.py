@@ -42,7 +42,8 @@ def test_a_missing_or_unreadable_line_is_named_before_anything_runs(folders, tmp
     text.write_text("x")
     listing = _listing(tmp_path, [str(text)])
     code, _, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "out", *FAST])
-    assert code == 2 and f"line 1: {text}: expected a KITTI depth-completion folder or a ROS recording" in err
+    assert code == 2 and (f"line 1: {text}: expected a KITTI depth-completion folder, a KITTI raw drive folder or "
+                          f"a ROS recording") in err
     code, _, err = run(["complete", "--input-list", tmp_path / "none.txt", "--out-dir", tmp_path / "out", *FAST])
     assert code == 2 and "--input-list: no such file" in err
 

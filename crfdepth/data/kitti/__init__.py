@@ -1,6 +1,6 @@
 """Torch datasets for every KITTI layout crfdepth reads (docs/design.md sections 1 and 7).
 
-All four datasets return a :class:`~crfdepth.data.sample.Sample` built by one loading path
+All five datasets return a :class:`~crfdepth.data.sample.Sample` built by one loading path
 (:func:`~crfdepth.data.kitti.loading.load_sample`): read RGB, sparse depth, ground truth
 and ``K`` from files, check that their sizes agree, convert to tensors, then apply the
 dataset's ``transform``.
@@ -16,6 +16,9 @@ dataset's ``transform``.
 - :class:`KittiRawScans` (:mod:`~crfdepth.data.kitti.raw_scans`): raw-data drives or the
   object benchmark with Velodyne scans, projected here; target = LiDAR points held out of
   the input.
+- :class:`KittiDrive` (:mod:`~crfdepth.data.kitti.drive`): one raw drive folder for
+  completion: each scan projected whole into the uncropped image, no target
+  (``has_target=False``); names are the frame numbers.
 
 Files are listed once, at construction, in sorted (deterministic) order; a layout that
 does not match, or one that holds no frame, raises at construction rather than giving an
@@ -28,15 +31,19 @@ file(s) and sizes.
 """
 
 from crfdepth.data.kitti.completion import KittiDepthCompletion
+from crfdepth.data.kitti.drive import KittiDrive, is_raw_drive, raw_drives
 from crfdepth.data.kitti.loading import load_sample
 from crfdepth.data.kitti.raw_scans import KittiRawScans
 from crfdepth.data.kitti.selection import KittiTestCompletion, KittiValSelection, open_completion_folder
 
 __all__ = [
     "KittiDepthCompletion",
+    "KittiDrive",
     "KittiRawScans",
     "KittiTestCompletion",
     "KittiValSelection",
+    "is_raw_drive",
     "load_sample",
     "open_completion_folder",
+    "raw_drives",
 ]

@@ -29,7 +29,7 @@ precision 44% (> 1 m) / 36% (> 10%), recall 28% / 44%.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from crfdepth.data.kitti import loading
+from crfdepth.data.kitti.drive import ScanFrame, check_scan_files, drive_scans
 from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop, frame_seed
@@ -75,14 +76,6 @@ def remove_see_through(target: np.ndarray, full: np.ndarray) -> np.ndarray:
     out = np.array(target, dtype=np.float32, copy=True)
     out[flagged[0, 0].numpy()] = 0.0
     return out
-
-
-@dataclass(frozen=True)
-class _ScanFrame:
-    name: str
-    image: Path
-    velodyne: Path
-    calib: Path  # day folder (raw) or calibration file (object)
 
 
 class KittiRawScans(FrameDataset):
@@ -191,16 +184,13 @@ class KittiRawScans(FrameDataset):
         self.transform = transform
         self.clean_target = clean_target
         self._frames = self._list_raw() if layout == "raw" else self._list_object()
-        for f in self._frames:
-            for path, what in ((f.image, "RGB image"), (f.calib, "calibration")):
-                if not path.exists():
-                    raise InputError(f"KittiRawScans({layout}): missing {what} for {f.velodyne}: expected {path}")
+        check_scan_files(self._frames, f"KittiRawScans({layout})")
         self._calibrations: dict[Path, Calibration] = {}
         if layout == "raw":
             for f in self._frames:
                 self._calibration(f)  # one file pair per day: read (and check) now
 
-    def _list_raw(self) -> list[_ScanFrame]:
+    def _list_raw(self) -> list[ScanFrame]:
         cam = f"image_0{self.camera}"
         dates = sorted(p for p in self.root.iterdir() if p.is_dir() and re.fullmatch(r"\d{4}_\d{2}_\d{2}", p.name))
         if not dates:
@@ -209,24 +199,19 @@ class KittiRawScans(FrameDataset):
         frames = []
         for day_dir in dates:
             for drive_dir in sorted(p for p in day_dir.iterdir() if p.is_dir()):
-                for scan in sorted((drive_dir / "velodyne_points" / "data").glob("*.bin")):
-                    frames.append(_ScanFrame(
-                        name=f"{drive_dir.name}_{scan.stem}_{cam}",
-                        image=drive_dir / cam / "data" / f"{scan.stem}.png",
-                        velodyne=scan,
-                        calib=day_dir,
-                    ))
+                frames += [replace(f, name=f"{drive_dir.name}_{f.name}_{cam}")
+                           for f in drive_scans(drive_dir, self.camera)]
         if not frames:
             raise loading.no_frames(self.root, "KittiRawScans(raw)", "<date>/<drive>/velodyne_points/data/*.bin")
         return frames
 
-    def _list_object(self) -> list[_ScanFrame]:
+    def _list_object(self) -> list[ScanFrame]:
         layout = "KittiRawScans(object)"
         velodyne_dir = loading.require_dir(self.root / "velodyne", self.root, layout)
         image_dir = loading.require_dir(self.root / f"image_{self.camera}", self.root, layout)
         calib_dir = loading.require_dir(self.root / "calib", self.root, layout)
         frames = [
-            _ScanFrame(name=scan.stem, image=image_dir / f"{scan.stem}.png", velodyne=scan,
+            ScanFrame(name=scan.stem, image=image_dir / f"{scan.stem}.png", velodyne=scan,
                        calib=calib_dir / f"{scan.stem}.txt")
             for scan in sorted(velodyne_dir.glob("*.bin"))
         ]
@@ -234,7 +219,7 @@ class KittiRawScans(FrameDataset):
             raise loading.no_frames(self.root, layout, "velodyne/*.bin")
         return frames
 
-    def _calibration(self, f: _ScanFrame) -> Calibration:
+    def _calibration(self, f: ScanFrame) -> Calibration:
         calib = self._calibrations.get(f.calib)
         if calib is None:
             if self.layout == "raw":
