@@ -186,7 +186,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and in the summary, and the run exits 0")
     parser.add_argument("--resume", action="store_true",
                         help="--input-dir: leave out the frames an earlier run of the same model and options "
-                             "finished in these folders (every output file there; <out-dir>/run.json says which "
+                             "finished in these folders (every output file there; <out-dir>/.crfdepth-run.json says which "
                              "model and options wrote them, and another run's folder is refused), and complete "
                              "the others: a run stopped part-way and resumed writes the same files as one "
                              "uninterrupted run")
