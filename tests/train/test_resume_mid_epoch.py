@@ -102,3 +102,35 @@ def test_resuming_with_another_batch_size_is_refused_in_one_line(tmp_path, monke
     assert status == 2
     assert message.startswith("train: error: --ckpt_path: the checkpoint stopped in epoch 0 after 2 batch(es)")
     assert "batch_size 2 then, 3 now" in message
+
+
+@pytest.mark.slow
+def test_ddp_over_two_cpu_processes_resumes_mid_epoch_to_the_same_weights(tmp_path, env):
+    """Each rank reads its share of the epoch (EpochOrder is a DistributedSampler); the position saved by
+    rank 0 holds for both, their shares being equal. 8 frames, 4 steps an epoch per rank."""
+    import subprocess
+
+    def fit(out, *extra):
+        args = [sys.executable, "-m", "train", "fit", "--config", str(CONFIGS / "synthetic.yaml"),
+                "--config", str(CONFIGS / "debug.yaml"), "--data.train_options", "{count: 8, height: 48, width: 128}",
+                "--data.val_options", "{count: 1, seed: 1000, height: 48, width: 128}", "--data.crop", "[40, 112]",
+                "--data.thin", "[0.5, 0.9]", "--trainer.max_epochs", "2", "--trainer.limit_train_batches", "1.0",
+                "--trainer.limit_val_batches", "0", "--trainer.num_sanity_val_steps", "0", "--trainer.logger", "false",
+                "--trainer.default_root_dir", str(out), "--trainer.enable_progress_bar", "false",
+                "--trainer.accelerator", "cpu", "--trainer.devices", "2", "--trainer.strategy", "ddp",
+                "--checkpoint.monitor", "null", "--checkpoint.save_last", "false", "--checkpoint.save_top_k", "-1",
+                "--checkpoint.every_n_train_steps", "1", "--checkpoint.dirpath", str(out / "ckpt"),
+                "--checkpoint.filename", "step{step}", *extra]
+        proc = subprocess.run(args, cwd=CONFIGS.parent, env=env, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+        return torch.load(out / "ckpt" / "step8.ckpt", weights_only=True)
+
+    whole = fit(tmp_path / "whole")
+    saved = torch.load(tmp_path / "whole" / "ckpt" / "step6.ckpt", weights_only=True)
+    (loader,) = saved["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    assert (loader["epoch"], loader["batches"], loader["processes"]) == (1, 2, 2)
+    resumed = fit(tmp_path / "resumed", "--ckpt_path", str(tmp_path / "whole" / "ckpt" / "step6.ckpt"))
+    worst = max(float((whole["state_dict"][k].float() - resumed["state_dict"][k].float()).abs().max())
+                for k in whole["state_dict"])
+    print(f"\nDDP, 2 CPU processes, resumed from step 6: largest weight difference {worst:.2e}")
+    assert worst < 1e-6
