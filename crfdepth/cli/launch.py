@@ -10,10 +10,10 @@ Rank 0 writes to this terminal: the model line, the progress bar, the summary, o
 that every rank raises alike (bad input found by rank 0 is shared with the others). The other ranks'
 output goes to log files, removed afterwards. The launching process returns the ranks' exit status:
 0 when every rank succeeded, else that of the rank that failed first (2 for bad input, 130 for Ctrl-C).
-The launcher stops the other ranks as soon as one ends with an error; the ranks leave the group together
-(:meth:`crfdepth.cli.ranks.Ranks.close`), after rank 0 has printed the error they all raise. A failure of
-one rank alone (a bug) shows that rank's output (its traceback); a rank killed before it could report
-(out of memory, a signal) is an error naming it.
+The launcher stops the other ranks as soon as one ends with an error, so the ranks leave the group
+together (:meth:`crfdepth.cli.ranks.Ranks.close`) and rank 0 prints the error they all raise as it leaves,
+before any rank has ended. A failure of one rank alone (a bug) shows that rank's output (its traceback);
+a rank killed before it could report (out of memory, a signal) is an error naming it.
 """
 
 from __future__ import annotations
