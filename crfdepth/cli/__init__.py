@@ -127,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     command = None
     try:
         parser = build_parser()
+        argv = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
         args = parser.parse_args(argv)
+        args.argv = argv  # the command line, run again in each rank that --strategy ddp starts
         command = args.command
         handler = logging.StreamHandler()  # stderr; a no-op where the root logger is already set up
         handler.setFormatter(_LineFormatter(f"crfdepth{' ' + command if command else ''}"))

@@ -18,17 +18,19 @@ from crfdepth.cli.arguments import BAD_INPUT, int_at_least
 from crfdepth.cli.completion import check_sample
 from crfdepth.data.sample import Batch, Sample, collate_samples
 
-__all__ = ["MAX_WORKERS", "add_batch_arguments", "bad_frames", "frame_batches"]
+__all__ = ["MAX_WORKERS", "STRATEGIES", "add_batch_arguments", "bad_frames", "frame_batches"]
 
 # More reading processes than this cannot keep up better with a solve that takes seconds per
 # frame; the cap turns a typo (--workers 400) into a usage error instead of 400 processes.
 MAX_WORKERS = 64
+# How --devices processes are started (crfdepth.cli.ranks.run_in_group), named after Lightning's strategies.
+STRATEGIES = ("auto", "spawn", "ddp")
 
 
 def add_batch_arguments(group: argparse._ActionsContainer) -> None:
-    """``--batch-size B`` and ``--workers N`` (read by :func:`frame_batches`), and ``--devices N`` and ``--num-nodes
-    M`` (:mod:`crfdepth.cli.processes`, :mod:`crfdepth.cli.ranks`), shared by ``complete --input-dir`` and
-    ``evaluate``."""
+    """``--batch-size B`` and ``--workers N`` (read by :func:`frame_batches`), and ``--devices N``, ``--num-nodes
+    M`` and ``--strategy`` (:mod:`crfdepth.cli.processes`, :mod:`crfdepth.cli.ranks`, :mod:`crfdepth.cli.launch`),
+    shared by ``complete --input-dir`` / ``--input-list`` and ``evaluate``."""
     group.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
                        help="frames per model call (default 1, the fastest on CPU as measured; batches are "
                             "meant for --device cuda); consecutive frames of the same size go together, a size "
@@ -48,6 +50,14 @@ def add_batch_arguments(group: argparse._ActionsContainer) -> None:
                        help="M machines of N --devices each: start the same command on every node with torchrun "
                             "--nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks, plans and "
                             "reports, every rank does its dealt batches (the output folder shared)")
+    group.add_argument("--strategy", choices=STRATEGIES, default="auto",
+                       help="how the --devices processes are started, named after Lightning's strategies: auto "
+                            "(default) = a rank of the launcher's group when started by torchrun or srun, else "
+                            "spawn for --devices N > 1; spawn = N local processes started by torch.multiprocessing "
+                            "(one machine, no launcher); ddp = one rank per device in a torch.distributed group "
+                            "(gloo): under torchrun it joins the launcher's group, and without one it starts the N "
+                            "ranks on this machine itself with torch's elastic launcher (the same command in each; "
+                            "--devices 1: one process)")
 
 
 @dataclass(frozen=True)

@@ -217,14 +217,14 @@ def run(args: argparse.Namespace) -> int:
     if args.sparse_units is not None and many:
         raise InputError(f"--sparse-units {args.sparse_units}: applies to --sparse only; "
                          f"{'--bag reads point clouds in metres' if args.bag is not None else '--input-dir and --input-list read KITTI velodyne_raw PNGs (metres * 256) or raw scans (metres)'}")
-    if args.devices != 1 and args.input_dir is None and args.input_list is None:
-        raise InputError(f"--devices {args.devices}: applies to --input-dir and --input-list (folders of frames)")
+    scale = [f"{flag} {value}" for flag, value, default in (("--devices", args.devices, 1), ("--num-nodes",
+             args.num_nodes, 1), ("--strategy", args.strategy, "auto")) if value != default]
+    if scale and args.input_dir is None and args.input_list is None:
+        raise InputError(f"{' '.join(scale)}: applies to --input-dir and --input-list (folders of frames)")
     if args.resume and args.input_dir is None and args.input_list is None:
         raise InputError("--resume: applies to --input-dir and --input-list (folders of frames); a single frame is "
                          "simply run again" + (", and --bag writes its index.csv afresh" if args.bag is not None
                                                else ""))
-    if args.num_nodes != 1 and args.input_dir is None:
-        raise InputError(f"--num-nodes {args.num_nodes}: applies to --input-dir (one folder of frames)")
     if args.input_list is not None:
         return run_list(args, run_folder, run_bag)
     if args.bag is not None:

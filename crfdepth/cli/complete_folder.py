@@ -147,7 +147,10 @@ def _other_pngs(out_dir: Path, names: list[str]) -> int:
     return sum(1 for entry in os.scandir(out_dir) if entry.name.endswith(".png") and entry.name not in mine)
 
 
-def run_folder(args: argparse.Namespace) -> int:
+def run_folder(args: argparse.Namespace, ranks: Ranks | None = None) -> int:
+    """Folder mode (:mod:`crfdepth.cli.complete`); ``ranks``: the group the caller has joined (``--input-list``
+    joins it once for the whole list), else the run is spread here as ``--strategy`` says
+    (:func:`~crfdepth.cli.ranks.run_in_group`)."""
     if args.out_dir is None:
         raise InputError("--input-dir needs --out-dir (the folder for the output PNGs)")
     stray = [flag for flag, value in (("--image", args.image), ("--sparse", args.sparse),
@@ -156,11 +159,11 @@ def run_folder(args: argparse.Namespace) -> int:
                                       ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-dir")
-    return run_in_group(args, _run)
+    return _run(args, ranks) if ranks is not None else run_in_group(args, _run)
 
 
 def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
-    """:func:`run_folder` alone, with ``--devices`` local processes, or as one rank of a torchrun group."""
+    """:func:`run_folder` alone, with ``--devices`` local processes, or as one rank of a group."""
     main = ranks is None or ranks.is_main
     built: dict = {}
     start = time.perf_counter()

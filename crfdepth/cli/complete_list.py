@@ -11,22 +11,31 @@ is a line of its own, completed into a subfolder of its own.
 
 Each input is completed into a subfolder of ``--out-dir`` (and of ``--out-std-dir`` and ``--vis``
 when given) named after it (``<folder, drive or recording name>``, with ``-<line>`` added where two inputs
-share a name), by the folder or bag mode with the run's options, ``--resume``, ``--skip-bad`` and
-``--devices`` included. One input is held at a time, so the memory is that of the largest input's
-run, not of the list. An input that fails stops the run, naming its line, unless ``--skip-bad``:
-then the others go on and the summary lists the failed lines. ``--resume`` continues a stopped
-list: each folder input resumes (:mod:`crfdepth.cli.resume`), and a recording is completed again whole
-(its ``index.csv`` lists the frames of one run).
+share a name), by the folder or bag mode with the run's options, ``--resume``, ``--skip-bad``, ``--devices``,
+``--num-nodes`` and ``--strategy`` included. One input is held at a time, so the memory is that of the
+largest input's run, not of the list. An input that fails stops the run, naming its line, unless
+``--skip-bad``: then the others go on and the summary lists the failed lines. ``--resume`` continues a
+stopped list: each folder input resumes (:mod:`crfdepth.cli.resume`), and a recording is completed again
+whole (its ``index.csv`` lists the frames of one run).
+
+As ranks of a group (``--num-nodes`` under torchrun, ``--strategy ddp``: :mod:`crfdepth.cli.ranks`) the
+group is joined once for the whole list. Rank 0 reads the list and shares it; each folder is then checked
+and planned by rank 0 and its batches dealt to the ranks, as ``--input-dir`` does; a recording is
+completed by rank 0 alone (its frames are read in order, from one file) while the other ranks wait. An
+input's error is shared with every rank, so with ``--skip-bad`` every rank goes on to the next input, and
+without it every rank stops, alike.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import os
 from pathlib import Path
 
 from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.data.kitti import is_raw_drive, raw_drives
 from crfdepth.errors import InputError
 
@@ -102,21 +111,26 @@ def run_list(args: argparse.Namespace, run_folder, run_bag) -> int:
                                       ("--out", args.out), ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-list")
-    entries = read_input_list(args.input_list)
+    return run_in_group(args, functools.partial(_run_list, run_folder=run_folder, run_bag=run_bag))
+
+
+def _run_list(args: argparse.Namespace, ranks: Ranks | None, run_folder, run_bag) -> int:
+    """:func:`run_list` alone or as one rank of a group joined once for the whole list: rank 0 reads the list and
+    runs each recording, each folder is shared out (:func:`~crfdepth.cli.complete_folder.run_folder`), and an
+    input's error is raised on every rank alike, so that ``--skip-bad`` goes on, or the run stops, everywhere."""
+    entries = read_input_list(args.input_list) if ranks is None else \
+        ranks.share(lambda: read_input_list(args.input_list))
     names = _names(entries)
     failed, done = [], 0
     for (number, entry, kind), name in zip(entries, names):
-        mine = copy.copy(args)
-        mine.input_list = None
-        mine.input_dir = str(entry) if kind == "folder" else None
-        mine.bag = str(entry) if kind == "bag" else None
-        mine.out_dir = str(Path(args.out_dir) / name)
-        mine.out_std_dir = str(Path(args.out_std_dir) / name) if args.out_std_dir is not None else None
-        mine.vis = str(Path(args.vis) / name) if args.vis else args.vis
-        if kind == "bag" and args.resume:  # a recording is completed whole again: its index.csv lists one run
-            mine.overwrite, mine.resume = True, False
+        mine = _input_args(args, entry, kind, name)
         try:
-            (run_folder if kind == "folder" else run_bag)(mine)
+            if kind == "folder":
+                run_folder(mine, ranks)
+            elif ranks is None:
+                run_bag(mine)
+            else:  # a recording is read in order: rank 0 completes it while the others wait for the outcome
+                ranks.share(lambda: run_bag(mine))
         except BAD_INPUT as exc:
             message = f"--input-list line {number} ({entry}): {exc}"
             if not args.skip_bad:
@@ -125,8 +139,22 @@ def run_list(args: argparse.Namespace, run_folder, run_bag) -> int:
             failed.append(message)
             continue
         done += 1
-    if not args.quiet:
+    if not args.quiet and (ranks is None or ranks.is_main):
         print(f"completed {done} of {len(entries)} input(s) of --input-list {args.input_list} into {args.out_dir}")
         for message in failed:
             print(f"failed: {message}")
     return 0
+
+
+def _input_args(args: argparse.Namespace, entry: Path, kind: str, name: str) -> argparse.Namespace:
+    """The options of the run of one input of the list (``kind`` "folder" or "bag"), written into ``name``."""
+    mine = copy.copy(args)
+    mine.input_list = None
+    mine.input_dir = str(entry) if kind == "folder" else None
+    mine.bag = str(entry) if kind == "bag" else None
+    mine.out_dir = str(Path(args.out_dir) / name)
+    mine.out_std_dir = str(Path(args.out_std_dir) / name) if args.out_std_dir is not None else None
+    mine.vis = str(Path(args.vis) / name) if args.vis else args.vis
+    if kind == "bag" and args.resume:  # a recording is completed whole again: its index.csv lists one run
+        mine.overwrite, mine.resume = True, False
+    return mine

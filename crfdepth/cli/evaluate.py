@@ -232,8 +232,9 @@ def run(args: argparse.Namespace) -> int:
 
     Bad input raises InputError / FileNotFoundError / PermissionError naming the option
     or file, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
-    With ``--num-nodes`` under torchrun, rank 0 opens, checks and locks, the ranks evaluate the runs of
-    frames dealt to them, and rank 0 merges their rows and writes the report (:mod:`crfdepth.cli.ranks`).
+    As ranks of a group (``--num-nodes`` under torchrun, ``--strategy ddp``), rank 0 opens, checks and locks,
+    the ranks evaluate the runs of frames dealt to them, and rank 0 merges their rows and writes the report
+    (:mod:`crfdepth.cli.ranks`).
     """
     return run_in_group(args, _run)
 

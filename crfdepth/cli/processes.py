@@ -1,5 +1,7 @@
-"""``--devices N`` of ``complete --input-dir`` and ``evaluate``: the planned batches of a run done by N
-processes, one per device (CUDA GPUs, or CPU processes sharing the cores).
+"""``--devices N`` of ``complete --input-dir`` (and of each folder of ``--input-list``) and ``evaluate`` with
+``--strategy spawn``, or ``auto`` without a launcher: the planned batches of a run done by N processes on
+this machine, one per device (CUDA GPUs, or CPU processes sharing the cores). Ranks of a group instead
+(``--strategy ddp``, ``--num-nodes``): :mod:`crfdepth.cli.ranks`.
 
 The launching process does everything that decides what is written (the checks of every frame,
 ``--skip-bad``, ``--resume``, the batch plan: :mod:`crfdepth.cli.complete_folder`) and holds the output

@@ -1,12 +1,21 @@
-"""``complete --input-dir`` on several machines: one process per device, started on every node by torchrun
-(or SLURM's srun with torchrun's environment), joined in a ``torch.distributed`` group (gloo).
+"""``complete --input-dir`` / ``--input-list`` and ``evaluate`` as ranks of a ``torch.distributed`` group
+(gloo): one process per device, started on every node by torchrun (or SLURM's srun with torchrun's
+environment), or on one machine by crfdepth itself (``--strategy ddp``: :mod:`crfdepth.cli.launch`).
+
+:func:`run_in_group` decides by ``--strategy`` how a run is spread: ``auto`` (default) joins the
+launcher's group when there is one (``WORLD_SIZE`` > 1), else runs ``--devices`` local processes
+(:mod:`crfdepth.cli.processes`) or this one alone; ``spawn`` always runs local processes, and is refused
+under a launcher or with ``--num-nodes`` > 1; ``ddp`` joins the launcher's group, or without a launcher
+starts the ``--devices`` ranks on this machine (``--devices 1``: this process alone).
 
 Rank 0 does what decides the files (the checks of every frame, ``--skip-bad``, ``--resume``, the batch
 plan), creates and locks the output folders, and shares the outcome with the other ranks: the plan, or
 the error that stops the run, which every rank then raises alike. The planned batches are dealt to the
 ranks in turn, as to local processes (:mod:`crfdepth.cli.processes`); each rank completes its share on
 ``cuda:LOCAL_RANK`` (or the CPU) and writes its files into the shared folders; what each wrote and what
-failed is gathered on every rank, and rank 0 lists the failed frames and prints the summary.
+failed is gathered on every rank, and rank 0 lists the failed frames and prints the summary. An
+``--input-list`` joins the group once and runs its inputs in turn, each shared out so
+(:mod:`crfdepth.cli.complete_list`).
 
 The environment torchrun sets is read: ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``,
 ``MASTER_ADDR``, ``MASTER_PORT``. ``--num-nodes M --devices N`` must describe the same group
@@ -17,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,16 +35,22 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
+from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.cli.launch import launch_ranks
 from crfdepth.cli.processes import check_devices
 from crfdepth.errors import InputError
 
 __all__ = ["Ranks", "ranks_from_environment", "run_in_group"]
 
+logger = logging.getLogger(__name__)
+
 # Rank 0 reads and checks every frame before the others get the plan (about 40 ms a KITTI frame:
 # half an hour for a 47,000-frame archive), so the group waits that long without giving up.
 PLAN_TIMEOUT = datetime.timedelta(hours=24)
 
-_ERRORS = {cls.__name__: cls for cls in (InputError, FileNotFoundError, PermissionError, KeyboardInterrupt)}
+# What rank 0 shares instead of a value (Ranks.share): bad input and Ctrl-C, raised alike on every rank.
+_SHARED_ERRORS = (*BAD_INPUT, KeyboardInterrupt)
+_ERRORS = {cls.__name__: cls for cls in _SHARED_ERRORS}
 
 
 @dataclass
@@ -57,7 +73,7 @@ class Ranks:
         if self.is_main:
             try:
                 box[0] = ("value", make())
-            except (InputError, FileNotFoundError, PermissionError, KeyboardInterrupt) as exc:
+            except _SHARED_ERRORS as exc:
                 box[0] = ("error", type(exc).__name__ if type(exc).__name__ in _ERRORS else "InputError", str(exc))
         dist.broadcast_object_list(box, src=0)
         if box[0][0] == "error":
@@ -72,13 +88,34 @@ class Ranks:
         return values
 
     def close(self) -> None:
+        """Leave the group once every rank has come here, so that rank 0 reports (its summary, or the error that
+        every rank raises alike) before any rank ends: a launcher stops the other ranks as soon as one ends with
+        an error (:mod:`crfdepth.cli.launch`)."""
         if dist.is_initialized():
+            try:
+                dist.barrier()
+            except RuntimeError:  # a rank is gone (killed, or failed on a bug); its launcher reports it
+                pass
             dist.destroy_process_group()
 
 
 def run_in_group(args: argparse.Namespace, run: Callable[[argparse.Namespace, Ranks | None], int]) -> int:
-    """``run(args, ranks)``: alone (``ranks`` None; ``--devices`` local processes checked against the machine)
-    or as this process's rank of the torchrun group, which it leaves again afterwards."""
+    """``run(args, ranks)`` as ``--strategy`` says (module docstring): alone (``ranks`` None; ``--devices`` local
+    processes checked against the machine), as this process's rank of the launcher's group, which it leaves
+    again afterwards, or (``ddp`` without a launcher) in ``--devices`` ranks started here, whose exit status
+    is returned."""
+    launcher = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if args.strategy == "spawn" and args.num_nodes > 1:
+        raise InputError(f"--strategy spawn: starts the --devices processes on this machine only, got --num-nodes "
+                         f"{args.num_nodes}; give --strategy ddp (or auto) and start the command on every node with "
+                         f"torchrun")
+    if args.strategy == "spawn" and launcher > 1:
+        raise InputError(f"--strategy spawn: expected a command started alone (spawn starts the --devices processes "
+                         f"itself), got WORLD_SIZE={launcher} from a launcher (torchrun, srun); give --strategy ddp "
+                         f"or auto under a launcher")
+    if _starts_ranks(args, launcher):
+        check_devices(args.devices, args.device)
+        return launch_ranks(args)
     ranks = ranks_from_environment(args)
     if ranks is None and args.devices > 1:
         check_devices(args.devices, args.device)
@@ -87,6 +124,12 @@ def run_in_group(args: argparse.Namespace, run: Callable[[argparse.Namespace, Ra
     finally:
         if ranks is not None:
             ranks.close()
+
+
+def _starts_ranks(args: argparse.Namespace, launcher: int) -> bool:
+    """Whether this process starts the ranks itself: ``--strategy ddp --devices N`` (N > 1) on one node without a
+    launcher (``launcher``: its ``WORLD_SIZE``, 1 without one)."""
+    return args.strategy == "ddp" and launcher == 1 and args.num_nodes == 1 and args.devices > 1
 
 
 def ranks_from_environment(args: argparse.Namespace) -> Ranks | None:
@@ -121,4 +164,6 @@ def ranks_from_environment(args: argparse.Namespace) -> Ranks | None:
     else:
         torch.set_num_threads(max(1, torch.get_num_threads() // local_world))
     dist.init_process_group("gloo", init_method="env://", rank=rank, world_size=world, timeout=PLAN_TIMEOUT)
+    logger.info("joined the group as rank %d/%d (process %d/%d of this node)", rank + 1, world, local_rank + 1,
+                local_world)
     return Ranks(rank, world, local_rank, local_world)

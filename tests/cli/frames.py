@@ -2,7 +2,8 @@
 
 :func:`write_folder` writes synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) in the ``val_selection_cropped`` layout, so that ``complete --input-dir`` and
-``evaluate --layout val_selection`` read them; chosen frames can be made bad.
+``evaluate --layout val_selection`` read them; chosen frames can be made bad. :func:`same_pngs` and
+:func:`same_report` compare the outputs of two runs.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import pytest
 
 from crfdepth import cli
 from crfdepth.data.synthetic import make_scene, selection_stem, write_selection_folder
-from crfdepth.io.kitti import write_depth_png
+from crfdepth.io.kitti import read_depth_png, write_depth_png
 
 DRIVE = "2011_09_26_drive_0001_sync"
 SIZE = (48, 160)  # (H, W): small, so that a frame completes in well under a second
@@ -73,3 +74,21 @@ def run_main(argv: list, capsys) -> tuple[int, str, str]:
         code = exc.code
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+def same_pngs(a: Path, b: Path) -> None:
+    """The folders hold the same files; depths (and stds) within one PNG code, 1/256 m (a batch's or another
+    process's CPU threads may sum in another order)."""
+    assert files(a) == files(b)
+    for name in files(a):
+        if name.endswith(".png"):
+            assert np.abs(read_depth_png(a / name) - read_depth_png(b / name)).max() <= 1 / 256 + 1e-9, name
+
+
+def same_report(a, b) -> bool:
+    """Two ``summary.json`` values (or parts) equal, numbers within float tolerance, the run's time aside."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(same_report(a[k], b[k]) for k in a if k != "seconds")
+    if isinstance(a, float):
+        return b == pytest.approx(a, rel=1e-6, abs=1e-9)
+    return a == b

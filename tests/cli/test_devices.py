@@ -9,16 +9,13 @@ import io
 import json
 import os
 
-import numpy as np
 import pytest
 
 from crfdepth.cli import complete_folder
 from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
-from crfdepth.io.kitti import read_depth_png
-from tests.cli.frames import FAST, files, png, run, stem, write_folder
+from tests.cli.frames import FAST, files, png, run, same_pngs, same_report, stem, write_folder
 
 COUNT = 5
-CODE = 1 / 256  # one unit of a KITTI depth PNG, metres
 
 
 @pytest.fixture(scope="module")
@@ -30,13 +27,6 @@ def _argv(data, out, *extra) -> list:
     return ["complete", "--input-dir", data, "--out-dir", out / "d", "--out-std-dir", out / "s", *extra, *FAST]
 
 
-def _same_pngs(a, b) -> None:
-    """Same files; depths within one PNG code (CPU threads may sum in another order)."""
-    assert files(a) == files(b)
-    for name in files(a):
-        assert np.abs(read_depth_png(a / name) - read_depth_png(b / name)).max() <= CODE + 1e-9, name
-
-
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPU cores")
 @pytest.mark.parametrize("batch_size", [1, 2])
 def test_two_processes_write_what_one_writes(folder, tmp_path, batch_size):
@@ -45,7 +35,7 @@ def test_two_processes_write_what_one_writes(folder, tmp_path, batch_size):
     code, _, err = run(_argv(folder, two, "--batch-size", batch_size, "--devices", "2"))
     assert code == 0, err
     for sub in ("d", "s"):
-        _same_pngs(one / sub, two / sub)
+        same_pngs(one / sub, two / sub)
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPU cores")
@@ -76,7 +66,7 @@ def test_a_process_failing_on_a_frame_keeps_the_others_work(folder, tmp_path, mo
     whole = tmp_path / "whole"
     assert run(_argv(folder, whole))[0] == 0
     for sub in ("d", "s"):
-        _same_pngs(whole / sub, out / sub)
+        same_pngs(whole / sub, out / sub)
 
 
 def test_more_devices_than_the_machine_has_is_refused(folder, tmp_path):
@@ -107,15 +97,4 @@ def test_evaluate_with_two_processes_reports_what_one_reports(folder, tmp_path, 
         for key in a:
             if key != "name":
                 assert float(b[key]) == pytest.approx(float(a[key]), rel=1e-6, abs=1e-9), key
-    assert two.keys() == one.keys()
-    for key in one:
-        if key not in ("seconds",):
-            assert _close(two[key], one[key]), key
-
-
-def _close(a, b) -> bool:
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
-    if isinstance(a, float):
-        return b == pytest.approx(a, rel=1e-6, abs=1e-9)
-    return a == b
+    assert same_report(two, one)

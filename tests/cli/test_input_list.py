@@ -1,12 +1,14 @@
 """``complete --input-list FILE``: every input of the list completed into its own subfolder, each line
 checked before anything runs (a missing or unreadable path named with its line number), a failing input
-stopping the run or, with --skip-bad, left out while the others go on."""
+stopping the run or, with --skip-bad, left out while the others go on; two ranks (as torchrun starts them)
+write what one process writes, and go on or stop alike."""
 
 from __future__ import annotations
 
 import pytest
 
-from tests.cli.frames import FAST, files, png, run, write_folder
+from tests.cli.frames import FAST, files, png, run, same_pngs, write_folder
+from tests.cli.launching import two_ranks
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +64,55 @@ def test_a_failing_input_stops_the_run_or_is_left_out_with_skip_bad(folders, tmp
     assert "completed 2 of 3 input(s)" in stdout and f"failed: --input-list line 2 ({empty}): " in stdout
     assert [f for f in files(tmp_path / "b") if f.endswith(".png")] == [
         f"{name}/{png(i)}" for name in ("val_selection_cropped-1", "val_selection_cropped-3") for i in range(2)]
+
+
+def _mixed_list(folders, tmp_path):
+    """A good folder, one with a bad frame, one without frames (refused when its turn comes), a good folder."""
+    bad = write_folder(tmp_path / "bad" / "val_selection_cropped", 3, bad={1: "zero sparse"})
+    empty = tmp_path / "empty" / "val_selection_cropped"
+    for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth"):
+        (empty / sub).mkdir(parents=True)
+    return _listing(tmp_path, [str(folders[0]), str(bad), str(empty), str(folders[1])]), empty
+
+
+def test_two_ranks_complete_the_list_as_one_process_and_skip_bad_alike(folders, tmp_path):
+    listing, empty = _mixed_list(folders, tmp_path)
+    argv = ["complete", "--input-list", listing, "--skip-bad", "--potentials", "colour"]
+    code, stdout, err = run([*argv, "--out-dir", tmp_path / "one"])
+    assert code == 0, err
+    ranks = two_ranks(["-v", *argv, "--out-dir", tmp_path / "two", "--num-nodes", "2"])
+    assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
+    assert ranks[0].stderr.count("joined the group as rank") == 1  # once for the whole list
+    same_pngs(tmp_path / "one", tmp_path / "two")  # the bad frame left out, listed in its skipped.csv
+    skipped = "val_selection_cropped-2/skipped.csv"
+    assert (tmp_path / "two" / skipped).read_text() == (tmp_path / "one" / skipped).read_text()
+    assert len(files(tmp_path / "two")) == 2 + 2 + 2 + 1
+    summary = f"completed 3 of 4 input(s) of --input-list {listing} into {tmp_path / 'two'}"
+    assert summary in ranks[0].stdout and f"failed: --input-list line 3 ({empty}): " in ranks[0].stdout
+    assert ranks[1].stdout == ""  # rank 0 reports for the group
+
+
+def test_two_ranks_stop_the_list_alike_at_a_bad_input(folders, tmp_path):
+    listing, _ = _mixed_list(folders, tmp_path)
+    ranks = two_ranks(["complete", "--input-list", listing, "--out-dir", tmp_path / "o", "--num-nodes", "2", *FAST])
+    assert [r.returncode for r in ranks] == [2, 2]
+    last = [r.stderr.splitlines()[-1] for r in ranks]
+    assert last[0] == last[1] and last[0].startswith("crfdepth complete: error: --input-list line 2 (")
+    assert "every pixel is 0 (no LiDAR point)" in last[0] and "[1 of 4 input(s) completed before it" in last[0]
+    assert files(tmp_path / "o") == [f"val_selection_cropped-1/{png(i)}" for i in range(2)]
+
+
+def test_two_ranks_complete_a_recording_of_the_list_on_rank_0(folders, tmp_path):
+    pytest.importorskip("rosbags")
+    from tests.io.ros.bags import IMAGE_TOPIC, POINTS_TOPIC, write_bag
+
+    recording = write_bag(tmp_path / "drive_bag", "mcap", count=2).path  # a ROS 2 bag: a folder
+    listing = _listing(tmp_path, [str(recording), str(folders[0])])
+    argv = ["complete", "--input-list", listing, "--image-topic", IMAGE_TOPIC, "--points-topic", POINTS_TOPIC,
+            *FAST]
+    code, _, err = run([*argv, "--out-dir", tmp_path / "one"])
+    assert code == 0, err
+    ranks = two_ranks([*argv, "--out-dir", tmp_path / "two", "--num-nodes", "2"])
+    assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
+    same_pngs(tmp_path / "one", tmp_path / "two")
+    assert len([f for f in files(tmp_path / "two") if f.startswith("drive_bag/") and f.endswith(".png")]) == 2

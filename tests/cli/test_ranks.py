@@ -5,50 +5,19 @@ launcher's environment, or with a group of another size, is refused in one line.
 from __future__ import annotations
 
 import json
-import os
-import socket
-import subprocess
-import sys
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
-from crfdepth.io.kitti import read_depth_png
-from tests.cli.frames import FAST, files, run, write_folder
+from tests.cli.frames import FAST, run, same_pngs, write_folder
+from tests.cli.launching import two_ranks
 
-ROOT = Path(__file__).resolve().parents[2]
 COUNT = 5
-CODE = 1 / 256  # one unit of a KITTI depth PNG, metres
 
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     return write_folder(tmp_path_factory.mktemp("ranks") / "val_selection_cropped", COUNT)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _two_nodes(argv: list) -> list[subprocess.CompletedProcess]:
-    """``python -m crfdepth`` twice, as rank 0 and 1 of a group of 2 (one process per node), as torchrun starts
-    them."""
-    port = str(_free_port())
-    procs = []
-    for rank in range(2):
-        env = {**os.environ, "WORLD_SIZE": "2", "RANK": str(rank), "LOCAL_RANK": "0", "LOCAL_WORLD_SIZE": "1",
-               "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port, "OMP_NUM_THREADS": "1"}
-        procs.append(subprocess.Popen([sys.executable, "-m", "crfdepth", *map(str, argv)], cwd=ROOT, env=env,
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-    done = []
-    for proc in procs:
-        out, err = proc.communicate(timeout=300)
-        done.append(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
-    return done
 
 
 def _argv(data, out, *extra) -> list:
@@ -57,18 +26,15 @@ def _argv(data, out, *extra) -> list:
 
 def test_two_nodes_write_what_one_process_writes(folder, tmp_path):
     assert run(_argv(folder, tmp_path / "one", "--batch-size", "2"))[0] == 0
-    ranks = _two_nodes(_argv(folder, tmp_path / "two", "--batch-size", "2", "--num-nodes", "2"))
+    ranks = two_ranks(_argv(folder, tmp_path / "two", "--batch-size", "2", "--num-nodes", "2"))
     assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
     for sub in ("d", "s"):
-        assert files(tmp_path / "one" / sub) == files(tmp_path / "two" / sub)  # no lock or record left
-        for name in files(tmp_path / "one" / sub):
-            diff = np.abs(read_depth_png(tmp_path / "one" / sub / name) - read_depth_png(tmp_path / "two" / sub / name))
-            assert diff.max() <= CODE + 1e-9, name
+        same_pngs(tmp_path / "one" / sub, tmp_path / "two" / sub)  # the same files: no lock or record left
 
 
 def test_a_bad_frame_stops_every_rank_alike(folder, tmp_path):
     bad = write_folder(tmp_path / "bad" / "val_selection_cropped", 3, bad={1: "zero sparse"})
-    ranks = _two_nodes(_argv(bad, tmp_path / "o", "--num-nodes", "2"))
+    ranks = two_ranks(_argv(bad, tmp_path / "o", "--num-nodes", "2"))
     assert [r.returncode for r in ranks] == [2, 2]
     assert ranks[0].stderr.splitlines()[-1] == ranks[1].stderr.splitlines()[-1]
     assert "every pixel is 0 (no LiDAR point)" in ranks[1].stderr and "nothing written" in ranks[1].stderr
@@ -91,7 +57,7 @@ def test_evaluate_on_two_nodes_reports_what_one_process_reports(folder, tmp_path
     argv = ["evaluate", "--layout", "val_selection", "--data", folder, "--std", "--potentials", "colour", "--quiet"]
     code, _, err = run([*argv, "--out-dir", tmp_path / "one"])
     assert code == 0, err
-    ranks = _two_nodes([*argv, "--out-dir", tmp_path / "two", "--num-nodes", "2"])
+    ranks = two_ranks([*argv, "--out-dir", tmp_path / "two", "--num-nodes", "2"])
     assert [r.returncode for r in ranks] == [0, 0], [r.stderr for r in ranks]
     one = json.loads((tmp_path / "one" / JSON_NAME).read_text())
     two = json.loads((tmp_path / "two" / JSON_NAME).read_text())
