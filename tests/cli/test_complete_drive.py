@@ -160,3 +160,20 @@ def test_two_processes_write_what_one_writes(drive, tmp_path):
     assert files(tmp_path / "1") == files(tmp_path / "2") == [f"{stem(i)}.png" for i in range(COUNT)]
     for i in range(COUNT):
         assert np.abs(_codes(tmp_path / "1" / f"{stem(i)}.png") - _codes(tmp_path / "2" / f"{stem(i)}.png")).max() <= 1
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPU cores")
+def test_a_list_of_a_folder_and_a_drive_on_two_ddp_ranks_writes_what_one_process_writes(drive, tmp_path):
+    from tests.cli.frames import same_pngs
+    from tests.cli.launching import alone
+
+    folder = write_folder(tmp_path / "val_selection_cropped", 3)
+    listing = tmp_path / "inputs.txt"
+    listing.write_text(f"{folder}\n{drive}\n")
+    for name, scale in (("one", []), ("ddp", ["--strategy", "ddp", "--devices", "2"])):
+        done = alone(["complete", "--input-list", listing, "--out-dir", tmp_path / name, "--batch-size", "2",
+                      *FAST, *scale])
+        assert done.returncode == 0, done.stderr[-3000:]
+    assert len(files(tmp_path / "one")) == COUNT + 3
+    same_pngs(tmp_path / "one", tmp_path / "ddp")
