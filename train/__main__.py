@@ -148,6 +148,11 @@ def main(args: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"train: error: {exc}", file=sys.stderr)
         return 2
+    # Lightning leaves DDP's process group up; gloo's threads outliving the interpreter can abort the
+    # process at exit (SIGABRT after a finished run). Left after success only: on an error a rank may
+    # still be inside a collective.
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
     return 0
 
 
