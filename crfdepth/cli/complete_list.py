@@ -36,7 +36,7 @@ from pathlib import Path
 
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.ranks import Ranks, run_in_group
-from crfdepth.data.kitti import is_raw_drive, raw_drives
+from crfdepth.data.kitti.drive import is_raw_drive, raw_drives, shown_drives
 from crfdepth.errors import InputError
 
 __all__ = ["read_input_list", "run_list"]
@@ -87,8 +87,7 @@ def _kind(entry: Path, where: str) -> str:
     drives = raw_drives(entry)
     if drives:
         raise InputError(f"{where}: expected one KITTI raw drive folder, got a day folder holding {len(drives)} "
-                         f"drive(s); list each on a line of its own ({', '.join(p.name for p in drives[:3])}"
-                         f"{', ...' if len(drives) > 3 else ''})")
+                         f"drive(s); list each on a line of its own ({shown_drives(drives)})")
     raise InputError(f"{where}: expected a KITTI depth-completion folder (velodyne_raw/, image/, intrinsics/), a "
                      f"KITTI raw drive folder (velodyne_points/, image_02/) or a ROS recording, got a folder "
                      f"without them")

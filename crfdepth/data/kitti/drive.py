@@ -22,7 +22,7 @@ from crfdepth.geometry import projection
 from crfdepth.io.calibration import read_raw_calibration
 from crfdepth.io.kitti import read_rgb, read_velodyne
 
-__all__ = ["KittiDrive", "ScanFrame", "check_scan_files", "drive_scans", "is_raw_drive", "raw_drives"]
+__all__ = ["KittiDrive", "ScanFrame", "check_scan_files", "drive_scans", "is_raw_drive", "raw_drives", "shown_drives"]
 
 SCANS = "velodyne_points"
 
@@ -51,6 +51,11 @@ def raw_drives(path: PathLike) -> list[Path]:
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.is_dir() and is_raw_drive(p))
+
+
+def shown_drives(drives: list[Path]) -> str:
+    """The first three of ``drives`` by name, for messages: ``a, b, c, ...``."""
+    return ", ".join(p.name for p in drives[:3]) + (", ..." if len(drives) > 3 else "")
 
 
 def drive_scans(drive_dir: Path, camera: int) -> list[ScanFrame]:
@@ -110,9 +115,9 @@ class KittiDrive(FrameDataset):
         if not is_raw_drive(self.root):
             drives = raw_drives(self.root)
             if drives:
-                shown = ", ".join(p.name for p in drives[:3]) + (", ..." if len(drives) > 3 else "")
                 raise InputError(f"{layout}: expected one raw drive folder, got the day folder {self.root} holding "
-                                 f"{len(drives)} drive(s) ({shown}); give a drive folder, e.g. {drives[0]}")
+                                 f"{len(drives)} drive(s) ({shown_drives(drives)}); give a drive folder, e.g. "
+                                 f"{drives[0]}")
         loading.require_dir(self.root / SCANS / "data", self.root, layout)
         self._frames = drive_scans(self.root, self.camera)
         if not self._frames:

@@ -212,7 +212,7 @@ class KittiRawScans(FrameDataset):
         calib_dir = loading.require_dir(self.root / "calib", self.root, layout)
         frames = [
             ScanFrame(name=scan.stem, image=image_dir / f"{scan.stem}.png", velodyne=scan,
-                       calib=calib_dir / f"{scan.stem}.txt")
+                      calib=calib_dir / f"{scan.stem}.txt")
             for scan in sorted(velodyne_dir.glob("*.bin"))
         ]
         if not frames:

@@ -92,7 +92,10 @@ def test_shared_drive_frame_matches_the_published_projection_counts(kitti_root):
         assert sample.image.shape == (3, 375, 1242)
         pixels = int((sample.sparse > 0).sum())
         published = int((read_depth_png(official / f"image_0{camera}" / "0000000005.png") > 0).sum())
-        assert (pixels == count) if count else abs(pixels - published) < 0.01 * published, (camera, pixels, published)
+        # camera 2: the README's count within 10 pixels (a return on a pixel border may round either way on
+        # another CPU); camera 3: within 1% of KITTI's own projection
+        assert abs(pixels - count) <= 10 if count else abs(pixels - published) < 0.01 * published, (camera, pixels,
+                                                                                                     published)
         valid = sample.sparse[sample.sparse > 0]
         assert 1.0 < float(valid.min()) and float(valid.max()) < 100.0 and 5.0 < float(valid.median()) < 40.0
     with pytest.raises(InputError, match="holding 2 drive\\(s\\)"):
