@@ -82,6 +82,30 @@ def aggregate_normals(
 NORMAL_GAP = 1e-6
 
 
+# cuSOLVER's batched symmetric eigensolver (what torch.linalg.eigh calls for a CUDA batch of 3 x 3
+# matrices) fails with CUSOLVER_STATUS_INTERNAL_ERROR from 65,536 matrices on, and its workspace grows
+# by about 270 kB per matrix (measured on an H200, torch 2.11 + CUDA 13.0: 65,535 pass, 65,536 fail,
+# 10^6 ask for 253 GiB; the superpixel model's peak was 1.4 GB at 1216 x 352 with its 5,500 nodes in
+# one call and 9.1 GB at 4000 x 3000 in pieces of 32,768). Pieces of 2,048 bound the workspace to
+# about 0.55 GB (docs/design.md section 10).
+EIGH_CUDA_CHUNK = 2048
+
+
+def batched_eigh(matrices: torch.Tensor, chunk: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`torch.linalg.eigh` of a (B, n, n) batch, in pieces of ``chunk`` matrices.
+
+    ``chunk`` defaults to :data:`EIGH_CUDA_CHUNK` on CUDA and to the whole batch elsewhere;
+    the pieces' eigenvalues and eigenvectors are concatenated, so the result and its gradient
+    are those of one call.
+    """
+    if chunk is None:
+        chunk = EIGH_CUDA_CHUNK if matrices.is_cuda else max(1, matrices.shape[0])
+    if matrices.shape[0] <= chunk:
+        return torch.linalg.eigh(matrices)
+    pieces = [torch.linalg.eigh(part) for part in matrices.split(chunk)]
+    return torch.cat([v for v, _ in pieces]), torch.cat([w for _, w in pieces])
+
+
 def graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int) -> torch.Tensor:
     """(N, 3) unit normals of planes fitted to each node's 3D point and its neighbours' points.
 
@@ -105,7 +129,7 @@ def graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int
     second = outer.index_add(0, src, outer[dst]).index_add(0, dst, outer[src]) / cnt[:, None, None]
     cov = second - mean[:, :, None] * mean[:, None, :]
     cov = cov + 1e-9 * torch.eye(3, dtype=points.dtype, device=points.device)
-    values, vecs = torch.linalg.eigh(cov.detach())
+    values, vecs = batched_eigh(cov.detach())
     n = vecs[:, :, 0]
     if points.requires_grad:
         # The eigenvector's derivative scales with 1 / (lambda_1 - lambda_0): exact where the
@@ -115,7 +139,7 @@ def graph_normals(points: torch.Tensor, edge_index: torch.Tensor, num_nodes: int
         least = max(NORMAL_GAP, 100 * torch.finfo(cov.dtype).eps)  # float32: rounding sets the floor
         gap = (values[:, 1] - values[:, 0]) > least * values[:, 2].clamp_min(1e-12)
         good = torch.nonzero(gap & (cnt >= 3)).squeeze(1)
-        n_good = torch.linalg.eigh(cov[good])[1][:, :, 0]
+        n_good = batched_eigh(cov[good])[1][:, :, 0]
         n_good = torch.where((n_good * n[good]).sum(1, keepdim=True) < 0, -n_good, n_good)
         n = n.index_put((good,), n_good)
     view = points / points.norm(dim=1, keepdim=True).clamp_min(1e-9)

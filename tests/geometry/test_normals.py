@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from crfdepth.errors import InputError
-from crfdepth.geometry.node_normals import aggregate_normals, graph_normals
+from crfdepth.geometry.node_normals import EIGH_CUDA_CHUNK, aggregate_normals, batched_eigh, graph_normals
 from crfdepth.geometry.normals import dense_normals, lidar_normals, smallest_eigenvector
 
 H, W = 352, 1216
@@ -278,6 +278,24 @@ def test_graph_normals_of_collinear_points_have_a_finite_zero_gradient():
     normals = graph_normals(points, edges, 6)
     normals[1:5].sum().backward()
     assert torch.isfinite(normals).all() and torch.equal(points.grad, torch.zeros_like(points))
+
+
+def test_batched_eigh_in_pieces_equals_one_call_with_its_gradient():
+    # CUDA batches are cut below cuSOLVER's 65,536-matrix limit; the pieces must give one call's
+    # eigenvalues, eigenvectors (up to sign) and gradient. Cut here on the CPU with a small chunk.
+    assert EIGH_CUDA_CHUNK < 65536
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randn(50, 3, 5, dtype=torch.float64, generator=generator)
+    cov = (a @ a.transpose(1, 2)).requires_grad_(True)
+    values, vectors = torch.linalg.eigh(cov)
+    (values.sum() + vectors[:, :, 0].abs().sum()).backward()
+    whole = cov.grad.clone()
+    cov.grad = None
+    got_values, got_vectors = batched_eigh(cov, chunk=7)  # 8 pieces, the last of 1
+    (got_values.sum() + got_vectors[:, :, 0].abs().sum()).backward()
+    assert torch.allclose(got_values, values, atol=1e-12)
+    assert torch.allclose(got_vectors.abs(), vectors.abs(), atol=1e-10)
+    assert torch.allclose(cov.grad, whole, atol=1e-10)
 
 
 def test_closed_form_smallest_eigenvector_matches_eigh():
