@@ -167,6 +167,8 @@ def cuda_memory(name: str, model: CRFDepth | None, frame: dict, std: bool, devic
         seconds, stages, iterations = run_once(name, model, frame, std, device)
     except InputError as err:
         return dict(refused=str(err))
+    except RuntimeError as err:  # out of memory, a CUDA library's error: reported in the row, the run goes on
+        return dict(failed=f"{type(err).__name__}: {str(err).splitlines()[0]}")
     return dict(peak_bytes=torch.cuda.max_memory_allocated(device) - base, seconds=seconds, stages=stages,
                 iterations=iterations)
 
@@ -218,25 +220,34 @@ def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None
 def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
     """Iterations and time of each pixel-grid solve of the default and the superpixel model on
     ``frame`` (captured from a forward), with the Jacobi and multigrid preconditioners and "auto"."""
-    import crfdepth.model as model_module
+    import crfdepth.inference.pixel
+    import crfdepth.inference.superpixel
+    import crfdepth.layer
     from crfdepth.linalg import solve_system
 
-    captured, original = [], model_module.solve_system
+    # The modules whose forwards call solve_system (each holds its own reference to it).
+    callers = (crfdepth.inference.pixel, crfdepth.inference.superpixel, crfdepth.layer)
+    captured = []
 
     def capture(system, x0, settings):
         if system.is_grid:
             captured.append((system, x0, settings))
-        return original(system, x0, settings)
+        return solve_system(system, x0, settings)
 
     f = on_device(frame, device)
-    model_module.solve_system = capture
+    for module in callers:
+        module.solve_system = capture
     try:  # the default model's grid solves: the first pass and the round with geometry
         run_once("default", make_model("default", device), f, False, device)
         names = [f"default solve {k + 1}" for k in range(len(captured))]
         run_once("superpixel", make_model("superpixel", device), f, False, device)  # one grid solve: the refinement
         names.append("superpixel refinement")
     finally:
-        model_module.solve_system = original
+        for module in callers:
+            module.solve_system = solve_system
+    if len(captured) != len(names):
+        raise RuntimeError(f"captured {len(captured)} grid solves for {len(names)} names: "
+                           "a forward no longer calls solve_system through the patched modules")
     rows = []
     for name, (system, x0, settings) in zip(names, captured):
         row = dict(solve=name, size=list(system.diagonal.shape[-2:]))
@@ -275,7 +286,7 @@ def print_table(rows: list[dict]) -> None:
         cells += [_cell(r.get("stages", {}).get(s)) for s in stages]
         cells += [_cell(r.get("seconds"), digits=1), _cell(r.get("fps"), 1, 1),
                   _cell(r.get("peak_bytes"), 1e-6), _cell(r.get("bytes_per_pixel"), 1),
-                  "refused" if r.get("refused") else str(r.get("iterations") or "-")]
+                  "refused" if r.get("refused") else "failed" if r.get("failed") else str(r.get("iterations") or "-")]
         print("  ".join(f"{c:>{w}}" for c, w in zip(cells, widths)))
 
 

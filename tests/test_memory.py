@@ -74,3 +74,19 @@ def test_speed_benchmark_measures_every_configuration_within_the_estimates(tmp_p
             assert r["iterations"] and all(i > 0 for i in r["iterations"])
     assert set(report["verdicts"]) >= {"default_ms", "default_vs_classical", "moonshot_ms", "large_peak_gb"}
     assert "default_ms" in result.stdout and "met" in result.stdout.lower()
+
+
+def test_speed_benchmark_times_every_grid_solve_of_a_forward():
+    """--solvers captures the default model's two grid solves and the superpixel refinement (it captured
+    none after the solves moved to crfdepth.inference) and times each with every preconditioner."""
+    from tests.benchmark_scripts import load_benchmark
+
+    speed = load_benchmark("speed")
+    t = make_scene(0, height=96, width=320).to_tensors()
+    frame = dict(image=t["image"][None].float(), sparse=t["sparse"][None].float(), K=t["K"].float(), name="s")
+    rows = speed.measure_solvers(frame, "cpu", repeats=1)
+    assert [r["solve"] for r in rows] == ["default solve 1", "default solve 2", "superpixel refinement"]
+    for r in rows:
+        assert r["size"] == [96, 320]
+        for pre in ("jacobi", "multigrid", "auto"):
+            assert r[pre]["iterations"] > 0 and r[pre]["seconds"] > 0, r
