@@ -70,6 +70,18 @@ def test_other_libraries_warnings_keep_their_kind(capsys):
         "crfdepth demo: warning: plain"]
 
 
+def test_python_312_fork_warning_of_dataloader_workers_is_not_printed(capsys):
+    # Python 3.12+ warns when a multi-threaded process forks (DataLoader's --workers do, from a
+    # process holding torch's thread pools); other DeprecationWarnings still print.
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # as pytest and python -W default set them, before the command
+        with warnings_as_lines("complete"):
+            warnings.warn("This process (pid=4962) is multi-threaded, use of fork() may lead to deadlocks in the child.",
+                          DeprecationWarning, stacklevel=1)
+            warnings.warn("This process is old", DeprecationWarning, stacklevel=1)
+    assert capsys.readouterr().err.splitlines() == ["crfdepth complete: warning: DeprecationWarning: This process is old"]
+
+
 def test_warning_filters_still_apply(capsys):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
