@@ -34,6 +34,7 @@ from typing import Any, Literal
 
 import lightning.pytorch as pl
 import torch
+import torch.nn.functional as F
 
 from crfdepth.data.sample import Batch
 from crfdepth.errors import InputError
@@ -54,13 +55,20 @@ PARAMETERS = {
 }
 
 
-def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l1"] = "l2") -> torch.Tensor:
+def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l1", "huber"] = "l2",
+               huber_delta: float = 1.0) -> torch.Tensor:
     """Per-image depth loss over the target pixels.
 
     Args:
         depth: (B, 1, H, W) predicted depth in metres.
         target: (B, 1, H, W) ground truth in metres, 0 = none.
-        kind: "l2" (mean squared error, m^2) or "l1" (mean absolute error, m).
+        kind: "l2" (mean squared error, m^2), "l1" (mean absolute error, m) or "huber": the
+            squared error up to ``huber_delta`` metres of error and linear beyond, with the
+            same slope there (``2 delta |e| - delta^2``; twice torch's ``huber_loss``, so that
+            it equals "l2" on small errors). A target wrong by more than ``delta`` (a
+            see-through return or a mover's smear the cleaning kept) then pulls with a bounded
+            force, where "l2" lets it dominate (docs/design.md section 15).
+        huber_delta: metres; used by "huber" only.
 
     Returns:
         (B,) mean over each image's target pixels; 0 for an image without any (and no
@@ -68,7 +76,12 @@ def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l
     """
     valid = target > 0
     err = torch.where(valid, depth - target, torch.zeros_like(depth))
-    err = err.square() if kind == "l2" else err.abs()
+    if kind == "l2":
+        err = err.square()
+    elif kind == "l1":
+        err = err.abs()
+    else:
+        err = 2 * F.huber_loss(err, torch.zeros_like(err), reduction="none", delta=huber_delta)
     return err.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
 
 
@@ -103,7 +116,8 @@ class CRFDepthModule(pl.LightningModule):
                + photometric_weight * photometric_loss(I_t, I_s, x, K, T_s<-t)
 
     ``depth_loss`` is the per-image mean over target pixels (``t > 0``) of
-    ``(x - t)^2`` (``"l2"``, m^2) or ``|x - t|`` (``"l1"``, m). The NLL term sees the
+    ``(x - t)^2`` (``"l2"``, m^2), ``|x - t|`` (``"l1"``, m) or the squared error up to
+    ``huber_delta`` and linear beyond (``"huber"``, m^2). The NLL term sees the
     depth detached, so it fits the std's weights only (the predictive std's ``std_head``, or
     the posterior std's scale ``s`` with ``uncertainty="posterior"``; docs/design.md
     section 5) and the depth loss alone decides the potential weights. With
@@ -114,7 +128,8 @@ class CRFDepthModule(pl.LightningModule):
         crf: the model's configuration: groups (``{structure: {mode: pixel}, gate: {enabled:
             true}}``, :mod:`crfdepth.config`) or flat ``CRFDepth`` arguments (``{mode: pixel}``);
             None = all defaults. Stored complete, in groups, in the hyperparameters.
-        loss: "l2" or "l1".
+        loss: "l2", "l1" or "huber" (:func:`depth_loss`).
+        huber_delta: metres of error where "huber" turns from squared to linear (> 0).
         nll_weight: weight of the Gaussian NLL term (>= 0).
         lr: Adam learning rate on the free (unconstrained) parameters: logits of
             alpha..delta, logs of the sigmas, confidence and std scale.
@@ -142,16 +157,19 @@ class CRFDepthModule(pl.LightningModule):
     def __init__(
         self,
         crf: dict[str, Any] | None = None,
-        loss: Literal["l2", "l1"] = "l2",
+        loss: Literal["l2", "l1", "huber"] = "l2",
         nll_weight: float = 0.0,
         lr: float = 0.05,
         freeze: list[str] | None = None,
         head_lr: float = 2e-3,
         photometric_weight: float = 0.0,
+        huber_delta: float = 1.0,
     ) -> None:
         super().__init__()
-        if loss not in ("l2", "l1"):
-            raise InputError(f"loss: expected 'l2' or 'l1', got {loss!r}")
+        if loss not in ("l2", "l1", "huber"):
+            raise InputError(f"loss: expected 'l2', 'l1' or 'huber', got {loss!r}")
+        if isinstance(huber_delta, bool) or not isinstance(huber_delta, (int, float)) or not huber_delta > 0:
+            raise InputError(f"huber_delta: expected a number of metres > 0, got {huber_delta!r}")
         if not isinstance(nll_weight, (int, float)) or nll_weight < 0:
             raise InputError(f"nll_weight: expected a number >= 0, got {nll_weight!r}")
         if isinstance(photometric_weight, bool) or not isinstance(photometric_weight, (int, float)) \
@@ -168,6 +186,7 @@ class CRFDepthModule(pl.LightningModule):
         # Self-describing checkpoints: the complete constructor arguments, plain values.
         self.hparams["crf"] = copy.deepcopy(self.model.config)
         self.loss_kind = loss
+        self.huber_delta = float(huber_delta)
         self.nll_weight = float(nll_weight)
         self.photometric_weight = float(photometric_weight)
         self.lr = float(lr)
@@ -216,7 +235,7 @@ class CRFDepthModule(pl.LightningModule):
         """Per-image losses of a batch: ``(loss (B,), parts, output)``."""
         want_std = self.nll_weight > 0
         out = self(batch, return_std=want_std)
-        parts = {"depth_loss": depth_loss(out.depth, batch.target, self.loss_kind)}
+        parts = {"depth_loss": depth_loss(out.depth, batch.target, self.loss_kind, self.huber_delta)}
         loss = parts["depth_loss"]
         if want_std:
             parts["nll"] = gaussian_nll(out.depth.detach(), out.std, batch.target)

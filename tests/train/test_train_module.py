@@ -29,6 +29,9 @@ def test_depth_loss_known_values():
     target = torch.tensor([[[[2.0, 0.0], [1.0, 0.0]]], [[[0.0, 0.0], [0.0, 0.0]]]])
     assert depth_loss(depth, target, "l2").tolist() == [pytest.approx((1 + 4) / 2), 0.0]
     assert depth_loss(depth, target, "l1").tolist() == [pytest.approx((1 + 2) / 2), 0.0]
+    # huber: the squared error up to delta, then 2 delta |e| - delta^2 (continuous, same slope)
+    assert depth_loss(depth, target, "huber", 1.5).tolist() == [pytest.approx((1 + (2 * 1.5 * 2 - 1.5 ** 2)) / 2), 0.0]
+    assert depth_loss(depth, target, "huber", 5.0).tolist() == depth_loss(depth, target, "l2").tolist()
     # An image without targets contributes no gradient (and no NaN).
     depth.requires_grad_(True)
     depth_loss(depth, target).sum().backward()
@@ -76,6 +79,8 @@ def test_unused_parameters_are_frozen():
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"loss": "l3"}, "loss"), ({"nll_weight": -1.0}, "nll_weight"), ({"lr": 0.0}, "lr"),
+    ({"loss": "huber", "huber_delta": 0.0}, "^huber_delta: expected a number of metres > 0, got 0.0$"),
+    ({"huber_delta": "1 m"}, "^huber_delta: "),
     ({"freeze": ["alpha", "zeta"]}, "zeta"), ({"crf": {"mode": "voxel"}}, "mode"),
 ])
 def test_bad_arguments(kwargs, match):
