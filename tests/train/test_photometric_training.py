@@ -158,17 +158,16 @@ def test_the_sequence_config_parses(configs, capsys, monkeypatch):
         main(["fit", "--config", str(configs / "kitti_sequence.yaml"), "--print_config"])
     assert exit_info.value.code in (0, None)
     printed = yaml.safe_load(capsys.readouterr().out)
-    assert printed["model"]["crf"] == {"structure": {"mode": "pixel", "variable": "log", "head": True},
-                                       "gate": {"enabled": True}}
-    assert printed["model"]["photometric_weight"] == 0.0 and printed["model"]["loss"] == "l2"
+    assert printed["model"]["crf"] == {"structure": {"mode": "pixel", "variable": "log"}, "gate": {"enabled": True}}
+    assert printed["model"]["photometric_weight"] == 0.0 and printed["model"]["loss"] == "l1"
     data = printed["data"]
     assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 46]
     assert data["train_options"]["target_input"] == 0.5
     # the raw-scan sources keep drive 0060's sample frames before 52 only: the reported block
     # 52-77 and drive 0001 (the official frames' drive) are never trained on
     extra = data["extra_train"]
-    assert [s["layout"] for s in extra] == ["synthetic", "synthetic", "raw", "raw", "object", "object"]
-    for source in extra[2:4]:
+    assert [s["layout"] for s in extra] == ["raw", "raw", "object", "object"]  # no synthetic scenes (section 15)
+    for source in extra[:2]:
         assert sorted(int(n[-10:]) for n in source["names_contain"]) == list(range(0, 52, 6))
         assert all(n.startswith("drive_0060_sync_") for n in source["names_contain"])
     assert data["val_options"]["frames"] == [52, 77] and data["train_options"]["beams"] == [16, 32, 64]
