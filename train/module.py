@@ -80,8 +80,10 @@ def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l
         err = err.square()
     elif kind == "l1":
         err = err.abs()
-    else:
+    elif kind == "huber":
         err = 2 * F.huber_loss(err, torch.zeros_like(err), reduction="none", delta=huber_delta)
+    else:
+        raise InputError(f"loss: expected 'l2', 'l1' or 'huber', got {kind!r}")
     return err.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
 
 

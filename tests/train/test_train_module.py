@@ -32,6 +32,8 @@ def test_depth_loss_known_values():
     # huber: the squared error up to delta, then 2 delta |e| - delta^2 (continuous, same slope)
     assert depth_loss(depth, target, "huber", 1.5).tolist() == [pytest.approx((1 + (2 * 1.5 * 2 - 1.5 ** 2)) / 2), 0.0]
     assert depth_loss(depth, target, "huber", 5.0).tolist() == depth_loss(depth, target, "l2").tolist()
+    with pytest.raises(InputError, match="^loss: expected 'l2', 'l1' or 'huber', got 'l3'$"):
+        depth_loss(depth, target, "l3")
     # An image without targets contributes no gradient (and no NaN).
     depth.requires_grad_(True)
     depth_loss(depth, target).sum().backward()
