@@ -75,3 +75,35 @@ def test_device_fill_and_distance_agree_with_the_cpu_path():
     values = set(sparse[sparse > 0].tolist())
     assert set(device.unique().tolist()) <= values
     assert float((device == cpu).double().mean()) > 0.9
+
+
+@pytest.mark.parametrize("max_block, entries", [(1, 1 << 25), (3, 1 << 25), (64, 500)])
+def test_blocks_of_any_width_give_the_exact_distances(monkeypatch, max_block, entries):
+    # shifts in blocks of 1 (the per-shift loop), of 3, and blocks narrowed by the memory cap
+    # (500 candidates: one shift per block at this size); distances up to 250 pixels along a row
+    import crfdepth.geometry.nearest as module
+    monkeypatch.setattr(module, "_MAX_BLOCK", max_block)
+    monkeypatch.setattr(module, "_BLOCK_ENTRIES", entries)
+    valid = torch.zeros(6, 260, dtype=torch.bool)
+    valid[2, 3] = True
+    valid[5, 140] = True
+    _check_against_scipy(valid)
+    generator = torch.Generator().manual_seed(5)
+    for _ in range(3):
+        valid = torch.rand(30, 90, generator=generator) < 0.01
+        valid[0, 0] |= not bool(valid.any())
+        _check_against_scipy(valid)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_gives_the_exact_distances_of_scipy():
+    generator = torch.Generator().manual_seed(2)
+    valid = torch.rand(3, 120, 400, generator=generator) < 0.01
+    valid[1, :40] = False  # an empty band: distances of 40 rows and more
+    valid[2] = False  # a frame without a return
+    index, squared = nearest_valid(valid.cuda())
+    for k in (0, 1):
+        distance = distance_transform_edt(~valid[k].numpy())
+        assert np.array_equal(squared[k].cpu().numpy(), np.rint(distance ** 2).astype(np.int64))
+        assert bool(valid[k].flatten()[index[k].cpu().flatten()].all())
+    assert bool((index[2] == -1).all())
