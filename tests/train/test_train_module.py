@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -83,11 +84,30 @@ def test_unused_parameters_are_frozen():
     ({"loss": "l3"}, "loss"), ({"nll_weight": -1.0}, "nll_weight"), ({"lr": 0.0}, "lr"),
     ({"loss": "huber", "huber_delta": 0.0}, "^huber_delta: expected a number of metres > 0, got 0.0$"),
     ({"huber_delta": "1 m"}, "^huber_delta: "),
+    ({"exclude_inputs": "yes"}, "^exclude_inputs: expected true or false, got 'yes'$"),
     ({"freeze": ["alpha", "zeta"]}, "zeta"), ({"crf": {"mode": "voxel"}}, "mode"),
 ])
 def test_bad_arguments(kwargs, match):
     with pytest.raises(InputError, match=match):
         CRFDepthModule(**kwargs)
+
+
+def test_exclude_inputs_scores_only_the_pixels_without_an_input_return():
+    sample = build_dataset("synthetic", count=1, seed=3, height=64, width=192)[0]
+    batch = collate_samples([sample])
+    inputs = batch.sparse > 0
+    assert int((inputs & (batch.target > 0)).sum()) > 50  # the synthetic target covers the input pixels
+    module = CRFDepthModule(crf={"mode": "pixel"}, loss="l1", exclude_inputs=True)
+    loss, _, out = module._objective(batch)
+    zeroed = torch.where(inputs, torch.zeros_like(batch.target), batch.target)
+    assert torch.allclose(loss, depth_loss(out.depth, zeroed, "l1"), rtol=1e-6)
+    assert not torch.allclose(loss, depth_loss(out.depth, batch.target, "l1"), rtol=1e-3)
+    # the target at input pixels does not matter; elsewhere it does
+    moved = batch.target.clone()
+    moved[inputs] += 5.0
+    assert torch.allclose(module._objective(dataclasses.replace(batch, target=moved))[0], loss, rtol=1e-6)
+    assert CRFDepthModule(crf={"mode": "pixel"}, loss="l1")._objective(dataclasses.replace(batch, target=moved))[0] \
+        > loss + 0.1
 
 
 def test_nll_term_trains_only_the_std_scale():
