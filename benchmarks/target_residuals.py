@@ -47,7 +47,14 @@ from crfdepth.data.factory import build_dataset
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 
-REPO = Path(__file__).resolve().parent.parent
+# A run as a script has this folder on the path; a load from the file's path (the tests) has not.
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.append(str(HERE))
+
+from accuracy_parts.methods import method_config  # noqa: E402
+
+REPO = HERE.parent
 DEFAULT_RAW = REPO.parent / "shared" / "data" / "kitti" / "sequences"
 
 
@@ -89,8 +96,8 @@ def residuals(prediction: np.ndarray, target: np.ndarray, own: np.ndarray, suppo
 
 
 def _model(weights: str) -> CRFDepth:
-    if weights == "handset":
-        return CRFDepth(mode="pixel", variable="log", gate=True).eval()
+    if weights == "handset":  # as benchmarks/accuracy.py's hand-set: the recipe's structure, the constructor's weights
+        return CRFDepth(**method_config("hand-set")).eval()
     if Path(weights).suffix in (".ckpt", ".pt"):
         return load_model(weights).eval()
     return CRFDepth.from_pretrained(weights).eval()

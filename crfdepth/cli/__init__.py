@@ -83,8 +83,8 @@ def warnings_as_lines(command: str | None) -> Iterator[None]:
         warnings.showwarning = show
         # --workers: DataLoader forks its workers from this process, which holds torch's thread pools;
         # PyTorch supports that (its pools restart in the child), and Python 3.12+ warns about any fork
-        # of a multi-threaded process (shown under pytest and -W default: an extra stderr line). The
-        # likely cause of three --workers error tests failing on a Python 3.12 machine, unconfirmed there.
+        # of a multi-threaded process (shown under pytest and -W default: an extra stderr line). It made
+        # three --workers error tests fail on a Python 3.12 machine; with this filter they pass there.
         warnings.filterwarnings("ignore", message=r"This process \(pid=\d+\) is multi-threaded, use of fork\(\)",
                                 category=DeprecationWarning)
         yield
