@@ -10,8 +10,9 @@ from torch.utils.data import Dataset
 from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 
-Layout = Literal["depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence"]
-LAYOUTS = ("depth_completion", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence")
+Layout = Literal["depth_completion", "annotated", "val_selection", "test_selection", "raw", "object", "synthetic",
+                 "sequence"]
+LAYOUTS = ("depth_completion", "annotated", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence")
 
 
 def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> Dataset:
@@ -20,6 +21,8 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
     ``layout``:
 
     - ``"depth_completion"``: :class:`~crfdepth.data.kitti.KittiDepthCompletion` (``split``, ``raw_root``, ...);
+    - ``"annotated"``: :class:`~crfdepth.data.kitti.KittiAnnotated` (KITTI's annotation with the input
+      drawn from it or from the frame's scan: ``input``, ``input_share``, ``keep_every_ring``, ``seed``);
     - ``"val_selection"``: :class:`~crfdepth.data.kitti.KittiValSelection` (``depth_selection/val_selection_cropped``);
     - ``"test_selection"``: :class:`~crfdepth.data.kitti.KittiTestCompletion` (no target);
     - ``"raw"`` / ``"object"``: :class:`~crfdepth.data.kitti.KittiRawScans` with held-out LiDAR
@@ -36,6 +39,8 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
         raise InputError(f"root: a data folder is needed for layout {layout!r}")
     if layout == "depth_completion":
         return kitti.KittiDepthCompletion(root, **options)
+    if layout == "annotated":
+        return kitti.KittiAnnotated(root, **options)
     if layout == "val_selection":
         return kitti.KittiValSelection(root, **options)
     if layout == "sequence":

@@ -1,6 +1,6 @@
 """Torch datasets for every KITTI layout crfdepth reads (docs/design.md sections 1 and 7).
 
-All five datasets return a :class:`~crfdepth.data.sample.Sample` built by one loading path
+All six datasets return a :class:`~crfdepth.data.sample.Sample` built by one loading path
 (:func:`~crfdepth.data.kitti.loading.load_sample`): read RGB, sparse depth, ground truth
 and ``K`` from files, check that their sizes agree, convert to tensors, then apply the
 dataset's ``transform``.
@@ -8,6 +8,8 @@ dataset's ``transform``.
 - :class:`KittiDepthCompletion` (:mod:`~crfdepth.data.kitti.completion`): the official
   ``data_depth_velodyne`` / ``data_depth_annotated`` trees, RGB and calibration from the
   raw-data tree; target = KITTI's semi-dense annotation.
+- :class:`KittiAnnotated` (:mod:`~crfdepth.data.kitti.annotated`): frames with KITTI's
+  annotation, the input drawn from it (a share of its pixels, or a ring pattern) or the scan.
 - :class:`KittiValSelection` (:mod:`~crfdepth.data.kitti.selection`):
   ``depth_selection/val_selection_cropped``; annotated target.
 - :class:`KittiTestCompletion` (:mod:`~crfdepth.data.kitti.selection`):
@@ -30,6 +32,7 @@ and depth of different sizes raise :class:`~crfdepth.errors.InputError` naming t
 file(s) and sizes.
 """
 
+from crfdepth.data.kitti.annotated import KittiAnnotated
 from crfdepth.data.kitti.completion import KittiDepthCompletion
 from crfdepth.data.kitti.drive import KittiDrive, is_raw_drive, raw_drives
 from crfdepth.data.kitti.loading import load_sample
@@ -37,6 +40,7 @@ from crfdepth.data.kitti.raw_scans import KittiRawScans
 from crfdepth.data.kitti.selection import KittiTestCompletion, KittiValSelection, open_completion_folder
 
 __all__ = [
+    "KittiAnnotated",
     "KittiDepthCompletion",
     "KittiDrive",
     "KittiRawScans",
