@@ -16,21 +16,9 @@ import torch
 
 from crfdepth.errors import InputError
 
-__all__ = [
-    "MAX_FOV_DEG",
-    "MIN_FOV_DEG",
-    "RIGID_TOLERANCE",
-    "check_choice",
-    "check_depth_frames",
-    "check_depth_values",
-    "check_frames",
-    "check_intrinsics",
-    "check_map",
-    "check_number",
-    "check_rigid",
-    "check_scalar_tensor",
-    "describe",
-]
+__all__ = ["MAX_FOV_DEG", "MAX_RETURN_DEPTH_M", "MIN_FOV_DEG", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
+           "check_depth_frames", "check_depth_values", "check_frames", "check_has_data", "check_intrinsics",
+           "check_map", "check_number", "check_return_depths", "check_rigid", "check_scalar_tensor", "describe"]
 
 # Field of view of K over the image, degrees (check_intrinsics): a pinhole image cannot reach 180
 # degrees, and rectified fisheye images are cut well below 170; the narrowest telephoto lenses
@@ -39,6 +27,9 @@ MAX_FOV_DEG = 170.0
 MIN_FOV_DEG = 1.0
 # Largest deviation of R^T R from I (and of the last row from 0 0 0 1) of a rigid transform.
 RIGID_TOLERANCE = 1e-3
+# A LiDAR return's depth, metres (check_return_depths): none is nearer than 1 mm and none reaches 1 km
+# (automotive LiDARs: 100-300 m); outside, the depth is in another unit or is not a measurement.
+MIN_RETURN_DEPTH_M, MAX_RETURN_DEPTH_M = 1e-3, 1000.0
 
 
 def describe(value: object) -> str:
@@ -182,16 +173,38 @@ def check_depth_frames(sparse: object, *, above: float = 0.0, what: str = "the f
     return frames
 
 
+def check_has_data(name: str, value: object) -> None:
+    """Refuse a meta tensor (``device='meta'``: a shape without values) where values are needed."""
+    if isinstance(value, torch.Tensor) and value.is_meta:
+        raise InputError(f"{name}: expected a tensor holding values (on cpu, cuda or mps), got a meta tensor "
+                         f"({describe(value)}, device 'meta': a shape without data)")
+
+
+def check_return_depths(name: str, depth: object) -> None:
+    """Every return (value > 0) of a finite depth array or tensor, metres, within [``MIN_RETURN_DEPTH_M``,
+    ``MAX_RETURN_DEPTH_M``] = [1 mm, 1000 m]; the message counts those outside and gives the extreme."""
+    v = depth.detach() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+    near, far = (v > 0) & (v < MIN_RETURN_DEPTH_M), v > MAX_RETURN_DEPTH_M
+    parts = [f"{int(mask.sum())} {side} {bound:g} m ({word} {float(pick(v[mask])):.4g} m)"
+             for mask, side, bound, word, pick in ((near, "below", MIN_RETURN_DEPTH_M, "smallest", lambda x: x.min()),
+                                                   (far, "beyond", MAX_RETURN_DEPTH_M, "largest", lambda x: x.max()))
+             if bool(mask.any())]
+    if parts:
+        raise InputError(f"{name}: expected LiDAR depths from {MIN_RETURN_DEPTH_M:g} to {MAX_RETURN_DEPTH_M:g} m "
+                         f"(0 = no return), got {' and '.join(parts)}: another unit, or not measured depth")
+
+
 def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Check a batch of frames for the model; returns them with K expanded to (B, 3, 3).
 
     ``image`` (B, 3, H, W) finite RGB in [0, 1]; ``sparse`` (B, 1, H, W) floating, finite
-    depth >= 0 in metres with at least one LiDAR pixel per frame; ``K`` (3, 3) or
-    (B, 3, 3) finite with focal lengths > 0; all on one device.
+    depth >= 0 in metres, returns in [1 mm, 1000 m] (:func:`check_return_depths`), at least one
+    per frame; ``K`` (3, 3) or (B, 3, 3) finite with focal lengths > 0; all on one device, none meta.
     """
     for name, t in (("image", image), ("sparse", sparse), ("K", K)):
         if not isinstance(t, torch.Tensor):
             raise InputError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+        check_has_data(name, t)
     if sparse.dim() != 4 or sparse.shape[1] != 1:
         raise InputError(f"sparse: expected shape (B, 1, H, W), got {tuple(sparse.shape)}")
     bsz, _, h, w = sparse.shape
@@ -210,6 +223,7 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     low, high = (float(v) for v in torch.aminmax(sparse.detach()))
     if not (low >= 0 and high < math.inf):
         raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
+    check_return_depths("sparse", sparse)
     low, high = (float(v) for v in torch.aminmax(image.detach()))
     if not (low >= 0 and high <= 1):
         raise InputError(f"image: expected finite RGB values in [0, 1], got range [{low:.3g}, {high:.3g}]")
@@ -232,6 +246,7 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 
 def _as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: bool) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape`` (or of its row-major flat length)."""
+    check_has_data(name, value)
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     try:
@@ -248,50 +263,108 @@ def _as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: boo
     return array
 
 
+# Plausible pinhole K (check_intrinsics). A real K is upper triangular with K[2][2] = 1: its zeros and
+# its 1 are exact, so only a computed K's rounding is allowed for (absolute, and K[1][0] relative to fy).
+INTRINSICS_TOLERANCE = 1e-6
+# Largest skew |K[0][1]| as a fraction of fx: real sensors have square pixel grids (s = 0, or
+# below 1e-3 fx from a calibration that fits it); 0.1 fx (a 6 degree shear) is no lens's.
+MAX_SKEW_RATIO = 0.1
+# Largest condition number of K: about 1e3 for KITTI and 1e5 for a 100-megapixel telephoto;
+# beyond 1e10 K is numerically singular (focal lengths and principal point in different units).
+MAX_INTRINSICS_CONDITION = 1e10
+# How far outside the image the principal point may lie, as a fraction of its width / height on
+# each side: -0.5 W <= cx <= 1.5 W, -0.5 H <= cy <= 1.5 H (the image extended by half its size).
+PRINCIPAL_POINT_MARGIN = 0.5
+
+
 def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | None = None) -> np.ndarray:
     """(3, 3) float64 copy of ``K`` after checking it is a plausible pinhole matrix of the image.
 
-    Accepts a 3x3 nested list, array or tensor, or 9 numbers (row-major). Requires finite
-    values, ``fx = K[0,0] > 0``, ``fy = K[1,1] > 0``, last row 0 0 1 and, when
-    ``image_size`` = (height, width) in pixels is given, the principal point within half
-    an image of the image (``-W/2 <= cx <= 1.5 W``, same for cy): further out almost always
-    means K belongs to another resolution or has cx and cy swapped (docs/design.md
-    section 1); and a field of view (the angle between the rays through the image's
-    opposite edges, horizontal or vertical, whichever is wider) in (``MIN_FOV_DEG``,
-    ``MAX_FOV_DEG``) = (1, 170) degrees. A pinhole image approaches 180 degrees only as
-    its edges go to infinity; fisheye cameras rectified to a pinhole image are cut to
-    about 90-150 degrees (the stretched borders are useless), so 170 admits every real
-    wide-angle or rectified fisheye camera while refusing fx = 4 px on a KITTI frame
-    (179 degrees); 1 degree admits long telephoto lenses (a 1000 mm lens on a 36 mm
-    sensor: 2 degrees) while refusing K of a full image applied to a few-pixel crop. Apply it wherever a K meets an image. ``what`` is the user's name of K
-    (``K``, ``--intrinsics``, ``K (rig.yaml)``).
+    Accepts a 3x3 nested list, array or tensor, or 9 numbers (row-major). Requires, in this order:
+
+    - finite numbers;
+    - focal lengths ``fx = K[0,0] > 0`` and ``fy = K[1,1] > 0``;
+    - last row 0 0 1 and ``K[1,0] = 0`` (upper triangular; within ``INTRINSICS_TOLERANCE`` = 1e-6,
+      ``K[1,0]`` relative to fy): a transposed K or a projection matrix's other rows fail here;
+    - a skew ``|K[0,1]| <= MAX_SKEW_RATIO * fx`` (0.1 fx);
+    - non-singular: condition number at most ``MAX_INTRINSICS_CONDITION`` (1e10);
+
+    and, when ``image_size`` = (height, width) in pixels is given:
+
+    - the principal point within half an image of the image (``PRINCIPAL_POINT_MARGIN``:
+      ``-W/2 <= cx <= 1.5 W``, same for cy): further out almost always means K belongs to
+      another resolution or has cx and cy swapped (docs/design.md section 1);
+    - a field of view (the angle between the rays through the image's opposite edges,
+      horizontal or vertical, whichever is wider) in (``MIN_FOV_DEG``, ``MAX_FOV_DEG``) =
+      (1, 170) degrees. A pinhole image approaches 180 degrees only as its edges go to
+      infinity; fisheye cameras rectified to a pinhole image are cut to about 90-150 degrees
+      (the stretched borders are useless), so 170 admits every real wide-angle or rectified
+      fisheye camera while refusing fx = 4 px on a KITTI frame (179 degrees); 1 degree admits
+      long telephoto lenses (a 1000 mm lens on a 36 mm sensor: 2 degrees) while refusing K of
+      a full image applied to a few-pixel crop.
+
+    Apply it wherever a K meets an image. ``what`` is the user's name of K (``K``,
+    ``--intrinsics``, ``K (rig.yaml)``). Messages quote at most a short prefix of a value
+    that is not a matrix of numbers, never its whole repr.
     """
+    if isinstance(K, torch.Tensor):
+        K = K.detach().cpu().numpy()
+    try:
+        K = np.array(K, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        import reprlib
+
+        short = reprlib.Repr()
+        short.maxlevel, short.maxlist, short.maxtuple, short.maxdict = 2, 4, 4, 4
+        short.maxstring = short.maxother = short.maxlong = 40
+        try:
+            got = short.repr(K)
+        except Exception:  # a repr that fails (an int of 100,000 digits): the type alone
+            got = type(K).__name__
+        raise InputError(f"{what}: expected a 3x3 matrix of numbers, got {got}") from None
     K = _as_matrix(K, (3, 3), what, allow_flat=True)
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    if fx <= 0 or fy <= 0:
         raise InputError(f"{what}: expected focal lengths fx = K[0][0] > 0 and fy = K[1][1] > 0 (pixels), got "
-                         f"fx={K[0, 0]:g}, fy={K[1, 1]:g}")
-    if not np.allclose(K[2], (0.0, 0.0, 1.0)):
-        raise InputError(f"{what}: expected the last row of K to be 0 0 1, got {' '.join(f'{v:g}' for v in K[2])}")
+                         f"fx={fx:g}, fy={fy:g}")
+    tol = INTRINSICS_TOLERANCE
+    if abs(K[2, 0]) > tol or abs(K[2, 1]) > tol or abs(K[2, 2] - 1.0) > tol:
+        hint = (": K looks transposed (cx and cy belong in the last column)"
+                if cx == 0 and cy == 0 and K[2, 2] == 1 else "")
+        raise InputError(f"{what}: expected the last row of K to be 0 0 1, got "
+                         f"{' '.join(f'{v:g}' for v in K[2])} (tolerance {tol:g}){hint}")
+    if abs(K[1, 0]) > tol * fy:
+        raise InputError(f"{what}: expected an upper-triangular K, K[1][0] = 0 (within {tol:g} fy), got "
+                         f"K[1][0]={K[1, 0]:g}: K is mistyped, or a rotation is mixed into it")
+    if abs(skew) > MAX_SKEW_RATIO * fx:
+        raise InputError(f"{what}: expected a skew |K[0][1]| <= {MAX_SKEW_RATIO:g} fx = {MAX_SKEW_RATIO * fx:g} px "
+                         f"(pixel grids are rectangular: 0 or nearly), got K[0][1]={skew:g} ({skew / fx:.3g} fx): "
+                         f"K is mistyped, or a rotation is mixed into it")
+    condition = float(np.linalg.cond(K))
+    if not condition <= MAX_INTRINSICS_CONDITION:
+        raise InputError(f"{what}: expected a non-singular K (condition number <= {MAX_INTRINSICS_CONDITION:g}), got "
+                         f"condition number {condition:.3g} (fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g}): focal "
+                         f"lengths and principal point in different units?")
     if image_size is not None:
         height, width = image_size
-        cx, cy = K[0, 2], K[1, 2]
-        if not (-0.5 * width <= cx <= 1.5 * width and -0.5 * height <= cy <= 1.5 * height):
+        low, high = -PRINCIPAL_POINT_MARGIN, 1.0 + PRINCIPAL_POINT_MARGIN
+        if not (low * width <= cx <= high * width and low * height <= cy <= high * height):
             raise InputError(f"{what}: expected the principal point of the {width}x{height} (WxH) image within "
-                             f"half an image of it (cx in [{-0.5 * width:g}, {1.5 * width:g}], cy in "
-                             f"[{-0.5 * height:g}, {1.5 * height:g}] px), got (cx, cy) = ({cx:g}, {cy:g}), far "
+                             f"half an image of it (cx in [{low * width:g}, {high * width:g}], cy in "
+                             f"[{low * height:g}, {high * height:g}] px), got (cx, cy) = ({cx:g}, {cy:g}), far "
                              f"outside: K probably belongs to another image size (scale K with the image after a "
                              f"resize or crop) or cx and cy are swapped")
         # Field of view: the angle between the rays of the image's two edges, cx and cy anywhere.
-        fov_x = math.degrees(math.atan((width - cx) / K[0, 0]) + math.atan(cx / K[0, 0]))
-        fov_y = math.degrees(math.atan((height - cy) / K[1, 1]) + math.atan(cy / K[1, 1]))
+        fov_x = math.degrees(math.atan((width - cx) / fx) + math.atan(cx / fx))
+        fov_y = math.degrees(math.atan((height - cy) / fy) + math.atan(cy / fy))
         if max(fov_x, fov_y) >= MAX_FOV_DEG:
             raise InputError(f"{what}: expected a field of view below {MAX_FOV_DEG:g} degrees over the {width}x{height} "
-                             f"(WxH) image, got {fov_x:.1f} x {fov_y:.1f} degrees (fx={K[0, 0]:g}, fy={K[1, 1]:g} "
+                             f"(WxH) image, got {fov_x:.1f} x {fov_y:.1f} degrees (fx={fx:g}, fy={fy:g} "
                              f"px): the focal lengths are too short for this image; K is probably for a "
                              f"smaller image, in other units (mm instead of pixels) or the focal length is mistyped")
         if max(fov_x, fov_y) <= MIN_FOV_DEG:
             raise InputError(f"{what}: expected a field of view above {MIN_FOV_DEG:g} degree over the {width}x{height} "
-                             f"(WxH) image, got {fov_x:.3g} x {fov_y:.3g} degrees (fx={K[0, 0]:g}, fy={K[1, 1]:g} "
+                             f"(WxH) image, got {fov_x:.3g} x {fov_y:.3g} degrees (fx={fx:g}, fy={fy:g} "
                              f"px): the focal lengths are too long for this image; K is probably for a larger "
                              f"image (scale K with the image after a resize)")
     return K

@@ -21,7 +21,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crfdepth.checks import check_frames, check_number
+from crfdepth.checks import check_frames, check_intrinsics, check_number
 from crfdepth.config import MODES, POTENTIALS, PRIORS, UNCERTAINTIES, VARIABLES, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
@@ -262,7 +262,9 @@ class CRFDepth(ConstrainedWeights):
             off, so its depth is the one computed without autocast (:mod:`crfdepth.precision`).
 
         Raises:
-            InputError: bad inputs (:func:`crfdepth.checks.check_frames`), a frame smaller
+            InputError: bad inputs (:func:`crfdepth.checks.check_frames`), a ``K`` that is not a
+                plausible pinhole matrix of the image (:func:`crfdepth.checks.check_intrinsics`,
+                each frame's as ``K[b]`` when K is (B, 3, 3) with B > 1), a frame smaller
                 than 2x2 pixels, or (:class:`crfdepth.memory.MemoryRefusal`) an estimated
                 peak memory above ``memory_limit_gb`` or, without it, above the memory the
                 device has available; size and memory are checked from the shape alone,
@@ -274,11 +276,23 @@ class CRFDepth(ConstrainedWeights):
             check_frame_size("image", *sparse.shape[2:])
             check_memory(self.mode, *sparse.shape[:1], *sparse.shape[2:], return_std, self.uncertainty, sparse.dtype,
                          sparse.device, self.memory_limit_gb)
+        batched = isinstance(K, torch.Tensor) and K.dim() == 3 and K.shape[0] > 1
         image, sparse, K = check_frames(image, sparse, K)
+        check_batch_intrinsics(K, tuple(sparse.shape[2:]), batched)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
             return PIPELINES[self.mode](self, image, sparse, K, return_std)
 
 
-__all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]
+def check_batch_intrinsics(K: torch.Tensor, image_size: tuple[int, int], batched: bool) -> None:
+    """Check each frame's intrinsics of a (B, 3, 3) ``K`` (as :func:`crfdepth.checks.check_frames`
+    returns it) against the (height, width) of the image with :func:`crfdepth.checks.check_intrinsics`:
+    named ``K[b]`` when ``batched`` (K was given per frame), else ``K`` and checked once. One copy of
+    the B x 9 numbers to the host."""
+    values = K.detach().to("cpu", torch.float64).numpy()
+    for b in range(values.shape[0] if batched else min(1, values.shape[0])):
+        check_intrinsics(values[b], f"K[{b}]" if batched else "K", image_size)
+
+
+__all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "check_batch_intrinsics", "energy"]

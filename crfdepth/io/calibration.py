@@ -29,24 +29,27 @@ Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` an
 :func:`~crfdepth.checks.check_rigid` (a transform in millimetres passes, its rotation being
 fine: it is caught when no point lands in the image); KITTI's transforms by ``check_rigid``
 as read (``project`` and ``complete`` refuse the same files); binary files refused; ``distortion`` 4, 5, 8, 12 or 14
-finite numbers; ``image_size`` two positive integers. A failure is an
-:class:`~crfdepth.errors.InputError` naming the file and the key.
+finite numbers that keep the image in view (:mod:`crfdepth.io.distortion`); ``image_size`` two
+positive integers. A failure is an :class:`~crfdepth.errors.InputError` naming the file and the key.
+
+Every calibration file is read as what it is, before it is parsed: a regular file (not
+``/dev/zero`` or a FIFO) of at most ``MAX_CALIBRATION_BYTES`` (1 MiB), each key once, and for
+YAML no anchors or aliases and bounded nesting (:mod:`crfdepth.io.key_values`).
 """
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from crfdepth.checks import check_intrinsics, check_rigid
 from crfdepth.errors import InputError
-from crfdepth.io.files import check_input_file, read_text
-from crfdepth.io.key_values import entry_array, read_key_values
+from crfdepth.io.distortion import DISTORTION_LENGTHS, check_distortion  # noqa: F401 (DISTORTION_LENGTHS: re-exported)
+from crfdepth.io.files import MAX_CALIBRATION_BYTES, check_input_file, read_text
+from crfdepth.io.key_values import entry_array, list_keys, quote_value, read_key_values, read_mapping
 
 __all__ = [
     "Calibration",
@@ -60,8 +63,6 @@ __all__ = [
 
 PathLike = str | os.PathLike
 RIG_SUFFIXES = (".yaml", ".yml", ".json")
-DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
-"""The numbers of distortion coefficients OpenCV accepts (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])."""
 _RAW_CAM_TO_CAM = "calib_cam_to_cam.txt"
 _RAW_VELO_TO_CAM = "calib_velo_to_cam.txt"
 
@@ -172,7 +173,7 @@ class RigCalibration:
         self.K = check_intrinsics(self.K, self.name("K"), self.image_size)
         self.T_cam_lidar = check_rigid(self.T_cam_lidar, self.name("T_cam_lidar"))
         if self.distortion is not None:
-            self.distortion = _check_distortion(self.distortion, self.name("distortion"))
+            self.distortion = check_distortion(self.distortion, self.K, self.image_size, self.name("distortion"))
 
     def name(self, key: str) -> str:
         """The user's name of an entry: ``T_cam_lidar`` (``source="arguments"``: given as an argument),
@@ -192,26 +193,14 @@ class RigCalibration:
                    image_size=calib.image_size, kitti=calib, source=source)
 
 
-def _check_distortion(value, what: str) -> np.ndarray:
-    try:
-        array = np.array(value, dtype=np.float64).ravel()
-    except (TypeError, ValueError):
-        raise InputError(f"{what}: expected a list of numbers (OpenCV k1 k2 p1 p2 [k3 ...]), got {value!r:.80}") \
-            from None
-    if array.size not in DISTORTION_LENGTHS or not np.all(np.isfinite(array)):
-        raise InputError(f"{what}: expected {', '.join(map(str, DISTORTION_LENGTHS))} finite numbers (OpenCV "
-                         f"k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]), got {array.tolist()}")
-    return array
-
-
 def _check_size(value, what: str) -> tuple[int, int]:
     try:
         height, width = (int(v) for v in value)
         valid = height > 0 and width > 0 and [float(v) for v in value] == [height, width]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         valid = False
     if not valid:
-        raise InputError(f"{what}: expected [height, width] as two positive integers (pixels), got {value!r}")
+        raise InputError(f"{what}: expected [height, width] as two positive integers (pixels), got {quote_value(value)}")
     return height, width
 
 
@@ -341,20 +330,22 @@ def read_rig_calibration(path: PathLike) -> RigCalibration:
 
     Keys: ``K`` (required), ``T_cam_lidar`` (required), ``distortion`` and
     ``image_size`` (optional, may be null). Unknown keys are an error (a typo such as
-    ``distorsion`` would otherwise be silently ignored).
+    ``distorsion`` would otherwise be silently ignored), and so is a key given twice
+    (anywhere in the file: PyYAML and ``json`` would keep the last silently).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        InputError: not YAML/JSON, not a mapping, a key missing or unknown, or a value
-            failing the checks of :class:`RigCalibration`.
+        IsADirectoryError: ``path`` is a folder.
+        InputError: not a regular file (``/dev/zero``, a FIFO), larger than
+            ``MAX_CALIBRATION_BYTES`` (1 MiB), binary, not YAML/JSON, YAML anchors, aliases or
+            too deep or large (:func:`crfdepth.io.key_values.read_mapping`), a key given twice,
+            not a mapping, a key missing or unknown, or a value failing the checks of
+            :class:`RigCalibration`.
     """
     path = check_input_file(path, "calibration")
-    text = read_text(path, "calibration", "a YAML/JSON rig calibration (K, T_cam_lidar)")
-    try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
-        raise InputError(f"calibration: {path} is not valid {kind}: {str(exc).splitlines()[0]}") from None
+    text = read_text(path, "calibration", "a YAML/JSON rig calibration (K, T_cam_lidar)",
+                     max_bytes=MAX_CALIBRATION_BYTES)
+    data = read_mapping(text, path, "JSON" if path.suffix.lower() == ".json" else "YAML")
     if not isinstance(data, dict):
         raise InputError(f"calibration: {path}: expected a mapping with keys K and T_cam_lidar, got "
                          f"{type(data).__name__}")
@@ -362,10 +353,10 @@ def read_rig_calibration(path: PathLike) -> RigCalibration:
     missing = [key for key in ("K", "T_cam_lidar") if key not in data]
     if missing:
         raise InputError(f"calibration: {path}: missing key(s) {', '.join(missing)} (keys present: "
-                         f"{', '.join(map(str, data)) or 'none'})")
+                         f"{list_keys(data) or 'none'})")
     unknown = sorted(str(key) for key in data if key not in known)
     if unknown:
-        raise InputError(f"calibration: {path}: unknown key(s) {', '.join(unknown)}; expected "
+        raise InputError(f"calibration: {path}: unknown key(s) {list_keys(unknown)}; expected "
                          f"K, T_cam_lidar, distortion, image_size")
     return RigCalibration(K=data["K"], T_cam_lidar=data["T_cam_lidar"], distortion=data.get("distortion"),
                           image_size=data.get("image_size"), source=str(path))

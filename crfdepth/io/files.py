@@ -14,6 +14,12 @@ run's pid, host, start time and command, and removed when the run ends (also on 
 or Ctrl-C). A second run into the folder is refused naming the first
 (:class:`FolderLockedError`); a lock left by a run that is gone (its pid no longer runs on
 this host, e.g. after ``kill -9``) is taken over with a warning.
+
+An input file must be a regular file (:func:`check_input_file`, :func:`read_text`): a device
+(``/dev/zero``, ``/dev/urandom``), a FIFO or a socket is refused before it is opened for
+reading, since reading one whole never ends (or blocks); a text input is read only up to a
+bound (``max_bytes``: :data:`MAX_CALIBRATION_BYTES` for calibrations, :data:`MAX_TEXT_BYTES`
+otherwise), so a huge file is refused after reading at most that many bytes.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import logging
 import os
 import secrets
 import socket
+import stat
 import sys
 import time
 from collections.abc import Iterator
@@ -33,12 +40,19 @@ from typing import Callable
 
 from crfdepth.errors import InputError
 
-__all__ = ["LOCK_NAME", "FolderLockedError", "atomic_write", "atomic_write_bytes", "check_input_file",
-           "check_not_locked", "check_output_file", "lock_folder", "probe_folder", "read_text"]
+__all__ = ["LOCK_NAME", "MAX_CALIBRATION_BYTES", "MAX_TEXT_BYTES", "FolderLockedError", "atomic_write",
+           "atomic_write_bytes", "check_input_file", "check_not_locked", "check_output_file", "file_kind",
+           "lock_folder", "probe_folder", "read_text"]
 
 logger = logging.getLogger(__name__)
 
 LOCK_NAME = ".crfdepth.lock"  # the lock file of an output folder (lock_folder)
+# Largest calibration file read (KITTI calib_*.txt, a rig YAML/JSON, a 9-number K file), bytes. The
+# largest real one, a KITTI raw day's calib_cam_to_cam.txt, is 3 kB: 1 MiB is 350 times that, and
+# small enough to parse in well under a second whatever it holds.
+MAX_CALIBRATION_BYTES = 1 << 20
+# Largest other text input read whole (a poses file: KITTI odometry's longest is about 0.75 MB), bytes.
+MAX_TEXT_BYTES = 64 << 20
 
 
 def check_input_file(path: str | os.PathLike, name: str = "path") -> Path:
@@ -47,13 +61,30 @@ def check_input_file(path: str | os.PathLike, name: str = "path") -> Path:
     Raises:
         FileNotFoundError: ``path`` does not exist (the message names the argument ``name``).
         IsADirectoryError: ``path`` is a folder.
+        InputError: ``path`` is not a regular file (a device such as ``/dev/zero``, a FIFO, a
+            socket), which no reader can read whole.
     """
     file = Path(path)
     if not file.exists():
         raise FileNotFoundError(f"{name}: no such file: {file}")
     if file.is_dir():
         raise IsADirectoryError(f"{name}: expected a file, got a folder: {file}")
+    kind = file_kind(file.stat().st_mode)
+    if kind is not None:
+        raise InputError(f"{name}: expected a regular file, got {kind} {file}")
     return file
+
+
+def file_kind(mode: int) -> str | None:
+    """None for a regular file's ``st_mode``, else what it is ("a character device (like /dev/zero)" ...)."""
+    if stat.S_ISREG(mode):
+        return None
+    for test, kind in ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device (like /dev/zero)"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return "a special file"
 
 
 def check_output_file(path: str | os.PathLike, name: str = "path", *, suffix: str | None = None) -> Path:
@@ -262,16 +293,46 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     atomic_write(path, write)
 
 
-def read_text(path: Path, what: str, holding: str) -> str:
-    """A text file's contents (undecodable bytes replaced), or InputError naming ``what`` when the
-    file is binary: an image or .npy signature, or NUL bytes (``<what>: expected a text file with
-    <holding>, got a binary file (a PNG image) <path>``)."""
-    data = path.read_bytes()
+def read_text(path: Path, what: str, holding: str, *, max_bytes: int = MAX_TEXT_BYTES) -> str:
+    """A text file's contents (undecodable bytes replaced), or InputError naming ``what``.
+
+    Refused: a path that is not a regular file (``<what>: expected a regular file with <holding>,
+    got a FIFO (named pipe) <path>``), checked on the opened file before anything is read (opened
+    non-blocking, so a FIFO without a writer does not hang); a file of more than ``max_bytes``
+    bytes, of which at most ``max_bytes + 1`` are read; a binary file: an image or .npy signature,
+    or NUL bytes (``<what>: expected a text file with <holding>, got a binary file (a PNG image)
+    <path>``).
+    """
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        info = os.fstat(fd)
+        kind = file_kind(info.st_mode)
+        if kind is not None:
+            raise InputError(f"{what}: expected a regular file with {holding}, got {kind} {path}")
+        if info.st_size > max_bytes:
+            raise InputError(f"{what}: expected a text file of at most {_size(max_bytes)} with {holding}, got "
+                             f"{_size(info.st_size)} in {path}")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as handle:
+        data = handle.read(max_bytes + 1)  # the size may grow after fstat: never read more than this
+    if len(data) > max_bytes:
+        raise InputError(f"{what}: expected a text file of at most {_size(max_bytes)} with {holding}, got more "
+                         f"in {path}")
     kind = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
     if kind is not None or b"\x00" in data:
         raise InputError(f"{what}: expected a text file with {holding}, got a binary file"
                          f" ({kind or 'NUL bytes'}) {path}")
     return data.decode("utf-8", errors="replace")
+
+
+def _size(n: int) -> str:
+    """``n`` bytes for messages: "1 MiB (1,048,576 bytes)", "512 bytes"."""
+    for unit, scale in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= scale:
+            return f"{n / scale:.4g} {unit} ({n:,} bytes)"
+    return f"{n} bytes"
 
 
 _MAGIC = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"),
