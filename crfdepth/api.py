@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from crfdepth.checkpoints import load_pretrained
-from crfdepth.checks import check_frames, check_intrinsics
+from crfdepth.checks import check_frames, check_has_data, check_intrinsics
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
@@ -270,9 +270,14 @@ def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *
     for name, value in (("image", image), ("sparse", sparse), ("K", K)):
         if not isinstance(value, torch.Tensor):
             raise InputError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+        check_has_data(name, value)
     if sparse.dim() == 4:  # the size from the shape alone, before the checks allocate per pixel
         check_frame_size("image", *sparse.shape[2:])
+    per_frame = K.dim() == 3
     image, sparse, K = check_frames(*_on_model(model, image, sparse, K))
+    from crfdepth.model import check_batch_intrinsics
+
+    check_batch_intrinsics(K, tuple(sparse.shape[2:]), per_frame)
     return complete_checked(model, image, sparse, K, return_std=return_std)
 
 

@@ -5,7 +5,8 @@ section 1).
 Every input is checked here, at the public boundary, and refused with an
 :class:`~crfdepth.errors.InputError` naming the argument (docs/design.md section 8): besides
 shapes and ranges, a ``K`` that does not fit the image, a sparse map that is not in metres
-(:func:`crfdepth.plausibility.check_sparse_plausible`), points in millimetres and a
+(:func:`crfdepth.plausibility.check_sparse_plausible`), points in millimetres, returns nearer
+than 1 mm or beyond 1000 m (:func:`crfdepth.checks.check_return_depths`), meta tensors and a
 ``T_cam_lidar`` that looks inverted (unless ``trust_transform=True``, :func:`points_to_sparse`).
 """
 
@@ -16,7 +17,7 @@ import warnings
 import numpy as np
 import torch
 
-from crfdepth.checks import check_intrinsics
+from crfdepth.checks import check_has_data, check_intrinsics, check_return_depths
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, project_points
 from crfdepth.io.calibration import Calibration, RigCalibration
@@ -43,6 +44,7 @@ MAX_POINT_COLUMNS = 16
 
 def image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
     """(H, W, 3) float32 RGB in [0, 1], whether the input was a tensor, and its device."""
+    check_has_data("image", image)
     is_tensor = isinstance(image, torch.Tensor)
     device = image.device if is_tensor else None
     if is_tensor:
@@ -71,8 +73,10 @@ def image_to_numpy(image) -> tuple[np.ndarray, bool, torch.device | None]:
 
 def sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
     """``sparse`` as an (H, W) numpy map in metres, checked (with ``K``, the image's intrinsics, for the
-    plausibility check :func:`crfdepth.plausibility.check_sparse_plausible`); its dtype is kept, the model's
-    is applied where the frame becomes tensors (:mod:`crfdepth.api`)."""
+    plausibility check :func:`crfdepth.plausibility.check_sparse_plausible`; then every return within
+    [1 mm, 1000 m], :func:`crfdepth.checks.check_return_depths`); its dtype is kept, the model's is applied
+    where the frame becomes tensors (:mod:`crfdepth.api`)."""
+    check_has_data("sparse", sparse)
     array = sparse.detach().cpu().numpy() if isinstance(sparse, torch.Tensor) else np.asarray(sparse)
     if array.ndim == 3 and array.shape[0] == 1:
         array = array[0]
@@ -87,6 +91,7 @@ def sparse_to_numpy(sparse, size: tuple[int, int], K=None) -> np.ndarray:
     if not np.any(array > 0):
         raise InputError("sparse: every pixel is 0 (no LiDAR point); the CRF needs at least one depth measurement")
     check_sparse_plausible("sparse", array, K)
+    check_return_depths("sparse", array)
     return array
 
 
@@ -99,8 +104,9 @@ def prepare_points(points) -> np.ndarray:
             ``MAX_POINT_COLUMNS`` (16) columns is refused as a probably transposed array.
 
     Raises:
-        InputError: not 2-D, fewer than 3 columns, not real numbers, or no finite row.
+        InputError: a meta tensor, not 2-D, fewer than 3 columns, not real numbers, or no finite row.
     """
+    check_has_data("points", points)
     array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
     if array.ndim != 2 or not 3 <= array.shape[1] <= MAX_POINT_COLUMNS:
         raise InputError(f"points: expected an (N, 3) or (N, 4) array (x y z [intensity], metres; further "
@@ -179,7 +185,8 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
     Raises:
         InputError: ``K`` does not fit ``image_size``; no point lands in the image
             (:func:`no_points_message`); the median projected depth exceeds
-            ``MAX_PLAUSIBLE_MEDIAN_DEPTH_M`` (300 m: points in millimetres); or
+            ``MAX_PLAUSIBLE_MEDIAN_DEPTH_M`` (300 m: points in millimetres); a projected
+            depth below 1 mm or beyond 1000 m (:func:`crfdepth.checks.check_return_depths`); or
             ``T_cam_lidar`` looks inverted and ``trust_transform`` is False.
     """
     if not isinstance(trust_transform, bool):
@@ -204,6 +211,7 @@ def checked_points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image
         raise InputError(f"points: expected coordinates in metres (a median depth of at most "
                          f"{MAX_PLAUSIBLE_MEDIAN_DEPTH_M:g} m), got a median projected depth of {median:.4g} m; the "
                          f"point coordinates look like millimetres: divide them by 1000")
+    check_return_depths("points", sparse)
     if not trust_transform:
         normal = ground_normal(xyz)
         if normal is not None:

@@ -13,8 +13,13 @@ naming its flag (``--velodyne``, ``--calib``, ``--image``; a ``.pcd`` / ``.ply``
 cloud or a rig YAML/JSON is pointed to ``crfdepth complete --points --calib``), the
 calibration's transforms (rigid, the same check as ``complete``'s:
 :func:`crfdepth.checks.check_rigid` in :mod:`crfdepth.io.calibration`'s readers) and K
-against the image size (:func:`crfdepth.checks.check_intrinsics`, field of view included). The PNG is written atomically and one line says what was
-written (``--quiet`` drops it).
+against the image size (:func:`crfdepth.checks.check_intrinsics`, field of view included). The scan is
+read and checked by :func:`crfdepth.io.kitti.read_velodyne`, the reader of ``crfdepth complete --points
+X.bin`` too (empty, truncated, float64 or N x 3 float32 files, non-finite values and coordinates not in
+metres are refused). The projected map is refused, naming ``--velodyne``, when no point lands in the
+image, when a depth lies below 1 mm or beyond 1000 m (:func:`crfdepth.checks.check_return_depths`) and
+when a depth exceeds what a KITTI PNG holds (255.996 m: :func:`crfdepth.io.kitti.check_png_depth`),
+never clipped. The PNG is written atomically and one line says what was written (``--quiet`` drops it).
 """
 
 from __future__ import annotations
@@ -24,13 +29,16 @@ import logging
 import os
 from pathlib import Path
 
-from crfdepth.checks import check_intrinsics
+import numpy as np
+
+from crfdepth.checks import check_intrinsics, check_return_depths
 from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
-from crfdepth.io.calibration import RIG_SUFFIXES, load_calibration
+from crfdepth.inputs import no_points_message
+from crfdepth.io.calibration import RIG_SUFFIXES, RigCalibration, load_calibration
 from crfdepth.io.files import check_output_file
-from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
+from crfdepth.io.kitti import check_png_depth, read_rgb, read_velodyne, write_depth_png
 
 logger = logging.getLogger(__name__)
 
@@ -137,6 +145,11 @@ def run(args: argparse.Namespace) -> int:
                          "of them; use a smaller --keep-every-ring or a larger --keep-fraction")
 
     depth = project_velodyne(points, calib, (height, width))
+    if not np.any(depth > 0):
+        rig = RigCalibration.from_kitti(calib, source=str(args.calib))
+        raise InputError(f"--velodyne: {no_points_message(points[:, :3], rig, depth.shape)}")
+    check_return_depths("--velodyne", depth)
+    check_png_depth("--velodyne", depth)
     write_depth_png(out, depth)
     pixels = int((depth > 0).sum())
     logger.info("kept %d of %d points", points.shape[0], total)

@@ -12,6 +12,8 @@ expected and what was found.
 
 from __future__ import annotations
 
+import logging
+import math
 import os
 from pathlib import Path
 
@@ -21,9 +23,12 @@ import numpy as np
 from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_input_file, read_text
+from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, TYPICAL_MEDIAN_M
 
-__all__ = ["read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne", "write_depth_png"]
+__all__ = ["MAX_PNG_DEPTH_M", "check_png_depth", "depth_png_codes", "read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne",
+           "write_depth_png"]
 
+logger = logging.getLogger(__name__)
 PathLike = str | os.PathLike
 
 # KITTI depth PNGs store depth * 256 as uint16.
@@ -31,6 +36,8 @@ _DEPTH_SCALE = 256.0
 # Codes per metre of the units a depth PNG may be read in (read_depth_png).
 _UNIT_SCALES = {"kitti": _DEPTH_SCALE, "mm": 1000.0, "m": 1.0}
 _UINT16_MAX = np.iinfo(np.uint16).max
+MAX_PNG_DEPTH_M = _UINT16_MAX / _DEPTH_SCALE
+"""The deepest value a KITTI depth PNG holds: 65535 / 256 = 255.996 m."""
 
 
 # --------------------------------------------------------------------------- helpers
@@ -86,7 +93,8 @@ def write_depth_png(path: PathLike, depth: np.ndarray) -> None:
         path: output file; must end in ``.png``; its directory must exist.
         depth: (H, W) depth in metres, 0 = missing. Values are rounded to the nearest
             1/256 m, so a positive depth below 1/512 m also becomes 0 (missing); depths
-            above 65535/256 m (about 256 m) are clipped to the largest code.
+            above ``MAX_PNG_DEPTH_M`` = 65535/256 m (about 256 m) are clipped to the largest
+            code, with a logged warning: call :func:`check_png_depth` first to refuse them.
 
     Raises:
         InputError: ``depth`` is not a 2-D real array, holds NaN, infinite or negative
@@ -111,12 +119,33 @@ def write_depth_png(path: PathLike, depth: np.ndarray) -> None:
     if not directory.is_dir():
         raise FileNotFoundError(f"depth png: output directory does not exist: {directory}")
 
-    codes = np.clip(np.round(array.astype(np.float64) * _DEPTH_SCALE), 0, _UINT16_MAX).astype(np.uint16)
+    codes = depth_png_codes(array, path)
     ok, encoded = cv2.imencode(".png", codes)
     if not ok:  # pragma: no cover - cv2 encodes any 2-D uint16 array
         raise InputError(f"depth: could not encode an array of shape {codes.shape} as PNG")
 
     atomic_write_bytes(path, encoded.tobytes())
+
+
+def depth_png_codes(depth: np.ndarray, where: object = "depth") -> np.ndarray:
+    """The uint16 codes of a KITTI depth PNG for ``depth`` (metres, finite, >= 0): ``round(depth * 256)``;
+    values beyond ``MAX_PNG_DEPTH_M`` are clipped to the largest code with a logged warning naming ``where``."""
+    codes = np.round(np.asarray(depth, np.float64) * _DEPTH_SCALE)
+    if codes.size and codes.max() > _UINT16_MAX:
+        logger.warning("%s: %d depth value(s) beyond %.3f m (up to %.4g m) clipped to the largest code of a KITTI "
+                       "depth PNG", where, np.count_nonzero(codes > _UINT16_MAX), MAX_PNG_DEPTH_M,
+                       float(np.max(depth)))
+    return np.clip(codes, 0, _UINT16_MAX).astype(np.uint16)
+
+
+def check_png_depth(name: str, depth: np.ndarray) -> None:
+    """Refuse a depth map a KITTI depth PNG cannot hold: a value beyond ``MAX_PNG_DEPTH_M`` (65535/256 =
+    255.996 m), which :func:`write_depth_png` would clip. ``name`` is the user's name of its source."""
+    far = np.asarray(depth) > MAX_PNG_DEPTH_M
+    if far.any():
+        raise InputError(f"{name}: expected depths a KITTI depth PNG holds (16 bits, metres * 256: at most "
+                         f"{MAX_PNG_DEPTH_M:.3f} m), got {np.count_nonzero(far)} pixel(s) beyond, up to "
+                         f"{float(np.max(depth)):.4g} m; refusing to clip them")
 
 
 # --------------------------------------------------------------------------- images
@@ -177,12 +206,33 @@ def read_intrinsics(path: PathLike) -> np.ndarray:
 
 # --------------------------------------------------------------------------- Velodyne
 
+_POINT_BYTES = 16  # a KITTI scan's point: 4 little-endian float32, x, y, z, reflectance
+# What a scan's values may be (read_velodyne). Coordinates are metres: the median range of the
+# shared KITTI scans is 4.9-12.2 m (the synthetic street's: 8.0-8.6 m). No LiDAR sees half its
+# returns nearer than 0.1 m (minimum ranges are 0.1-1 m) or further than MAX_LIDAR_DEPTH_M = 300 m,
+# its reach: a scan in millimetres or centimetres (a median in the thousands or hundreds) fails.
+MIN_SCAN_MEDIAN_RANGE_M = 0.1
+# No coordinate of a scan in any length unit comes near this (10,000 km in metres, 10 km in
+# millimetres): larger values are bytes that are not float32 coordinates (float64, another format).
+MAX_SCAN_COORDINATE = 1e7
+# Reflectance is >= 0 (KITTI's: 0-0.99). An N x 3 float32 file read as N x 4 puts x, y and z in
+# that column: negative in about 60 % of the rows of the shared scans; above 1 % is that evidence.
+MAX_NEGATIVE_REFLECTANCE_SHARE = 0.01
+# In a scan's sensor order consecutive points lie 2-3 cm apart (median, shared scans); read in the
+# wrong layout, 6-10 m apart. A layout whose median step is below this fraction of the other's is the file's.
+SCAN_ORDER_RATIO = 0.25
+# The units a scan may be in by mistake (the refusal's hint) and their factor to metres.
+_SCAN_UNITS = {"millimetres: divide the coordinates by 1000": 1e-3, "centimetres: divide the coordinates by 100": 1e-2,
+               "kilometres: multiply the coordinates by 1000": 1e3}
+_ADD_REFLECTANCE = "numpy.hstack([xyz, numpy.zeros((len(xyz), 1))]).astype(numpy.float32).tofile(path)"
 
-def read_velodyne(path: PathLike) -> np.ndarray:
-    """Read a KITTI Velodyne scan.
+
+def read_velodyne(path: PathLike, name: str = "velodyne") -> np.ndarray:
+    """Read a KITTI Velodyne scan, checked to be one (the reader of every ``.bin`` scan).
 
     Args:
         path: ``.bin`` file of little-endian float32 records (x, y, z, reflectance).
+        name: the user's name of the file in messages (``velodyne``, ``points``).
 
     Returns:
         (N, 4) float32: x, y, z in metres in the Velodyne frame (x forward, y left,
@@ -191,11 +241,103 @@ def read_velodyne(path: PathLike) -> np.ndarray:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        InputError: the file size is not a multiple of 16 bytes (4 float32 per point).
+        InputError: ``<name>: expected ..., got ...`` naming the file: empty; a size that is
+            not a multiple of 16 bytes (4 float32 per point); NaN or infinite values; a
+            coordinate beyond ``MAX_SCAN_COORDINATE`` (1e7); a median range (distance from the
+            sensor) outside [``MIN_SCAN_MEDIAN_RANGE_M``, ``MAX_LIDAR_DEPTH_M``] = [0.1, 300] m,
+            naming millimetres, centimetres or kilometres where one of them fits. A file in
+            another layout is named when its bytes read so pass these checks: float64 (N x 4 or
+            N x 3; read as float32 its values are garbage) or N x 3 float32 (x, y, z: read as
+            N x 4, over 1 % of the reflectance values negative, or consecutive points metres
+            apart where the N x 3 reading keeps the scan order's centimetres).
     """
-    path = check_input_file(path, "velodyne")
+    path = check_input_file(path, name)
     size = path.stat().st_size
-    if size % 16:
-        raise InputError(f"velodyne: expected a file size that is a multiple of 16 bytes "
-                         f"(4 float32 per point), got {size} bytes in {path}")
-    return np.fromfile(path, dtype="<f4").astype(np.float32, copy=False).reshape(-1, 4)
+    expected = f"a KITTI Velodyne scan (N x 4 float32: x, y, z, reflectance; {_POINT_BYTES} bytes per point)"
+    if size == 0:
+        raise InputError(f"{name}: expected {expected}, got an empty file (0 bytes): {path}")
+    raw = np.fromfile(path, dtype=np.uint8)
+    if size % _POINT_BYTES:
+        layout = _other_layout(raw, None, None)
+        raise InputError(f"{name}: expected a file size that is a multiple of {_POINT_BYTES} bytes (N x 4 float32: x, "
+                         f"y, z, reflectance), got {size} bytes in {path}: not a whole number of points (a truncated "
+                         f"file or not a KITTI Velodyne scan)" + (f"; it looks like {layout}" if layout else ""))
+    points = raw.view("<f4").astype(np.float32, copy=False).reshape(-1, 4)
+    problem = _scan_problem(points)
+    negative = float(np.mean(points[:, 3] < 0))
+    if problem is not None or negative > MAX_NEGATIVE_REFLECTANCE_SHARE:
+        what = problem[1] if problem else f"{negative:.0%} of the reflectance values (4th column) negative"
+        layout = _other_layout(raw, points, what)
+        if layout is not None:
+            raise InputError(f"{name}: expected {expected}, got {path}, which looks like {layout}")
+    if problem is not None:
+        raise InputError(f"{name}: expected {problem[0]}, got {problem[1]} in {path}{problem[2]}")
+    return points
+
+
+def _scan_problem(points: np.ndarray) -> tuple[str, str, str] | None:
+    """(expected, got, hint) of the first value check of :func:`read_velodyne` that (N, C >= 3) ``points`` fail,
+    or None."""
+    finite = np.isfinite(points)
+    if not finite.all():
+        return "finite values", f"{np.count_nonzero(~finite)} NaN or infinite value(s) among {points.size}", ""
+    xyz = points[:, :3]
+    largest = float(np.abs(xyz).max())
+    if largest > MAX_SCAN_COORDINATE:
+        return f"coordinates within +-{MAX_SCAN_COORDINATE:g} (metres)", f"values up to {largest:.3g}", ""
+    median = _median_range(xyz)
+    if MIN_SCAN_MEDIAN_RANGE_M <= median <= MAX_LIDAR_DEPTH_M:
+        return None
+    fits = [(abs(math.log(median * factor / TYPICAL_MEDIAN_M)), unit) for unit, factor in _SCAN_UNITS.items()
+            if MIN_SCAN_MEDIAN_RANGE_M <= median * factor <= MAX_LIDAR_DEPTH_M]
+    return (f"coordinates in metres (a median range from the sensor of {MIN_SCAN_MEDIAN_RANGE_M:g} to "
+            f"{MAX_LIDAR_DEPTH_M:g} m)", f"a median range of {median:.4g}" + (" (every point at the sensor)" if
+                                                                           median == 0 else ""),
+            f"; that looks like {min(fits)[1]}" if fits else "")
+
+
+def _median_step(points: np.ndarray) -> float:
+    """Median distance between consecutive rows of (N, C >= 3) ``points``; NaN for fewer than two."""
+    if len(points) < 2:
+        return math.nan
+    return float(np.median(np.linalg.norm(np.diff(points[:, :3].astype(np.float64), axis=0), axis=1)))
+
+
+def _median_range(points: np.ndarray) -> float:
+    """Median distance of (N, C >= 3) ``points`` from the sensor (the root of the median squared distance)."""
+    xyz = points[:, :3]
+    return math.sqrt(float(np.median(np.einsum("ij,ij->i", xyz, xyz))))
+
+
+def _other_layout(raw: np.ndarray, points: np.ndarray | None, what: str | None) -> str | None:
+    """The layout the bytes ``raw`` of a scan are in, with the evidence and the fix, when N x 4 float32 is not
+    (``points``, which show ``what``; None when the size does not fit it): float64 or N x 3 float32, whichever
+    reading passes :func:`_scan_problem` (and keeps the scan order better); None when none does."""
+    size = raw.size
+    read4 = f"read as N x 4 float32 it holds {what}, " if points is not None else ""
+    for columns in (4, 3):
+        if size % (8 * columns) == 0:
+            wide = raw.view("<f8").reshape(-1, columns)
+            negative = 0.0 if columns == 3 else float(np.mean(wide[:, 3] < 0))
+            if _scan_problem(wide) is None and negative <= MAX_NEGATIVE_REFLECTANCE_SHARE:
+                fix = ("points.astype(numpy.float32).tofile(path)" if columns == 4 else
+                       f"with a reflectance column, e.g. {_ADD_REFLECTANCE}")
+                return (f"float64 ({len(wide)} x {columns} float64, {8 * columns} bytes per point): {read4}read as "
+                        f"float64 its points have a median range of {_median_range(wide):.3g} m; write it as float32, {fix}")
+    if size % 12:
+        return None
+    narrow = raw.view("<f4").reshape(-1, 3)
+    if _scan_problem(narrow) is not None:
+        return None
+    evidence = f"read as {len(narrow)} x 3 float32 its points have a median range of {_median_range(narrow):.3g} m"
+    if points is not None:
+        step4, step3 = _median_step(points), _median_step(narrow)
+        if step3 < SCAN_ORDER_RATIO * step4:
+            evidence = (f"read as N x 4 float32 consecutive points lie {step4:.3g} m apart (median), read as N x 3 "
+                        f"{step3:.3g} m, a scan's order")
+        elif step4 < SCAN_ORDER_RATIO * step3:
+            return None  # N x 4 keeps the scan order: its fourth column is something else
+        else:
+            evidence = read4 + evidence
+    return (f"N x 3 float32 (x, y, z without reflectance, 12 bytes per point): {evidence}; add a reflectance "
+            f"column, e.g. {_ADD_REFLECTANCE}")

@@ -3,7 +3,10 @@
 :func:`read_points` returns an ``(N, 3)`` or ``(N, 4)`` float32 array (x, y, z in the
 sensor frame, metres, plus intensity when the file has it) from:
 
-- ``.bin``: KITTI Velodyne scan, raw little-endian float32, 4 values per point;
+- ``.bin``: KITTI Velodyne scan, raw little-endian float32, 4 values per point, read and
+  checked by :func:`crfdepth.io.kitti.read_velodyne` (empty files, sizes not a multiple of 16
+  bytes, non-finite values, coordinates not in metres, float64 and N x 3 float32 files are
+  refused, the last two named);
 - ``.npy``: a 2-D array with 3 or 4 columns (further columns are an error: say which
   three are x y z by slicing before saving);
 - ``.ply``, read by `plyfile <https://github.com/dranjan/python-plyfile>`_: ``ascii``,
@@ -43,6 +46,7 @@ from pypcd4 import Encoding, MetaData, PointCloud
 
 from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write, check_input_file, check_output_file
+from crfdepth.io.kitti import read_velodyne
 
 __all__ = ["POINT_FORMATS", "read_points", "write_pcd", "write_ply"]
 
@@ -95,14 +99,15 @@ def read_points(path: PathLike) -> np.ndarray:
     Returns:
         (N, 3) or (N, 4) float32 points: x, y, z in the file's frame (metres for LiDAR
         data), then intensity when the file has one (a KITTI ``.bin`` always has 4
-        columns). Rows are in file order; NaN rows are kept (the caller decides;
-        :func:`crfdepth.api.complete_depth` drops them with a warning).
+        columns). Rows are in file order; NaN rows of ``.npy``, PLY and PCD files are kept
+        (the caller decides; :func:`crfdepth.api.complete_depth` drops them with a warning).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         InputError: unsupported extension, empty file, malformed or unsupported header,
-            missing x/y/z fields, list or unsupported field types, wrong column count or
-            truncated data.
+            missing x/y/z fields, list or unsupported field types, wrong column count,
+            truncated data, or a ``.bin`` that is not a float32 scan in metres
+            (:func:`crfdepth.io.kitti.read_velodyne`).
     """
     path = check_input_file(path, "points")
     suffix = path.suffix.lower()
@@ -119,11 +124,9 @@ def read_points(path: PathLike) -> np.ndarray:
 
 
 def _read_bin(path: Path) -> np.ndarray:
-    size = path.stat().st_size
-    if size % 16:
-        raise InputError(f"points: KITTI .bin {path} holds {size} bytes, not a whole number of points "
-                         f"(4 float32 = 16 bytes each): truncated file or not a Velodyne scan")
-    return np.fromfile(path, dtype="<f4").astype(np.float32).reshape(-1, 4)
+    """A KITTI scan through the one reader of ``.bin`` scans, :func:`crfdepth.io.kitti.read_velodyne`, with its
+    checks (size, finite values in metres, float64 or N x 3 float32 files named), its errors naming ``points``."""
+    return read_velodyne(path, "points")
 
 
 def _read_npy(path: Path) -> np.ndarray:

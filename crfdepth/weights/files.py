@@ -9,8 +9,11 @@ section 8).
 - The shipped weight sets: :func:`weights_path`, :func:`pretrained_state`.
 - The JSON weights file: :func:`read_weights`, :func:`write_weights`.
 - Any checkpoint (the three kinds of the :mod:`crfdepth.checkpoints` docstring):
-  :func:`read_checkpoint`, every floating tensor checked finite and old layouts brought up
-  to date. Torch files (crfdepth's own model file, the trainer's Lightning checkpoint) are
+  :func:`read_checkpoint`, every floating tensor checked finite, old layouts brought up
+  to date, and every stored weight (configuration value or tensor) within a sane range
+  (:data:`POSITIVE_RANGE` ...): an absurd weight (confidence 1e38) is refused naming the file
+  and the key, not solved into a NaN or constant depth map. Torch files (crfdepth's own model
+  file, the trainer's Lightning checkpoint) are
   written and opened by :mod:`crfdepth.weights.torch_files`: read with
   ``torch.load(weights_only=True)``, a bare ``state_dict()`` refused
   (:data:`~crfdepth.weights.torch_files.BARE_STATE_DICT`): it does not say which structure
@@ -32,8 +35,9 @@ from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_output_file
 from crfdepth.weights.torch_files import check_device, is_config, load_torch_file, unpack_torch_file
 
-__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state",
-           "read_checkpoint", "read_weights", "weights_path", "write_weights"]
+__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MAX_ABS_TENSOR", "POSITIVE_RANGE", "STD_BIAS_RANGE", "STD_EXPONENT_RANGE",
+           "UNIT_RANGE", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint",
+           "read_weights", "weights_path", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
@@ -46,6 +50,27 @@ WEIGHTS_VERSION = 1
 LEARNED = ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior",
            "std_scale")
 """The learnable values in a configuration (the keys of ``CRFDepth.weights()``)."""
+
+# Sane ranges of stored weights, far outside every value trained or set by hand (crfdepth/weights/kitti.json:
+# confidence 3411, gate_softness 0.0015, the others 0.009-2.04 and std terms -1.35-1.17; CRFDepth()'s
+# defaults: 0.003-100). A value outside is a damaged or mis-exported file: solved, it would end in a solver
+# warning and a NaN or constant depth map. The model's own parameters (crfdepth/potentials/parameters.py)
+# hold the log of each positive weight and the logit of each weight in (0, 1): the same ranges, mapped.
+POSITIVE_RANGE = (1e-6, 1e6)
+"""Weights > 0 (sigma_d, sigma_n, sigma_p, confidence, refine_prior, std_scale, gate_threshold,
+gate_softness, irls_scale, eps): each within [1e-6, 1e6]."""
+UNIT_RANGE = (1e-6, 1.0 - 1e-6)
+"""Weights in (0, 1) (alpha, beta, gamma, delta): at least 1e-6 from either end."""
+STD_BIAS_RANGE = (-math.log(1e6), math.log(1e6))
+"""``std_terms["bias"]``, log metres (crfdepth/uncertainty/predictive.py): a std scale of 1e-6 to 1e6 m."""
+STD_EXPONENT_RANGE = (-10.0, 10.0)
+"""The other ``std_terms``, exponents of the predictive std's signals (fitted: 0.19-1.17); at 10 a signal
+spanning two decades spans twenty of std."""
+MAX_ABS_TENSOR = 1e6
+"""Any other stored floating tensor (the learned head's weights): every ``|value| <= 1e6``."""
+_UNIT = ("alpha", "beta", "gamma", "delta")
+_POSITIVE = ("sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior", "std_scale", "gate_threshold",
+             "gate_softness", "irls_scale", "eps")
 
 #: What a configuration written before these options existed meant: an old checkpoint is
 #: rebuilt as it was trained (docs/design.md section 3b).
@@ -107,8 +132,9 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
     Raises:
         FileNotFoundError: no such file.
         InputError: naming the file and the problem: not JSON, another format or
-            version, no ``config`` mapping, or a learned value that is missing or not a
-            finite number.
+            version, no ``config`` mapping, a learned value that is missing or not a
+            finite number, or a weight outside its range (:data:`POSITIVE_RANGE`,
+            :data:`UNIT_RANGE`, :data:`STD_BIAS_RANGE`, :data:`STD_EXPONENT_RANGE`).
     """
     file = Path(path)
     if not file.is_file():
@@ -130,6 +156,7 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
         value = values.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"{file}: config[{key!r}]: expected a finite number, got {value!r}")
+    _check_config_ranges(file, values, "weights file")
     data.setdefault("about", {})
     return data
 
@@ -190,8 +217,11 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         FileNotFoundError: ``path`` does not exist.
         InputError: naming the file and the problem: a folder; not a checkpoint; no state
             dict in it; a bare state dict without a configuration; a Lightning checkpoint
-            without ``hyper_parameters["crf"]`` or without ``model.`` keys; a tensor with NaN or inf (``path: <file>: parameter
-            raw_alpha: expected finite values, got nan``); a CUDA ``map_location``
+            without ``hyper_parameters["crf"]`` or without ``model.`` keys; a tensor with NaN or
+            inf (``path: <file>: parameter raw_alpha: expected finite values, got nan``); a weight out of its range, in the
+            configuration (``<file>: invalid model configuration in the <kind>: config['confidence']:
+            expected a number in [1e-06, 1e+06] ...``) or as a tensor (``path: <file>: parameter
+            log_confidence: expected values in [-13.82, 13.82] ...``); a CUDA ``map_location``
             without CUDA.
     """
     file = Path(path)
@@ -207,6 +237,8 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     config, state, kind = unpack_torch_file(file, load_torch_file(file, device))
     _check_finite(file, state)
     state = _upgrade(file, state)
+    _check_tensor_ranges(file, state)
+    _check_config_ranges(file, flat_view(config), kind)
     return _upgrade_config(config, state), state, kind
 
 
@@ -256,6 +288,7 @@ def _tensors(file: Path, value: Any, device: torch.device) -> dict[str, torch.Te
     except (TypeError, ValueError) as exc:
         raise InputError(f"{file}: \"state\": expected nested lists of numbers ({exc})") from None
     _check_finite(file, state)
+    _check_tensor_ranges(file, state)
     return state
 
 
@@ -270,3 +303,73 @@ def _upgrade(file: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tens
         state = dict(state)
         state["log_refine_prior"] = state.pop("refine_prior").log()
     return state
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _check_config_ranges(file: Path, values: Mapping[str, Any], kind: str) -> None:
+    """The weights a configuration sets (flat names, :func:`crfdepth.config.flat_view`) within their ranges;
+    values that are not numbers are left to ``CRFDepth``'s own checks."""
+    checks = [(f"config[{key!r}]", value, UNIT_RANGE if key in _UNIT else POSITIVE_RANGE,
+               "a weight in (0, 1)" if key in _UNIT else "a weight > 0")
+              for key, value in values.items() if key in _UNIT + _POSITIVE]
+    terms = values.get("std_terms")
+    if isinstance(terms, Mapping):
+        checks += [(f"config['std_terms'][{key!r}]", value, STD_BIAS_RANGE if key == "bias" else STD_EXPONENT_RANGE,
+                    "log metres" if key == "bias" else "an exponent") for key, value in terms.items()]
+    for where, value, (low, high), meaning in checks:
+        # a float32 weight written back (save_weights) may sit just outside a bound: 1e-5 of it is allowed
+        if _is_number(value) and not low - 1e-5 * abs(low) <= value <= high + 1e-5 * abs(high):
+            raise InputError(f"{file}: invalid model configuration in the {kind}: {where}: expected a number in "
+                             f"[{low:.6g}, {high:.6g}] ({meaning}), got {value!r}")
+
+
+def _tensor_range(key: str, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """(low, high, meaning) of the stored tensor ``key`` (broadcast against ``value``)."""
+    name = key.split("_", 1)[-1]
+    if key.startswith("raw_") and name in _UNIT:
+        low, high = (math.log(p / (1.0 - p)) for p in UNIT_RANGE)
+        meaning = f"the logit of {name}, a weight in [{UNIT_RANGE[0]:g}, {UNIT_RANGE[1]:g}]"
+    elif key.startswith("log_") and name in _POSITIVE:
+        low, high = (math.log(p) for p in POSITIVE_RANGE)
+        meaning = f"the log of {name}, a weight in [{POSITIVE_RANGE[0]:g}, {POSITIVE_RANGE[1]:g}]"
+    elif key in _POSITIVE:
+        (low, high), meaning = POSITIVE_RANGE, "a weight > 0"
+    elif key == "std_head.weights" and value.numel() == 6:
+        lows = [STD_BIAS_RANGE[0]] + [STD_EXPONENT_RANGE[0]] * 5
+        highs = [STD_BIAS_RANGE[1]] + [STD_EXPONENT_RANGE[1]] * 5
+        return (value.new_tensor(lows).view(value.shape), value.new_tensor(highs).view(value.shape),
+                "the predictive std's bias (log metres) and exponents")
+    else:
+        (low, high), meaning = (-MAX_ABS_TENSOR, MAX_ABS_TENSOR), "a learned weight"
+    return value.new_tensor(low), value.new_tensor(high), meaning
+
+
+def _weight_of(key: str, free: float) -> str:
+    """`` (<weight> <value>)`` of the free parameter ``key`` (``log_<weight>`` or ``raw_<weight>``), else ""."""
+    name = key.split("_", 1)[-1]
+    if key.startswith("log_") and name in _POSITIVE:
+        return f" ({name} {math.exp(min(free, 700.0)):.4g})"
+    if key.startswith("raw_") and name in _UNIT:
+        return f" ({name} {1.0 / (1.0 + math.exp(-max(min(free, 700.0), -700.0))):.6g})"
+    return ""
+
+
+def _check_tensor_ranges(file: Path, state: Mapping[str, torch.Tensor]) -> None:
+    """Every floating (finite) tensor of ``state`` within the range of its key (:func:`_tensor_range`); the
+    message names the file and the parameter as the model stores it."""
+    for key, value in state.items():
+        if not value.is_floating_point():
+            continue
+        low, high, meaning = _tensor_range(key, value.double())
+        slack = 1e-6 * torch.clamp(torch.maximum(low.abs(), high.abs()), min=1.0)  # a bound's float32 rounding
+        outside = (value.double() < low - slack) | (value.double() > high + slack)
+        if bool(outside.any()):
+            bad = value[outside].flatten()
+            bounds = (f"[{float(low):.4g}, {float(high):.4g}]" if low.numel() == 1 else
+                      " to ".join(f"[{', '.join(f'{v:.4g}' for v in b.tolist())}]" for b in (low, high)))
+            got = f"{bad[0].item():.6g}" + (f" ({bad.numel()} of {value.numel()} values outside)" if value.numel() > 1
+                                           else _weight_of(key, bad[0].item()))
+            raise InputError(f"path: {file}: parameter {key}: expected values in {bounds} ({meaning}), got {got}")
