@@ -5,11 +5,14 @@ Each sub-command module ``crfdepth.cli.<command>`` defines ``HELP`` (its line in
 ``add_arguments(parser)`` and ``run(args)``, so this file only lists them
 (:func:`add_command`). Nothing happens at import.
 
-Exit statuses: 0 on success; 2 for bad input, with one line on stderr naming the option
-(``crfdepth project: error: --keep-every-ring: expected ..., got ...``) and no output
-file written, whether argparse refuses an option (``SystemExit(2)``) or a sub-command
-raises :class:`~crfdepth.errors.InputError` / ``FileNotFoundError`` /
-``PermissionError`` / ``IsADirectoryError`` (``main`` returns 2); 130 on Ctrl-C, with
+Exit statuses: 0 on success; 2 for bad input or a file that cannot be read or written, with
+one line on stderr naming the option (``crfdepth project: error: --keep-every-ring: expected
+..., got ...``, ``crfdepth complete: error: --out: cannot write d/depth.png: No space left on
+device``) and no output file written, whether argparse refuses an option (``SystemExit(2)``)
+or a sub-command raises :class:`~crfdepth.errors.InputError` or any ``OSError`` (``main``
+returns 2): the commands tell the errors of the files they read and write under the flag
+(:mod:`crfdepth.cli.file_errors`), and an OS error that none told is named by the flag whose
+path it concerns, found in the command line, never shown as a traceback; 130 on Ctrl-C, with
 one line (``crfdepth project: interrupted``; a folder or bag run adds how many frames it
 wrote: ``crfdepth complete: interrupted after 3 of 10 frame(s) written to pred/``, the
 text of the ``KeyboardInterrupt`` it re-raises). Warnings raised while a command runs (NaN
@@ -31,6 +34,7 @@ from collections.abc import Iterator
 from types import ModuleType
 
 from crfdepth._version import __version__
+from crfdepth.cli.file_errors import error_message
 from crfdepth.errors import InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
@@ -146,8 +150,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with warnings_as_lines(command):
                 return int(args.func(args) or 0)
-        except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
-            print(f"crfdepth {command}: error: {exc}", file=sys.stderr)
+        except (InputError, OSError) as exc:  # bad input, or a file that cannot be read or written
+            print(f"crfdepth {command}: error: {error_message(exc, argv)}", file=sys.stderr)
             return 2
     except KeyboardInterrupt as exc:
         detail = str(exc)  # a command that writes several files says how far it got ("after 3 of 10 ...")

@@ -14,7 +14,8 @@ import numpy as np
 
 from crfdepth.errors import InputError
 
-__all__ = ["BAD_INPUT", "add_topic_arguments", "fraction", "int_at_least", "positive_number", "vis_range_type"]
+__all__ = ["BAD_INPUT", "VisRange", "add_topic_arguments", "fraction", "int_at_least", "positive_number",
+           "vis_range_type"]
 
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
 BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
@@ -71,6 +72,18 @@ def positive_number(unit: str):
 
 
 vis_range_type = positive_number("metres")  # one bound of --vis-range
+
+
+class VisRange(argparse.Action):
+    """``--vis-range MIN MAX`` (``nargs=2, type=vis_range_type``: each a finite number of metres > 0): stored as
+    a (min, max) tuple, refused as a usage error unless MIN < MAX, so that a bad range stops the command
+    before any work, not when the first picture is drawn."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        low, high = values
+        if not low < high:
+            raise argparse.ArgumentError(self, f"expected MIN < MAX in metres, got {low:g} {high:g}")
+        setattr(namespace, self.dest, (low, high))
 
 
 def add_topic_arguments(group: argparse._ArgumentGroup, *, only_one_default: bool = False,

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from crfdepth.cli.decoder_noise import quiet_decoders
+from crfdepth.cli.file_errors import flagged
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.ros.bag import (
@@ -36,6 +38,14 @@ __all__ = ["DEFAULT_MAX_DT_S", "Plan", "decode_frame", "paired_frames", "plan_fr
 # A 10 Hz LiDAR (the common rate) sweeps in 0.1 s: within half a sweep, every image of a
 # continuous recording has a cloud, and a cloud is never paired across a whole sweep.
 DEFAULT_MAX_DT_S = 0.05
+
+
+def _decode_quietly(msg, where: str) -> np.ndarray:
+    """:func:`crfdepth.io.ros.images.decode_image` with the decoders' C warnings held back
+    (:func:`~crfdepth.cli.decoder_noise.quiet_decoders`): a CompressedImage that does not decode is told by
+    its message alone."""
+    with quiet_decoders():
+        return decode_image(msg, where)
 
 
 # --------------------------------------------------------------------------- the plan (pass 1)
@@ -122,14 +132,12 @@ def plan_frames(bag: Recording, args: argparse.Namespace, max_dt: float) -> Plan
     bag.check_topic(args.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
     calibration = None
     if args.calib is not None:
-        try:
+        with flagged("--calib", args.calib, labels=("calibration",)):
             calibration = load_any_calibration(args.calib, camera=args.camera)
-        except InputError as exc:
-            raise InputError(f"--calib: {exc}") from None
     else:
         info_topic, info_times, cameras = _camera_infos(bag, args)
     sizes = []
-    images = bag.scan(args.image_topic, _check_each_layout(decode_image, _image_key, sizes), "--image-topic")
+    images = bag.scan(args.image_topic, _check_each_layout(_decode_quietly, _image_key, sizes), "--image-topic")
     clouds = bag.scan(args.points_topic, _check_each_layout(points_from_cloud, _cloud_key), "--points-topic")
     for flag, stream in (("--image-topic", images), ("--points-topic", clouds)):
         if len(stream) == 0:
@@ -200,7 +208,7 @@ def decode_frame(args, plan: Plan, i: int, image_msg, cloud_msg, c: int):
     stamp = int(plan.images.stamps_ns[i])
     where_image = f"--image-topic {args.image_topic} (image at {stamp} ns)"
     where_cloud = f"--points-topic {args.points_topic} (cloud at {int(plan.clouds.stamps_ns[c])} ns)"
-    rgb = decode_image(image_msg, where_image)
+    rgb = _decode_quietly(image_msg, where_image)
     xyz = points_from_cloud(cloud_msg, where_cloud)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
     if xyz.shape[0] == 0:

@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from crfdepth.cli.arguments import BAD_INPUT, int_at_least
 from crfdepth.cli.completion import check_sample
+from crfdepth.cli.decoder_noise import quiet_decoders
 from crfdepth.data.sample import Batch, Sample, collate_samples
 
 __all__ = ["MAX_WORKERS", "STRATEGIES", "add_batch_arguments", "bad_frames", "frame_batches"]
@@ -86,7 +87,8 @@ class _CheckedFrames(Dataset):
 
     def __getitem__(self, index: int) -> Sample | _Failure | None:
         try:
-            sample = self.dataset[index]
+            with quiet_decoders():  # a damaged image is told by its reader's message alone, not libpng's too
+                sample = self.dataset[index]
             self.check(sample, index)
         except BAD_INPUT as exc:
             return _Failure(type(exc), str(exc))

@@ -56,16 +56,26 @@ into DIR; a bare ``--vis`` writes them next to ``--out`` (one frame) or into
 ``<out-dir>_vis`` beside the output folder (folder mode: the submission folder holds only
 the depth PNGs). ``--vis`` computes the std map even without ``--out-std``.
 
-Checks before any computation: every output file name ends in ``.png``; the folder of
-``--out`` / ``--out-std`` exists and takes new files (a probe file is created and removed,
-so ``/proc`` or a read-only mount fails here, naming the flag; it is not created); no
-output is an input. Then the inputs are read and checked, naming the file in every message: image and
+Checks before any computation: ``--vis-range`` is two finite numbers 0 < MIN < MAX (a usage
+error when the arguments are read); every output file name ends in ``.png``; the folder of
+``--out`` / ``--out-std`` exists and takes new files, and so does the ``--vis`` folder or the
+folder it will be created in (a probe file is created and removed, so ``/proc`` or a
+read-only mount fails here, naming the flag; it is not created); no output is an input.
+Then the inputs are read and checked, naming the flag and the file in every message: image and
 sparse map of the same size; sparse a 16-bit single-channel PNG; image an 8-bit picture
 (a greyscale one is used as grey RGB, with a warning); K nine finite numbers with focal
-lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. Then the model is built
+lengths > 0 and last row (0, 0, 1); at least one LiDAR pixel. A file that does not decode
+is told by that one line, without the decoders' own warnings on stderr
+(:mod:`crfdepth.cli.decoder_noise`). Then the model is built
 (``--checkpoint`` loaded, ``--device`` checked). Only then are the ``--out-dir``,
 ``--out-std-dir`` and ``--vis`` folders created if missing (parents included; they must
-be writable). Each PNG is written atomically, so a failed run leaves no partial file.
+be writable). A frame's PNGs (depth, std, pictures) are written to temporary files and
+renamed into place together once all are written (:func:`crfdepth.cli.outputs.write_files`),
+so a failed run leaves no partial file and no part of a frame; the error names the flag and
+the file asked for (``--out: cannot write d/depth.png: No space left on device``), never the
+temporary file. An error of the system on any file the user named (a name too long, a
+read-only or full disk, a folder where a file is expected) is one line naming its flag
+(:mod:`crfdepth.cli.file_errors`).
 
 The model (:func:`~crfdepth.cli.model_options.build_model`): without ``--checkpoint``, the shipped weights named by
 ``--weights`` (default ``kitti``, learned on KITTI; ``paper`` = the hand-set initial
@@ -85,9 +95,13 @@ below. ``--skip-bad`` completes the good frames instead, lists the bad ones with
 reason in ``<out-dir>/skipped.csv`` (columns ``frame``, ``reason``; a run that skips
 nothing removes an earlier one) and in the summary, and exits 0. The extra read costs
 23-56 ms per 1216x352 frame, under 10% of its completion (docs/design.md section 10).
-A failure that only the model reveals (a non-finite depth) or Ctrl-C stops the run
+A failure that only the model reveals (a non-finite depth), an output that cannot be written
+(a full disk: stops the run even with ``--skip-bad``) or Ctrl-C stops the run
 midway; the message says how many frames were written (``interrupted after 3 of 10
-frame(s) written to OUT; --resume completes the others``, exit status 130), and they stay.
+frame(s) written to OUT; --resume completes the others``, exit status 130), and they stay;
+nothing of the frame being written stays. A run stopped before its first frame was written
+leaves nothing behind: no PNG, no run record, no ``skipped.csv``, and the folders it created
+are removed.
 The same command with ``--resume`` completes the others, and the folders end as one
 uninterrupted run's, byte for byte (:mod:`crfdepth.cli.resume`).
 
@@ -107,7 +121,7 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.cli.arguments import vis_range_type
+from crfdepth.cli.arguments import VisRange, vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
@@ -173,9 +187,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write colour pictures <stem>_vis_depth.png and <stem>_vis_std.png into "
                              "DIR (created if missing); without DIR: next to --out, or into "
                              "<out-dir>_vis")
-    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, default=None, metavar=("MIN", "MAX"),
-                        help="fixed depth colour scale of the pictures in metres (same colours for the same "
-                             "depth in every frame of a sequence); default: each frame's 2nd-98th percentile")
+    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=VisRange, default=None,
+                        metavar=("MIN", "MAX"),
+                        help="fixed depth colour scale of the pictures in metres, 0 < MIN < MAX (same colours for "
+                             "the same depth in every frame of a sequence); default: each frame's 2nd-98th "
+                             "percentile")
     one.add_argument("--trust-transform", action="store_true",
                      help="with --points: use T_cam_lidar even when its inverse lands more points in the image "
                           "(by default that is refused as a probably inverted transform)")
@@ -211,6 +227,9 @@ def run(args: argparse.Namespace) -> int:
                                       ("--bag", args.bag)) if value is not None]
     if len(given) > 1:
         raise InputError(f"{' / '.join(given)}: give one of them (--input-list names folders and recordings itself)")
+    if args.vis_range is not None and args.vis is None:
+        raise InputError(f"--vis-range {args.vis_range[0]:g} {args.vis_range[1]:g}: sets the colour scale of the "
+                         f"pictures --vis writes; add --vis (or leave --vis-range out)")
     if args.skip_bad and not many:
         raise InputError("--skip-bad: applies to the runs over many frames (--input-dir, --bag or --input-list); a "
                          "single frame is either completed or refused")

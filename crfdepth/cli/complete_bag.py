@@ -51,6 +51,7 @@ first. An ``--out-dir`` holding the ``index.csv`` of an earlier run is refused u
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import io
 import sys
@@ -64,13 +65,13 @@ from crfdepth import api
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
 from crfdepth.cli.bag_frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
 from crfdepth.cli.completion import flag_names, frame_errors
+from crfdepth.cli.file_errors import FileError
 from crfdepth.cli.model_options import build_model
-from crfdepth.cli.outputs import check_output_folders, check_writable_dir, output_folders, write_frame
+from crfdepth.cli.outputs import check_output_folders, check_writable_dir, output_folders, write_files, write_frame
 from crfdepth.cli.skip_bad import skipped_frames, write_skipped
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
 from crfdepth.inputs import points_to_sparse
-from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.ros.bag import Recording, camera_info_topic
 
 __all__ = ["BAG_ONLY", "add_arguments", "run_bag"]
@@ -237,18 +238,21 @@ def _complete_pairs(bag: Recording, args, plan: Plan, model, skip, out_dir: Path
         if writer is not None:
             writer.abort()
         rows = [row for row in rows if (out_dir / row["depth_png"]).exists()]  # a frame cut short is not listed
+        listed = False
         if rows:
-            atomic_write_bytes(out_dir / INDEX_NAME, _index_bytes(rows))
+            with contextlib.suppress(OSError):  # a full disk: the error that stopped the run is the one to tell
+                write_files([("--out-dir", out_dir / INDEX_NAME, _index_bytes(rows))])
+                listed = True
         where = (f"{len(rows)} of {todo} frame(s) written to {out_dir}"
-                 + (f" and listed in its {INDEX_NAME}" if rows else "") + "; no --out-bag written")
-        if isinstance(exc, BAD_INPUT):
+                 + (f" and listed in its {INDEX_NAME}" if listed else "") + "; no --out-bag written")
+        if isinstance(exc, (*BAD_INPUT, FileError)):
             raise type(exc)(f"{exc} [stopped after {where}]") from None
         if isinstance(exc, KeyboardInterrupt):
             raise KeyboardInterrupt(f"after {where}") from None
         raise
     finally:
         progress.close()
-    atomic_write_bytes(out_dir / INDEX_NAME, _index_bytes(rows))
+    write_files([("--out-dir", out_dir / INDEX_NAME, _index_bytes(rows))])
     if writer is not None:
         writer.commit()
     return rows
@@ -270,7 +274,7 @@ def _one(args, model, plan: Plan, i: int, image_msg, cloud_msg, c: int, out_dir:
                  "dt_ms": f"{(int(plan.clouds.stamps_ns[c]) - stamp) / 1e6:.3f}", "points": xyz.shape[0],
                  "points_in_view": int(in_view), "depth_png": name, "std_png": name if std_dir is not None else ""})
     write_frame(depth, std, out_dir / name, std_dir / name if std_dir is not None else None, vis_dir, str(stamp),
-                args.vis_range)
+                args.vis_range, ("--out-dir", "--out-std-dir", "--vis"))  # the frame's files: all of them or none
     if writer is not None:
         log_ns, frame_id = int(plan.images.log_ns[i]), plan.images.frame_ids[i]
         writer.write(topics["depth"], log_ns, writer.image(depth, stamp, frame_id, "32FC1"))

@@ -30,11 +30,13 @@ from tqdm import tqdm
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.batches import bad_frames, frame_batches
 from crfdepth.cli.completion import check_sample, complete_batch_with_cli_advice, flag_names
+from crfdepth.cli.file_errors import FileError, flagged
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_frame
 from crfdepth.cli.processes import deal, in_processes, run_share
 from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.cli.resume import (
+    RUN_RECORD,
     batch_plan,
     check_resumable,
     finished_frames,
@@ -48,7 +50,10 @@ from crfdepth.errors import InputError
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["complete_planned", "complete_share", "run_folder"]
+__all__ = ["FOLDER_FLAGS", "complete_planned", "complete_share", "run_folder"]
+
+# What names a frame's depth PNG, std PNG and pictures in a write error (crfdepth.cli.outputs.write_frame).
+FOLDER_FLAGS = ("--out-dir", "--out-std-dir", "--vis")
 
 
 def _where(index: int, total: int, name: str) -> str:
@@ -84,6 +89,11 @@ def _frame_files(dataset) -> dict[str, str]:
 def _open_folder(path: str, camera: int):
     """The dataset of ``--input-dir``: a ``depth_selection`` folder or a raw drive (errors name the flag)."""
     folder = Path(path)
+    with flagged("--input-dir", path):  # a name too long, a folder that cannot be listed ...
+        return _open(folder, path, camera)
+
+
+def _open(folder: Path, path: str, camera: int):
     if not folder.exists():
         raise FileNotFoundError(f"--input-dir: no such folder: {path}")
     if not folder.is_dir():
@@ -175,6 +185,7 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
         out_dir = folders[0]
         failed: list[tuple[str, str]] = []
         counts = {"written": 0}
+        failing = False
         try:
             if ranks is not None or (args.devices > 1 and plan):
                 if ranks is None:
@@ -194,14 +205,39 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
             elif plan:
                 complete_planned(args, built["model"], dataset, plan, folders, with_std, failed, counts,
                                  lambda: write_run_record(out_dir, run["record"]))
+        except BaseException:
+            failing = True
+            raise
         finally:  # also when a run stops after writing frames: the failed ones are listed for --resume (a run
-            # stopped before its first frame writes nothing: its error names the frame)
-            failed_csv = write_failed(out_dir, failed if counts["written"] or args.skip_bad else []) if main else None
+            # stopped before its first frame leaves nothing: its error names the frame)
+            failed_csv = _close_run(args, run, out_dir, failed, counts["written"], failing) if main else None
         if main and not failed:
             remove_run_record(out_dir)
     if main and not args.quiet:
         _summary(args, run, counts["written"], failed, failed_csv, time.perf_counter() - start)
     return 0
+
+
+def _close_run(args: argparse.Namespace, run: dict, out_dir: Path, failed: list[tuple[str, str]], written: int,
+               stopped: bool) -> Path | None:
+    """``failed.csv`` of a run that wrote frames (or ran with ``--skip-bad``), for ``--resume``; returns it. A run
+    ``stopped`` by an error or Ctrl-C before its first frame was written leaves nothing of its own: no
+    ``failed.csv``, no ``skipped.csv`` and no run record that it wrote (those of an earlier unfinished run stay
+    as they were, for ``--resume``), so that the output folders it created are empty and removed
+    (:func:`~crfdepth.cli.outputs.output_folders`). When the run is stopped by an error, a file that cannot be
+    written now (a full disk) does not hide it."""
+    try:
+        if stopped and not written:
+            if not run["had_record"]:
+                remove_run_record(out_dir)
+            if run["skipped_csv"] is not None:
+                run["skipped_csv"].unlink(missing_ok=True)
+            return None
+        return write_failed(out_dir, failed if written or args.skip_bad else [])
+    except OSError:
+        if not stopped:
+            raise
+        return None
 
 
 def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict, eager_record: bool) -> dict:
@@ -232,10 +268,12 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict,
         logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
                        "run on other frames?); they stay", folders[0], others)
     skipped_csv = write_skipped(folders[0], [(dataset.names[i], m) for i, m in skipped.items()])
+    had_record = (folders[0] / RUN_RECORD).is_file()  # an earlier unfinished run's, which a failure leaves
     if eager_record and plan:
         write_run_record(folders[0], record)
     return {"dataset": dataset, "plan": plan, "folders": folders, "with_std": with_std, "record": record,
-            "finished": finished, "good": good, "skipped": skipped, "skipped_csv": skipped_csv, "total": total}
+            "finished": finished, "good": good, "skipped": skipped, "skipped_csv": skipped_csv, "total": total,
+            "had_record": had_record}
 
 
 def _summary(args: argparse.Namespace, run: dict, written: int, failed: list, failed_csv, seconds: float) -> None:
@@ -301,7 +339,8 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
                      check) -> int:
     """Pass 2 of folder mode: complete and write ``frames`` in batches that start at ``starts`` besides
     size changes and ``--batch-size`` (frame ``k`` is frame ``positions[k]`` of the folder's ``total``),
-    each checked by ``check(sample, k)`` (:func:`_check_frame`); returns the number written.
+    each checked by ``check(sample, k)`` (:func:`_check_frame`); returns the number written, counted in
+    ``counts["written"]`` as each frame's files are in place.
     ``first_write()`` runs before the first file is written.
 
     A failure now (the frame changed since pass 1, a non-finite model output, a batch too large for the
@@ -310,40 +349,43 @@ def _complete_frames(args, model, frames, names: list[str], total: int, position
     out_dir, std_dir, vis_dir = folders
     progress = tqdm(total=len(names), unit="frame", desc="complete", disable=args.quiet or not sys.stderr.isatty())
     batches = frame_batches(frames, args.batch_size, args.workers, check, starts)
-    done = written = 0
-    where, batch_names = _where(positions[0], total, names[0]), names[:1]
+    done = 0
+    # the frames a failure concerns: those of the batch not yet written, or the next frame to read
+    where, unwritten = _where(positions[0], total, names[0]), names[:1]
     try:
         for batch in batches:  # a frame that fails to read or check is raised here, after the frames before it
-            batch_names = batch.names
+            unwritten = list(batch.names)
             if len(batch) > 1:
                 where = (f"frames {positions[done] + 1}-{positions[done + len(batch) - 1] + 1}/{total} "
                          f"({', '.join(batch.names)})")
             try:
-                written += _complete_batch(args, model, batch, with_std, folders, first_write if not written else None)
-                counts["written"] = written
+                _complete_batch(args, model, batch, with_std, folders, first_write if not counts["written"] else None,
+                                counts, unwritten)
             except BAD_INPUT as exc:
                 if not args.skip_bad:
                     raise
-                failed.extend((name, f"{where}: {exc}") for name in batch.names)
+                failed.extend((name, f"{where}: {exc}") for name in unwritten)
             done += len(batch)
             progress.update(len(batch))
             if done < len(names):
-                where, batch_names = _where(positions[done], total, names[done]), names[done:done + 1]
-    except BAD_INPUT as exc:
-        failed.extend((name, f"{where}: {exc}") for name in batch_names)
-        raise type(exc)(f"{exc} [stopped at {where}; {written} of {len(names)} frame(s) written to "
+                where, unwritten = _where(positions[done], total, names[done]), names[done:done + 1]
+    except (*BAD_INPUT, FileError) as exc:  # FileError: an output that cannot be written stops even --skip-bad
+        failed.extend((name, f"{where}: {exc}") for name in unwritten)
+        raise type(exc)(f"{exc} [stopped at {where}; {counts['written']} of {len(names)} frame(s) written to "
                         f"{out_dir}; --resume completes the others]") from None
     except KeyboardInterrupt:
-        raise KeyboardInterrupt(f"after {written} of {len(names)} frame(s) written to {out_dir}; --resume "
-                                f"completes the others") from None
+        raise KeyboardInterrupt(f"after {counts['written']} of {len(names)} frame(s) written to {out_dir}; "
+                                f"--resume completes the others") from None
     finally:
         batches.close()  # stops the DataLoader workers
         progress.close()
-    return written
+    return counts["written"]
 
 
-def _complete_batch(args, model, batch, with_std: bool, folders: tuple, first_write) -> int:
-    """Complete and write one batch; returns the number of frames written."""
+def _complete_batch(args, model, batch, with_std: bool, folders: tuple, first_write, counts: dict,
+                    unwritten: list[str]) -> None:
+    """Complete and write one batch, each frame counted in ``counts["written"]`` and taken off ``unwritten`` as
+    soon as its files are in place (a failure on a later frame of the batch leaves the earlier ones written)."""
     out_dir, std_dir, vis_dir = folders
     depth, std = complete_batch_with_cli_advice(model, batch, with_std)
     depth = depth.cpu().numpy()  # float32, as the one-frame mode writes it
@@ -352,5 +394,6 @@ def _complete_batch(args, model, batch, with_std: bool, folders: tuple, first_wr
         first_write()
     for name, frame_depth, frame_std in zip(batch.names, depth, std):
         write_frame(frame_depth, frame_std, out_dir / f"{name}.png", std_dir / f"{name}.png" if std_dir else None,
-                    vis_dir, name, args.vis_range)
-    return len(batch)
+                    vis_dir, name, args.vis_range, FOLDER_FLAGS)  # the frame's files: all of them or none
+        counts["written"] += 1
+        unwritten.remove(name)

@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -12,8 +14,10 @@ import numpy as np
 
 from crfdepth import api
 from crfdepth.cli.completion import frame_errors
+from crfdepth.cli.decoder_noise import quiet_decoders
+from crfdepth.cli.file_errors import flagged
 from crfdepth.cli.model_options import build_model
-from crfdepth.cli.outputs import make_output_dir, same_file, write_frame
+from crfdepth.cli.outputs import check_output_folder, make_output_dir, same_file, write_frame
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import check_output_file
@@ -28,14 +32,20 @@ __all__ = ["run_one"]
 
 def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
     """``--out`` / ``--out-std`` checked before anything is read: PNG names in writable folders, not inputs."""
-    out = check_output_file(args.out, "--out", suffix=".png")
-    out_std = check_output_file(args.out_std, "--out-std", suffix=".png") if args.out_std is not None else None
+    with flagged("--out", args.out, "write"):  # a name too long, a path through a file ...
+        out = check_output_file(args.out, "--out", suffix=".png")
+    out_std = None
+    if args.out_std is not None:
+        with flagged("--out-std", args.out_std, "write"):
+            out_std = check_output_file(args.out_std, "--out-std", suffix=".png")
     if out_std is not None and same_file(out, out_std):
         raise InputError(f"--out-std: must differ from --out, got {out_std} for both")
     for flag, path in ((f, p) for f, p in (("--out", out), ("--out-std", out_std)) if p is not None):
         for source, src_path in inputs.items():
             if same_file(path, src_path):
                 raise InputError(f"{flag}: {path} is the {source} input; refusing to overwrite it")
+    if args.vis:  # created once the frame is completed; a folder that cannot be is refused now
+        check_output_folder(args.vis, "--vis")
     return out, out_std
 
 
@@ -62,18 +72,16 @@ def run_one(args: argparse.Namespace) -> int:
     if stray:
         raise InputError(f"{', '.join(stray)}: folder options need --input-dir; for one frame use --out / --out-std")
     out, out_std = _check_outputs(args, {flag: Path(given[flag]) for flag in needed[:-1]})
-    check_image_file(args.image, f"--image {args.image}", device=args.device, dtype=args.dtype, mode=args.mode,
-                     return_std=out_std is not None or args.vis is not None, advice=cli_advice(args.device))
-    rgb = read_rgb(args.image)
+    # each file read under its flag (a reader's label, an OS error: the flag), decoders' C warnings held back
+    with flagged("--image", args.image, labels=("image",)), quiet_decoders():
+        check_image_file(args.image, f"--image {args.image}", device=args.device, dtype=args.dtype, mode=args.mode,
+                         return_std=out_std is not None or args.vis is not None, advice=cli_advice(args.device))
+        rgb = read_rgb(args.image)
     if points_mode:
-        try:
+        with flagged("--points", args.points, labels=("points",)):
             points = read_points(args.points)
-        except InputError as exc:
-            raise InputError(f"--points: {exc}") from None
-        try:
+        with flagged("--calib", args.calib, labels=("calibration",)):
             calibration = load_any_calibration(args.calib, camera=args.camera)
-        except InputError as exc:
-            raise InputError(f"--calib: {str(exc).removeprefix('calibration: ')}") from None
         inputs = dict(points=points, calibration=calibration)
         where = {"points": f"--points {args.points}", "calibration": f"--calib {args.calib}",
                  "K": f"--calib {args.calib}", "T_cam_lidar": f"--calib {args.calib}", "image": f"--image {args.image}",
@@ -82,14 +90,14 @@ def run_one(args: argparse.Namespace) -> int:
                  "*": f"--points {args.points} with --calib {args.calib}"}
     else:
         units = args.sparse_units or "kitti"
-        sparse = read_depth_png(args.sparse, units=units)
-        try:
+        with flagged("--sparse", args.sparse, labels=("depth png",)), quiet_decoders():
+            sparse = read_depth_png(args.sparse, units=units)
+        with flagged("--intrinsics", args.intrinsics, labels=("intrinsics",)):
             K = read_intrinsics(args.intrinsics)
-        except InputError as exc:
-            raise InputError(f"--intrinsics: {str(exc).removeprefix('intrinsics: ')}") from None
         if rgb.shape[:2] != sparse.shape:
-            raise InputError(f"image and sparse sizes differ: --image {args.image} is {rgb.shape[0]}x{rgb.shape[1]} "
-                             f"(HxW) but --sparse {args.sparse} is {sparse.shape[0]}x{sparse.shape[1]}")
+            raise InputError(f"--image: expected the size of --sparse, {sparse.shape[0]}x{sparse.shape[1]} (HxW), got "
+                             f"{rgb.shape[0]}x{rgb.shape[1]}: image and sparse sizes differ (--image {args.image}, "
+                             f"--sparse {args.sparse})")
         # an explicit --sparse-units overrules the guess about the rig (a camera more than 4 m up)
         inputs = dict(sparse=sparse, K=K, trust_units=args.sparse_units is not None)
         where = {"sparse": f"--sparse {args.sparse}", "K": f"--intrinsics {args.intrinsics}",
@@ -101,10 +109,17 @@ def run_one(args: argparse.Namespace) -> int:
     with frame_errors(args, model, rgb.shape[:2], where, None if points_mode else units):
         depth, std = api.complete_depth(rgb, model=model, device=args.device, trust_transform=args.trust_transform,
                                         return_std=out_std is not None or args.vis is not None, **inputs)
-    vis_dir = None
+    vis_dir, created = None, False
     if args.vis is not None:  # created only once the frame is completed
+        created = bool(args.vis) and not os.path.isdir(args.vis)
         vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
-    written = write_frame(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)
+    try:
+        written = write_frame(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)  # all files, or none
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                vis_dir.rmdir()  # the --vis folder this run created, empty again
+        raise
     if not args.quiet:
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
               f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - start:.1f} s")

@@ -47,7 +47,7 @@ import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.checkpoints import load_pretrained, own_structure
-from crfdepth.cli.arguments import int_at_least, vis_range_type
+from crfdepth.cli.arguments import VisRange, int_at_least, vis_range_type
 from crfdepth.cli.model_options import model_line
 from crfdepth.cli.outputs import write_rgb_png
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
@@ -70,16 +70,6 @@ MAX_BEAMS = 128
 
 
 # --------------------------------------------------------------------------- flag parsing
-
-
-class _VisRange(argparse.Action):
-    """``--vis-range MIN MAX``: stored as a (min, max) tuple, refused unless MIN < MAX."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        low, high = values
-        if not low < high:
-            raise argparse.ArgumentError(self, f"expected MIN < MAX in metres, got {low:g} {high:g}")
-        setattr(namespace, self.dest, (low, high))
 
 
 HELP = "run the full pipeline on a built-in scene (no download) or on KITTI frames"
@@ -108,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"default: {DEFAULT_WEIGHTS}")
     parser.add_argument("--max-frames", type=int_at_least(1), default=2,
                         help="KITTI frames to run, >= 1 (default 2)")
-    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=_VisRange, default=None,
+    parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=VisRange, default=None,
                         metavar=("MIN", "MAX"),
                         help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
                              "frame (default: 2nd to 98th percentile of each frame's depth)")
@@ -234,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         depth_np, std_np = depth.cpu().numpy(), std.cpu().numpy()
         vis_range = args.vis_range if args.vis_range is not None else depth_range(depth_np)
         for kind, picture in _pictures(image, sparse, K, depth_np, std_np, vis_range).items():
-            write_rgb_png(out_dir / f"{name}_{kind}.png", picture)
+            write_rgb_png(out_dir / f"{name}_{kind}.png", picture, "--out-dir")
         print(f"  pictures: {out_dir / name}_{{{','.join(PICTURES)}}}.png (depth colours "
               f"{vis_range[0]:.3g}-{vis_range[1]:.3g} m)")
         write_depth_png(data_dir / f"{name}_depth16.png", depth_np)

@@ -92,12 +92,11 @@ from crfdepth.cli.evaluate_frames import (
 )
 from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
 from crfdepth.cli.model_options import add_model_arguments, build_model
-from crfdepth.cli.outputs import output_folders
+from crfdepth.cli.outputs import output_folders, write_files
 from crfdepth.cli.processes import deal, run_share
 from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes
 from crfdepth.metrics import UNITS
 from crfdepth.weights import DEFAULT_WEIGHTS
 
@@ -221,7 +220,7 @@ def _check_out_dir(args: argparse.Namespace, root: Path | None) -> Path:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+    write_files([("--out-dir", path, text.encode("utf-8"))])
 
 
 # --------------------------------------------------------------------------- entry point

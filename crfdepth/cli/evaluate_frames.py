@@ -18,9 +18,9 @@ from tqdm import tqdm
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.batches import frame_batches
 from crfdepth.cli.completion import complete_batch_with_cli_advice
+from crfdepth.cli.outputs import write_depth_png
 from crfdepth.cli.processes import deal, in_processes
 from crfdepth.errors import InputError
-from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
 
 logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
@@ -180,4 +180,4 @@ def _write_pngs(depth: torch.Tensor, names: list[str], png_dir: Path, where: str
         if not np.all(np.isfinite(frame)):
             raise InputError(f"{where}: the model returned {int(np.sum(~np.isfinite(frame)))} non-finite "
                              f"depth value(s) for {name}; PNG not written")
-        write_depth_png(png_dir / f"{name}.png", np.maximum(frame, _MIN_DEPTH))
+        write_depth_png(png_dir / f"{name}.png", np.maximum(frame, _MIN_DEPTH), "--out-dir")

@@ -85,7 +85,7 @@ def run_share(who: str, args: argparse.Namespace, work: Callable, share, model=N
     partial: dict = {}
     try:
         work(quiet, model if model is not None else build_model(quiet), share, partial)
-    except BAD_INPUT as exc:
+    except (*BAD_INPUT, OSError) as exc:  # OSError: an output that cannot be written (FileError names its flag)
         return partial, (f"{who}: {exc}", False)
     except KeyboardInterrupt as exc:
         return partial, (f"{who}: interrupted {exc}", True)

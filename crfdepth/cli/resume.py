@@ -27,8 +27,8 @@ from pathlib import Path
 
 import torch
 
+from crfdepth.cli.outputs import write_files
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes
 from crfdepth.io.image_size import read_image_size
 
 __all__ = ["RUN_RECORD", "batch_plan", "check_resumable", "finished_frames", "remove_run_record", "run_record",
@@ -90,7 +90,8 @@ def check_resumable(out_dir: Path, record: dict) -> None:
 
 
 def write_run_record(out_dir: Path, record: dict) -> None:
-    atomic_write_bytes(out_dir / RUN_RECORD, (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())
+    """``<out-dir>/.crfdepth-run.json``, written atomically (errors name ``--out-dir``)."""
+    write_files([("--out-dir", out_dir / RUN_RECORD, (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())])
 
 
 def remove_run_record(out_dir: Path) -> None:

@@ -7,8 +7,8 @@ import csv
 import io
 from pathlib import Path
 
+from crfdepth.cli.outputs import write_files
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes
 
 __all__ = ["FAILED_CSV", "LISTED_BAD", "SKIPPED_CSV", "skipped_frames", "write_failed", "write_skipped"]
 
@@ -39,7 +39,7 @@ def _write_frame_list(path: Path, rows: list[tuple[str, str]]) -> Path | None:
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(("frame", "reason"))
     writer.writerows(rows)
-    atomic_write_bytes(path, text.getvalue().encode())
+    write_files([("--out-dir", path, text.getvalue().encode())])
     return path
 
 

@@ -55,6 +55,8 @@ import numpy as np
 from tqdm import tqdm
 
 from crfdepth.cli.arguments import BAD_INPUT
+from crfdepth.cli.decoder_noise import quiet_decoders
+from crfdepth.cli.file_errors import flagged
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_rgb_png
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
@@ -175,18 +177,20 @@ def select_frames(args, frames: list[int], width: int, flag: str) -> tuple[list[
 def _read_scans(used: list[int], files: dict[int, Path], width: int) -> list[np.ndarray]:
     scans = []
     for f in used:
-        scan = read_velodyne(files[f])
+        with flagged("--drive", files[f], labels=("velodyne",)):
+            scan = read_velodyne(files[f])
         if len(scan) == 0:
-            raise InputError(f"velodyne: expected a scan with at least one return, got an empty scan in {files[f]} "
+            raise InputError(f"--drive: expected a scan with at least one return, got an empty scan in {files[f]} "
                              f"(frame {_stem(f, width)})")
         scans.append(scan)
     return scans
 
 
 def _image_size(path: Path) -> tuple[int, int]:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with quiet_decoders():  # a damaged PNG: the message below, not libpng's
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.dtype != np.uint8 or image.ndim != 3:
-        raise InputError(f"image: expected an 8-bit colour PNG, got a file that does not read as one: {path}")
+        raise InputError(f"--drive: expected an 8-bit colour PNG, got a file that does not read as one: {path}")
     return image.shape[:2]
 
 
@@ -326,10 +330,12 @@ def run_drive(args: argparse.Namespace) -> int:
                 write_depth_png(depth_dir / f"{stem}.png", targets.depth)
                 _write_support(support_dir / f"{stem}.png", targets.support, wide)
                 if vis_dir is not None:
-                    image = cv2.cvtColor(cv2.imread(str(image_files[frame]), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+                    with quiet_decoders():
+                        image = cv2.imread(str(image_files[frame]), cv2.IMREAD_COLOR)
+                    image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
                     # the legend names the window by frame numbers, not by positions in the scans used
                     shown = dataclasses.replace(targets, window=tuple(used[i] for i in targets.window))
-                    write_rgb_png(vis_dir / f"{name}_{cam}_{stem}.png", targets_picture(image, shown))
+                    write_rgb_png(vis_dir / f"{name}_{cam}_{stem}.png", targets_picture(image, shown), "--vis")
                 codes = np.concatenate(targets.point_reason)
                 has = targets.depth > 0
                 pixels = int(has.sum())
