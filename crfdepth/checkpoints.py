@@ -64,6 +64,7 @@ from __future__ import annotations
 
 import logging
 import os
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -73,9 +74,10 @@ from crfdepth.config import POTENTIALS, CRFConfig, flat_view, plain_data
 from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 from crfdepth.weights.files import DEFAULT_WEIGHTS, pretrained_state, read_checkpoint, write_weights
-from crfdepth.weights.torch_files import write_model_file
+from crfdepth.weights.torch_files import MODEL_FORMAT, load_torch_file, some_keys, write_model_file
 
-__all__ = ["describe", "load_model", "load_pretrained", "own_structure", "save_model", "save_weights"]
+__all__ = ["describe", "load_model", "load_pretrained", "own_structure", "read_trainer_checkpoint", "save_model",
+           "save_weights"]
 
 logger = logging.getLogger(__name__)
 
@@ -235,3 +237,95 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     model = CRFDepth.from_stored(config, state, overrides=overrides, file=file, kind=kind)
     logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.mode, file, kind)
     return model.to(torch.device(map_location)).eval()
+
+
+#: What :func:`read_trainer_checkpoint` expects, in its messages.
+TRAINER_CHECKPOINT = "a checkpoint of the trainer (a Lightning .ckpt written by python -m train)"
+
+
+def read_trainer_checkpoint(path: str | os.PathLike, *, name: str = "checkpoint", lightning: bool = False,
+                            resume: bool = False) -> dict[str, Any]:
+    """The whole checkpoint of the trainer in ``train/`` (a Lightning ``.ckpt``), read safely and checked.
+
+    The file is read with ``torch.load(weights_only=True)`` (only tensors and plain containers are
+    unpickled: a pickle that would run code is refused, never loaded), and must be what the trainer
+    writes: a dict with ``hyper_parameters["crf"]`` and a ``state_dict`` whose ``model.`` tensors are
+    finite and fit the model of that configuration (as :func:`load_model` checks them). ``python -m train`` checks ``--ckpt_path`` with it before Lightning
+    starts, so that a bad file is one line rather than a traceback after the log folder is made.
+
+    Args:
+        path: the checkpoint file.
+        name: the argument's name in messages, as the user gives it (``"--ckpt_path"``).
+        lightning: also require what Lightning needs to restore from it (``pytorch-lightning_version``).
+        resume: also require the training state a fit resumes from (``optimizer_states`` and ``loops``;
+            a checkpoint saved with ``checkpoint.save_weights_only`` holds the model alone).
+
+    Returns:
+        The checkpoint as ``torch.load`` gives it, tensors on the CPU.
+
+    Raises:
+        InputError: one line, ``<name>: expected a checkpoint of the trainer ..., got <what the file is>``:
+            no such file, a folder, a file ``torch.load(weights_only=True)`` does not read (random
+            bytes, text, a truncated archive, a pickle of other objects), another kind of torch file
+            (a bare state dict, a crfdepth model file, another LightningModule's checkpoint), tensors
+            that are not finite or do not fit the stored configuration, or (``resume``) no training state.
+    """
+    file = Path(path)
+    expected = f"{name}: expected {TRAINER_CHECKPOINT}"
+    if not file.exists():
+        raise InputError(f"{expected}, got {file}, which does not exist")
+    if file.is_dir():
+        raise InputError(f"{expected}, got the folder {file}")
+    try:
+        loaded = load_torch_file(file, torch.device("cpu"))
+    except InputError as exc:  # "<file> is not a torch state dict ... (<why>)": keep the why
+        raise InputError(f"{expected}, got {file}, {_unreadable(file, exc)}") from None
+    if not isinstance(loaded, dict):
+        raise InputError(f"{expected}, got {file}, a torch file holding a {type(loaded).__name__}")
+    if loaded and all(isinstance(v, torch.Tensor) for v in loaded.values()):
+        raise InputError(f"{expected}, got {file}, a bare state dict (parameter name -> tensor, "
+                         f"{some_keys(sorted(map(str, loaded)), 3)})")
+    if loaded.get("format") == MODEL_FORMAT:
+        raise InputError(f"{expected}, got {file}, a crfdepth model file (crfdepth.save_model): it holds the weights "
+                         "without the trainer's state")
+    required = ("pytorch-lightning_version",) * (lightning or resume) + ("state_dict", "hyper_parameters")
+    missing = [key for key in required if key not in loaded]
+    if missing:
+        keys = some_keys(sorted(map(str, loaded))) or "none"
+        raise InputError(f"{expected}, got {file}, a torch file without {', '.join(repr(k) for k in missing)} "
+                         f"(its keys: {keys})")
+    hparams = loaded["hyper_parameters"]
+    if not isinstance(hparams, Mapping) or not isinstance(hparams.get("crf"), Mapping):
+        raise InputError(f"{expected}, got {file}, a Lightning checkpoint of another model: no "
+                         "hyper_parameters['crf'] (the CRF's configuration)")
+    try:
+        config, state, kind = read_checkpoint(file)
+        CRFDepth.from_stored(config, state, file=file, kind=kind)
+    except InputError as exc:
+        text = str(exc)
+        for prefix in (f"path: {file}: ", f"{file}: "):
+            text = text.removeprefix(prefix)
+        raise InputError(f"{expected}, got {file}, whose weights do not load: {text}") from None
+    if resume:
+        absent = [key for key in ("optimizer_states", "loops") if key not in loaded]
+        if absent:
+            raise InputError(f"{expected} with the training state to resume from, got {file}, which holds the model's "
+                             f"weights only (no {', '.join(absent)}: saved with checkpoint.save_weights_only)")
+    return loaded
+
+
+def _unreadable(file: Path, exc: InputError) -> str:
+    """Why ``torch.load(weights_only=True)`` did not read ``file`` (``exc``: :func:`load_torch_file`'s
+    ``<file> is not a torch state dict ... (<why>)``), for :func:`read_trainer_checkpoint`."""
+    text = str(exc)
+    why = text[text.index(" (") + 2:-1] if text.startswith(str(file)) and " (" in text else text
+    with open(file, "rb") as handle:
+        head = handle.read(4)
+    if head == b"PK\x03\x04" and not zipfile.is_zipfile(file):
+        return "a damaged or truncated torch.save archive (its zip directory is missing)"
+    refused = "torch.load with weights_only=True refused it: "
+    if why.startswith(refused):
+        return (f"which torch.load(weights_only=True) refuses ({why[len(refused):]}): it holds other objects than "
+                "tensors and plain containers, and nothing in it was run")
+    return f"which torch.load(weights_only=True) does not read: {why}"
+

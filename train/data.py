@@ -35,6 +35,7 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Subset
 
 from crfdepth.checks import check_choice
@@ -42,7 +43,8 @@ from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, b
 from crfdepth.data.factory import LAYOUTS
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
-from train.sampling import Draw, EpochOrder, ResumableLoader, seeded_draws
+from train.sampling import Draw, EpochOrder, ResumableLoader, check_same_run, frames_digest, seeded_draws
+from train.sources import check_source, check_weight, option_message, weighted
 
 log = logging.getLogger(__name__)
 
@@ -98,27 +100,6 @@ def dataset_names(dataset: Dataset) -> list[str]:
     return list(names)
 
 
-def _check_source(index: int, source: Any) -> dict[str, Any]:
-    """An ``extra_train`` entry, checked and normalised (``names_contain`` as a list or None)."""
-    where = f"extra_train[{index}]"
-    if not isinstance(source, dict):
-        raise InputError(f"{where}: expected a mapping with layout, root, options, names_contain, "
-                         f"got {type(source).__name__}")
-    unknown = set(source) - {"layout", "root", "options", "names_contain"}
-    if unknown:
-        raise InputError(f"{where}: expected keys among layout, root, options, names_contain, got {sorted(unknown)}")
-    check_choice(f"{where}.layout", source.get("layout"), LAYOUTS)
-    options = source.get("options")
-    if options is not None and not isinstance(options, dict):
-        raise InputError(f"{where}.options: expected a mapping of dataset options, got {type(options).__name__}")
-    keep = source.get("names_contain")
-    if isinstance(keep, str):
-        keep = [keep]
-    if keep is not None and (not isinstance(keep, list) or not all(isinstance(k, str) for k in keep)):
-        raise InputError(f"{where}.names_contain: expected a string or a list of strings, got {keep!r}")
-    return {**source, "names_contain": keep}
-
-
 class CRFDataModule(pl.LightningDataModule):
     """Training and validation frames for :class:`~train.module.CRFDepthModule`.
 
@@ -156,12 +137,14 @@ class CRFDataModule(pl.LightningDataModule):
         num_workers: ``DataLoader`` worker processes (0 = load in the main process).
         shuffle: shuffle the training frames each epoch.
         extra_train: more training sources, concatenated to the first: a list of
-            ``{layout, root, options, names_contain}`` mappings (``options`` and
-            ``names_contain`` optional; ``names_contain``, a string or list, keeps only the
-            frames whose name contains one of them). Frames matching
+            ``{layout, root, options, names_contain, weight}`` mappings (all but ``layout`` and
+            ``root`` optional; ``names_contain``, a string or list, keeps only the frames whose
+            name contains one of them; ``weight`` (default 1) scales the source's frames per
+            epoch, :func:`train.sources.weighted`). Frames matching
             ``val_names_contain`` are left out of every source, so a held-out drive stays
             held out. E.g. the same scans with another hold-out (``{layout: raw, root:
             ..., options: {holdout: rings}}``) or another folder (``object``).
+        train_weight: the weight of the first source (``layout`` / ``root``), as ``extra_train``'s.
         seed: seed of the training order and of each frame's random draws, which are
             functions of (seed, epoch, frame) (:mod:`train.sampling`); None = the run's seed
             (``--seed_everything``, 0 by default) as torch holds it when the loader is made.
@@ -191,6 +174,7 @@ class CRFDataModule(pl.LightningDataModule):
         num_workers: int = 0,
         shuffle: bool = True,
         extra_train: list[dict[str, Any]] | None = None,
+        train_weight: float = 1.0,
         seed: int | None = None,
     ) -> None:
         super().__init__()
@@ -217,7 +201,8 @@ class CRFDataModule(pl.LightningDataModule):
             raise InputError(f"num_workers: expected an integer >= 0, got {num_workers!r}")
         if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
             raise InputError(f"seed: expected an integer >= 0 or null, got {seed!r}")
-        self.extra_train = [_check_source(i, source) for i, source in enumerate(extra_train or [])]
+        self.extra_train = [check_source(i, source) for i, source in enumerate(extra_train or [])]
+        self.train_weight = check_weight("train_weight", train_weight)
         self.save_hyperparameters()
         self.layout = layout
         self.root = root
@@ -239,6 +224,9 @@ class CRFDataModule(pl.LightningDataModule):
         self.seed = seed
         self.train_set: Dataset | None = None
         self.val_set: Dataset | None = None
+        self._frames_sha256: str | None = None
+        self._order_seed: int | None = None  # the training order's seed, once the loader is made
+        self._restored_seed: int | None = None  # the seed of the run a checkpoint resumes
 
     # -- datasets -------------------------------------------------------------------------
     def _split_by_name(self) -> bool:
@@ -264,7 +252,7 @@ class CRFDataModule(pl.LightningDataModule):
         except InputError as exc:
             raise InputError(f"{role} data (layout {layout!r}, root {root}): {exc}") from exc
         except TypeError as exc:  # an option the dataset does not take
-            raise InputError(f"{role}_options for layout {layout!r}: {exc}") from exc
+            raise InputError(option_message(role, layout, options, exc)) from None
 
     def build_datasets(self) -> tuple[Dataset, Dataset]:
         """(train, validation) datasets, before the training augmentation."""
@@ -297,6 +285,7 @@ class CRFDataModule(pl.LightningDataModule):
                 raise InputError(f"{what}: the split of the {len(train_names)} frames under {self.root} leaves "
                                  f"{len(train_idx)} training and {len(val_idx)} validation frames; both need one")
             train, val = Subset(train, train_idx), Subset(val, val_idx)
+        train = weighted(train, self.train_weight)
         if self.extra_train:
             train = ConcatDataset([train, *(self._extra(i, source) for i, source in enumerate(self.extra_train))])
         both = set(dataset_names(train)) & set(dataset_names(val))
@@ -318,7 +307,7 @@ class CRFDataModule(pl.LightningDataModule):
         if not idx:
             raise InputError(f"extra_train[{index}]: none of the {len(names)} frames of {source.get('root')} "
                              f"is left (names_contain={keep!r}, held out: {drop!r})")
-        return dataset if len(idx) == len(names) else Subset(dataset, idx)
+        return weighted(dataset if len(idx) == len(names) else Subset(dataset, idx), source["weight"], seed=index)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
@@ -333,6 +322,7 @@ class CRFDataModule(pl.LightningDataModule):
             augment.append(RandomThinning(*self.thin))
         transform = (augment[0] if len(augment) == 1 else Compose(augment)) if augment else None
         self.train_set, self.val_set = TransformedDataset(train, transform), val
+        self._frames_sha256 = frames_digest(dataset_names(train))
         log.info("data: %d training frames (%s), %d validation frames (%s)",
                  len(train), self.layout, len(val), self.val_layout)
 
@@ -346,9 +336,12 @@ class CRFDataModule(pl.LightningDataModule):
         a loader whose position Lightning checkpoints, so that a run resumed mid-epoch goes on where it
         stopped (:mod:`train.sampling`)."""
         trainer = self.trainer
+        if self._restored_seed is not None:
+            self._order_seed = self._restored_seed
+        else:
+            self._order_seed = torch.initial_seed() % 2**63 if self.seed is None else self.seed
         order = EpochOrder(self.train_set, num_replicas=trainer.world_size if trainer else 1,
-                           rank=trainer.global_rank if trainer else 0, shuffle=self.shuffle,
-                           seed=torch.initial_seed() % 2**63 if self.seed is None else self.seed)
+                           rank=trainer.global_rank if trainer else 0, shuffle=self.shuffle, seed=self._order_seed)
         return ResumableLoader(self.train_set, order=order, trained=self._trained_batches,
                                **self._loader_options(self.batch_size))
 
@@ -359,6 +352,45 @@ class CRFDataModule(pl.LightningDataModule):
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, shuffle=False, **self._loader_options(self.val_batch_size))
+
+    # -- the run a checkpoint belongs to ---------------------------------------------------
+    def training_run(self, processes: int | None = None) -> dict[str, Any]:
+        """What makes a training run this one (after :meth:`setup`): the number of training frames, the
+        SHA-256 of their names in order, the batch size and the number of processes (``processes``, or
+        the attached trainer's ``world_size``; left out when neither is known)."""
+        if self.train_set is None:
+            raise RuntimeError("CRFDataModule.training_run: call setup() first")
+        if processes is None and self.trainer is not None:
+            processes = self.trainer.world_size
+        run = {"frames": len(self.train_set), "frames_sha256": self._frames_sha256, "batch_size": self.batch_size}
+        return run if processes is None else {**run, "processes": int(processes)}
+
+    def check_resumable(self, saved: dict[str, Any], processes: int | None = None) -> None:
+        """Refuse a checkpoint of another training run (:func:`train.sampling.check_same_run`): ``saved`` is
+        the ``training_run`` this module stored in it, or the training loader's state of an older one;
+        ``processes`` as :meth:`training_run` takes it (not compared when unknown)."""
+        check_same_run(saved, self.training_run(processes))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Stored in every checkpoint (Lightning saves it under ``"CRFDataModule"``): the training run
+        (:meth:`training_run`), where it stood (epoch, batches trained in it) and the order's seed."""
+        if self.train_set is None or self.trainer is None:
+            return {}
+        return {"training_run": {**self.training_run(), "epoch": self.trainer.current_epoch,
+                                 "batches": self._trained_batches(), "seed": self._order_seed}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Lightning gives the stored state back on ``--ckpt_path``: when fitting, a checkpoint of another
+        training run is refused, whichever point it was saved at (the loader refuses it too, but Lightning
+        gives the loader its state only in the middle of an epoch); the training order keeps the run's seed.
+        Validating or testing a checkpoint on other data is allowed."""
+        run = state.get("training_run") if isinstance(state, dict) else None
+        fitting = self.trainer is not None and self.trainer.state.fn == TrainerFn.FITTING
+        if not isinstance(run, dict) or not fitting:
+            return
+        self.check_resumable(run)
+        if isinstance(run.get("seed"), int):
+            self._restored_seed = run["seed"]
 
 
 __all__ = ["CRFDataModule", "TransformedDataset", "dataset_names"]

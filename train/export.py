@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 import torch
 
-from crfdepth.checkpoints import load_model, save_weights
+from crfdepth.checkpoints import load_model, read_trainer_checkpoint, save_weights
 from crfdepth.errors import InputError
 from train.calibrate import calibrate_std
 
@@ -93,6 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.calibrate_std and args.config is None:
             raise InputError("--calibrate-std: needs --config (its data section names the training frames)")
+        read_trainer_checkpoint(args.checkpoint, name="checkpoint")  # a bad file in one line, nothing of it run
         model = load_model(args.checkpoint, overrides=None if args.uncertainty is None
                            else {"uncertainty": args.uncertainty})
         about = describe_checkpoint(args.checkpoint)

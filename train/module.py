@@ -29,13 +29,17 @@ Logged (``self.log``; TensorBoard by default):
 from __future__ import annotations
 
 import copy
+import dataclasses
+import difflib
 import logging
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import lightning.pytorch as pl
 import torch
 import torch.nn.functional as F
 
+from crfdepth.config import FLAT, GROUPS, is_group
 from crfdepth.data.sample import Batch
 from crfdepth.errors import InputError
 from crfdepth.metrics import METRICS, format_metrics
@@ -53,6 +57,41 @@ PARAMETERS = {
     "gate_threshold": "log_gate_threshold", "gate_softness": "log_gate_softness",
     "irls_scale": "log_irls_scale",
 }
+
+
+def _did_you_mean(name: str, known) -> str:
+    close = difflib.get_close_matches(name, list(known), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def build_model(crf: Mapping[str, Any] | None) -> CRFDepth:
+    """``CRFDepth(crf)`` with every fault of ``crf`` one :class:`~crfdepth.errors.InputError` naming the key
+    as the config gives it: ``crf.gate: expected fields among enabled, window, ..., got 'windw' (did you
+    mean 'window'?)``, ``crf.structure.mode: expected one of ...`` (``crf.mode`` when given flat)."""
+    if crf is not None and not isinstance(crf, Mapping):
+        raise InputError(f"crf: expected a mapping of CRFDepth options (groups such as {{structure: {{mode: pixel}}}} "
+                         f"or flat names such as {{mode: pixel}}), got {type(crf).__name__} {crf!r}")
+    for key, value in (crf or {}).items():
+        if key in GROUPS and is_group(value):
+            fields = [f.name for f in dataclasses.fields(GROUPS[key])]
+            unknown = [str(k) for k in value if k not in fields]
+            if unknown:
+                raise InputError(f"crf.{key}: expected fields among {', '.join(fields)}, got {unknown[0]!r}"
+                                 f"{_did_you_mean(unknown[0], fields)}")
+        elif key not in FLAT:
+            raise InputError(f"crf: expected the groups {', '.join(GROUPS)} or flat CRFDepth options, got {key!r}"
+                             f"{_did_you_mean(str(key), [*GROUPS, *FLAT])}")
+    try:
+        return CRFDepth(crf)
+    except InputError as exc:  # "<flat name>: expected ...": name it where the config sets it
+        name, _, rest = str(exc).partition(": ")
+        if name in FLAT and rest:
+            group, field = FLAT[name]
+            where = f"crf.{name}" if name in (crf or {}) and not is_group(crf[name]) else f"crf.{group}.{field}"
+            raise InputError(f"{where}: {rest}") from None
+        raise InputError(f"crf: {exc}") from None
+    except (TypeError, ValueError) as exc:  # a value of the wrong kind deep inside
+        raise InputError(f"crf: expected CRFDepth options of the right types, got {crf!r} ({exc})") from None
 
 
 def depth_loss(depth: torch.Tensor, target: torch.Tensor, kind: Literal["l2", "l1", "huber"] = "l2",
@@ -192,7 +231,7 @@ class CRFDepthModule(pl.LightningModule):
         unknown = set(freeze or ()) - set(PARAMETERS)
         if unknown:
             raise InputError(f"freeze: expected names among {', '.join(PARAMETERS)}, got {sorted(unknown)}")
-        self.model = CRFDepth(crf)
+        self.model = build_model(crf)
         self.save_hyperparameters()
         # Self-describing checkpoints: the complete constructor arguments, plain values.
         self.hparams["crf"] = copy.deepcopy(self.model.config)
@@ -323,4 +362,4 @@ def _describe(metrics: dict[str, float]) -> str:
     return f"{text} | loss {metrics['val/loss']:.4g}"
 
 
-__all__ = ["CRFDepthModule", "PARAMETERS", "depth_loss", "gaussian_nll"]
+__all__ = ["CRFDepthModule", "PARAMETERS", "build_model", "depth_loss", "gaussian_nll"]

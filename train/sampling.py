@@ -13,13 +13,16 @@ on, with the same flips, crops and thinning (docs/design.md section 10, "Resumin
 - :class:`ResumableLoader` is the ``DataLoader`` whose position Lightning saves in a checkpoint and
   gives back on ``--ckpt_path`` (its ``state_dict`` / ``load_state_dict``): the epoch, the batches the
   trainer has trained in it (the trainer's count, not the loader's: the loader reads ahead), and the
-  seed. A checkpoint of another training set, batch size or number of processes is refused.
+  seed. A checkpoint of another training set, batch size or number of processes is refused
+  (:func:`check_same_run`; the data module checks the same at the end of an epoch, where Lightning does not
+  give the loader its state back: :meth:`train.data.CRFDataModule.load_state_dict`).
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+import hashlib
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -28,7 +31,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from crfdepth.errors import InputError
 
-__all__ = ["Draw", "EpochOrder", "ResumableLoader", "draw_seed", "seeded_draws"]
+__all__ = ["Draw", "EpochOrder", "ResumableLoader", "check_same_run", "draw_seed", "frames_digest", "seeded_draws"]
 
 
 class Draw(NamedTuple):
@@ -78,6 +81,39 @@ class EpochOrder(DistributedSampler):
         return iter([Draw(i, draw_seed(self.seed, self.epoch, i)) for i in indices[start:]])
 
 
+def frames_digest(names: list[str]) -> str:
+    """SHA-256 of the training frames' names in order: which frames a run trains on, in a checkpoint."""
+    return hashlib.sha256("\n".join(names).encode()).hexdigest()
+
+
+def check_same_run(saved: Mapping[str, Any], now: Mapping[str, Any]) -> None:
+    """Refuse to resume a run from the checkpoint of another one.
+
+    ``saved`` is what a checkpoint holds of the run that wrote it (the loader's or the data module's
+    state: ``epoch``, ``batches``, ``frames``, ``batch_size``, ``processes`` and, in checkpoints written
+    since it exists, ``frames_sha256``, :func:`frames_digest`); ``now`` the same keys of this run. A
+    checkpoint from the middle of an epoch, from its end or from the end of the run is refused alike:
+    the run it resumes is the run that wrote it. A key ``saved`` lacks (an older checkpoint) is not compared.
+
+    Raises:
+        InputError: ``--ckpt_path: the checkpoint stopped in epoch E after B batch(es) of another training
+            run (frames 32 then, 13 now, ...); ...``.
+    """
+    differ = []
+    for key, value in now.items():
+        then = saved.get(key)
+        if key == "frames_sha256":
+            if then is not None and then != value and saved.get("frames") == now.get("frames"):
+                differ.append(f"other frames, {then[:12]} then, {value[:12]} now (SHA-256 of their names)")
+        elif then != value:
+            differ.append(f"{key} {then} then, {value} now")
+    if differ:
+        raise InputError(f"--ckpt_path: the checkpoint stopped in epoch {saved.get('epoch')} after "
+                         f"{saved.get('batches')} batch(es) of another training run ({', '.join(differ)}); resume with "
+                         f"the data, data.batch_size and trainer.devices x trainer.num_nodes it was saved with, or "
+                         f"train afresh without --ckpt_path")
+
+
 class ResumableLoader(DataLoader):
     """A ``DataLoader`` over :class:`EpochOrder` whose position Lightning checkpoints (module docstring).
 
@@ -100,13 +136,7 @@ class ResumableLoader(DataLoader):
                 "shuffle": self.sampler.shuffle, **self._shape()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        saved = {key: state.get(key) for key in self._shape()}
-        if saved != self._shape():
-            differ = ", ".join(f"{key} {saved[key]} then, {value} now" for key, value in self._shape().items()
-                               if saved[key] != value)
-            raise InputError(f"--ckpt_path: the checkpoint stopped in epoch {state.get('epoch')} after "
-                             f"{state.get('batches')} batch(es) of another training run ({differ}); resume with "
-                             f"the data, data.batch_size and trainer.devices x trainer.num_nodes it was saved with")
+        check_same_run(state, self._shape())
         self.sampler.seed = int(state["seed"])
         self.sampler.shuffle = bool(state["shuffle"])
         self.sampler.resume(state["epoch"], int(state["batches"]) * self.batch_size)

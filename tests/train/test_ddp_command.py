@@ -1,7 +1,7 @@
 """The README's DDP command on a machine without the GPUs it asks for: one line, no traceback.
 
 ``configs/ddp.yaml`` asks for every CUDA GPU; without one Lightning would fail inside the
-Trainer with a ``MisconfigurationException`` traceback. ``train.__main__.check_accelerator``
+Trainer with a ``MisconfigurationException`` traceback. ``train.options.check_accelerator``
 refuses it first (status 2, ``train: error: ...``) and names the CPU fallback. CUDA is
 patched away (or down to one GPU) so the tests behave the same on a GPU machine; nothing is
 trained: a run that passes the check is stopped before Lightning builds the model.
