@@ -26,6 +26,13 @@ Conventions (KITTI-like):
 - A positive ``yaw_rate`` turns left (counter-clockwise seen from above, KITTI's yaw about
   the LiDAR's z axis, which points up).
 - Scans are instantaneous (no motion during the sweep), as if de-skewed.
+- ``stereo_baseline``: an optional second camera, the *right* camera of a rectified pair
+  (KITTI's camera 3 beside camera 2): the same intrinsics, the same orientation, moved by the
+  baseline along the left camera's x axis (to the right), rendered at the same time as the
+  left one. A point at z-depth ``z`` in the left image at column ``u`` is seen in the right
+  image at ``u - fx * baseline / z`` (the disparity), on the same row. Its image noise comes
+  from a generator of its own, so the rest of the sequence is the same array for array as
+  without it (docs/design.md section 16).
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ from numbers import Real
 import numpy as np
 
 from crfdepth.data.synthetic._checks import check_int, check_real
-from crfdepth.data.synthetic.camera import camera_intrinsics
+from crfdepth.data.synthetic.camera import camera_intrinsics, render_camera
 from crfdepth.data.synthetic.lidar_sim import lidar_to_camera
 from crfdepth.data.synthetic.scene import SyntheticScene, check_frame_options, render_frame
 from crfdepth.data.synthetic.world import CAR_BODY, World, build_world
@@ -47,6 +54,7 @@ from crfdepth.errors import InputError
 __all__ = ["SyntheticFrame", "SyntheticSequence", "ego_pose", "make_sequence"]
 
 _CAR_PARTS = 4  # build_world adds a car as body, cabin and two wheel boxes, in this order
+_RIGHT_STREAM = 3  # the right camera's noise generator: SeedSequence((seed, frame, 3)), apart from the main one
 
 
 @dataclass(frozen=True)
@@ -62,6 +70,11 @@ class SyntheticFrame(SyntheticScene):
         mover_pixels: (H, W) int16, the mover each pixel sees (index into
             :attr:`SyntheticSequence.mover_velocities`), -1 for static surfaces and sky.
         mover_points: (N,) int16, the mover each LiDAR point hit, -1 for static ones.
+        right_image: (H, W, 3) float32 RGB in [0, 1] of the right camera, or None
+            (``make_sequence(stereo_baseline=None)``).
+        right_depth: (H, W) float32 z-depth in metres seen by the right camera (0 = sky), or None.
+        baseline_m: the stereo baseline in metres (the right camera sits at ``x = +baseline_m``
+            in the left camera's frame), or None.
     """
 
     index: int = 0
@@ -70,6 +83,9 @@ class SyntheticFrame(SyntheticScene):
     T_w_lidar: np.ndarray = field(default_factory=lambda: np.eye(4))
     mover_pixels: np.ndarray | None = None
     mover_points: np.ndarray | None = None
+    right_image: np.ndarray | None = None
+    right_depth: np.ndarray | None = None
+    baseline_m: float | None = None
 
     @property
     def moving_pixels(self) -> np.ndarray:
@@ -209,10 +225,22 @@ def _mover_velocities(movers, n_cars: int, speed: float, rng) -> np.ndarray:
     return v
 
 
+def _render_right(world: World, K, height: int, width: int, image_noise_std: float, T_w_cam: np.ndarray,
+                  baseline: float, seed: int, index: int) -> dict:
+    """The right camera of frame ``index``: ``T_w_cam`` moved by ``baseline`` along its x axis, its
+    image noise drawn from a generator seeded by (seed, index) alone, so that the left camera's and
+    the LiDAR's draws are untouched."""
+    shift = np.eye(4)
+    shift[0, 3] = baseline
+    rng = np.random.default_rng((seed, index, _RIGHT_STREAM))
+    image, depth = render_camera(world, K, height, width, rng, float(image_noise_std), pose=T_w_cam @ shift)
+    return {"right_image": image, "right_depth": depth, "baseline_m": baseline}
+
+
 def make_sequence(n_frames: int = 10, seed: int = 0, *, speed: float = 10.0, rate: float = 10.0, yaw_rate: float = 0.0,
                   movers=0, height: int = 352, width: int = 1216, beams: int = 64, azimuth_step_deg: float = 0.17,
                   max_range: float = 100.0, range_noise_std: float = 0.02, dropout: float = 0.03,
-                  image_noise_std: float = 0.008) -> SyntheticSequence:
+                  image_noise_std: float = 0.008, stereo_baseline: float | None = None) -> SyntheticSequence:
     """Render the synthetic street along the ego car's path.
 
     Args:
@@ -229,6 +257,9 @@ def make_sequence(n_frames: int = 10, seed: int = 0, *, speed: float = 10.0, rat
             speed along the street (m/s) or a 3-vector in the world frame (m/s).
         height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
         image_noise_std: as in :func:`~.scene.make_scene`, per frame.
+        stereo_baseline: None (default: one camera), or the baseline in metres, in (0, 10],
+            of a right camera rendered beside the left one in every frame (module docstring;
+            KITTI's is 0.54 m). Every other array is the same as without it.
 
     Returns:
         A :class:`SyntheticSequence`. Per frame the image and LiDAR noise, the dropouts and
@@ -245,6 +276,8 @@ def make_sequence(n_frames: int = 10, seed: int = 0, *, speed: float = 10.0, rat
     check_real("yaw_rate", yaw_rate, -90.0, 90.0)
     check_frame_options(height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
                         image_noise_std)
+    if stereo_baseline is not None:
+        check_real("stereo_baseline", stereo_baseline, 0.0, 10.0, low_open=True)
     n_frames, seed, height, width, beams = int(n_frames), int(seed), int(height), int(width), int(beams)
     speed, rate, yaw_rate = float(speed), float(rate), float(yaw_rate)
 
@@ -269,11 +302,14 @@ def make_sequence(n_frames: int = 10, seed: int = 0, *, speed: float = 10.0, rat
         image, depth, pix_idx, points, rings, pt_idx, sparse = render_frame(
             world, rng, K, T_cam_lidar, height, width, beams, azimuth_step_deg, max_range, range_noise_std, dropout,
             image_noise_std, pose=T_w_cam, beam_offsets_deg=beam_offsets)
+        right = {}
+        if stereo_baseline is not None:
+            right = _render_right(world, K, height, width, image_noise_std, T_w_cam, float(stereo_baseline), seed, k)
         frames.append(SyntheticFrame(
             image=image, depth=depth, sparse=sparse, K=K, points=points, rings=rings,
             T_cam_lidar=T_cam_lidar, name=f"synthetic-seed{seed}-frame{k:04d}",
             index=k, time=t, T_w_cam=T_w_cam, T_w_lidar=T_w_cam @ T_cam_lidar,
-            mover_pixels=owner[pix_idx], mover_points=owner[pt_idx],
+            mover_pixels=owner[pix_idx], mover_points=owner[pt_idx], **right,
         ))
     return SyntheticSequence(
         frames=frames, rate=rate, speed=speed, yaw_rate=yaw_rate, world=world0,
