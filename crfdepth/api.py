@@ -32,10 +32,11 @@ import numpy as np
 import torch
 
 from crfdepth.checkpoints import load_pretrained
-from crfdepth.checks import check_frames, check_has_data, check_intrinsics
+from crfdepth.checks import check_frames, check_has_data
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.memory import check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory, out_of_memory
 from crfdepth.precision import autocast_off
@@ -48,7 +49,7 @@ logger = logging.getLogger(__name__)
 def check_frame(image, sparse, K) -> None:
     """Refuse a frame that :func:`complete_depth` would refuse for ``image``, ``sparse`` and ``K``,
     with its checks, messages and order: RGB not (3, H, W) / (H, W, 3) in [0, 1]; K not the
-    intrinsics of an image of this size (:func:`crfdepth.checks.check_intrinsics`); sparse depth
+    intrinsics of an image of this size (:func:`crfdepth.intrinsics.check_intrinsics`); sparse depth
     not finite, >= 0, with a return, or not plausibly metres of a LiDAR scene seen with this K
     (:func:`crfdepth.plausibility.check_sparse_plausible`: the hints say what to divide by)."""
     rgb, _, _ = image_to_numpy(image)
@@ -275,7 +276,7 @@ def complete_batch(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, *
         check_frame_size("image", *sparse.shape[2:])
     per_frame = K.dim() == 3
     image, sparse, K = check_frames(*_on_model(model, image, sparse, K))
-    from crfdepth.model import check_batch_intrinsics
+    from crfdepth.intrinsics import check_batch_intrinsics
 
     check_batch_intrinsics(K, tuple(sparse.shape[2:]), per_frame)
     return complete_checked(model, image, sparse, K, return_std=return_std)

@@ -16,15 +16,10 @@ import torch
 
 from crfdepth.errors import InputError
 
-__all__ = ["MAX_FOV_DEG", "MAX_RETURN_DEPTH_M", "MIN_FOV_DEG", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
-           "check_depth_frames", "check_depth_values", "check_frames", "check_has_data", "check_intrinsics",
+__all__ = [ "MAX_RETURN_DEPTH_M", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
+           "check_depth_frames", "check_depth_values", "check_frames", "check_has_data",
            "check_map", "check_number", "check_return_depths", "check_rigid", "check_scalar_tensor", "describe"]
 
-# Field of view of K over the image, degrees (check_intrinsics): a pinhole image cannot reach 180
-# degrees, and rectified fisheye images are cut well below 170; the narrowest telephoto lenses
-# on a camera sensor still see about 1 degree.
-MAX_FOV_DEG = 170.0
-MIN_FOV_DEG = 1.0
 # Largest deviation of R^T R from I (and of the last row from 0 0 0 1) of a rigid transform.
 RIGID_TOLERANCE = 1e-3
 # A LiDAR return's depth, metres (check_return_depths): none is nearer than 1 mm and none reaches 1 km
@@ -244,7 +239,7 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 # --------------------------------------------------------------------------- camera and LiDAR
 
 
-def _as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: bool) -> np.ndarray:
+def as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: bool) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape`` (or of its row-major flat length)."""
     check_has_data(name, value)
     if isinstance(value, torch.Tensor):
@@ -263,113 +258,6 @@ def _as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: boo
     return array
 
 
-# Plausible pinhole K (check_intrinsics). A real K is upper triangular with K[2][2] = 1: its zeros and
-# its 1 are exact, so only a computed K's rounding is allowed for (absolute, and K[1][0] relative to fy).
-INTRINSICS_TOLERANCE = 1e-6
-# Largest skew |K[0][1]| as a fraction of fx: real sensors have square pixel grids (s = 0, or
-# below 1e-3 fx from a calibration that fits it); 0.1 fx (a 6 degree shear) is no lens's.
-MAX_SKEW_RATIO = 0.1
-# Largest condition number of K: about 1e3 for KITTI and 1e5 for a 100-megapixel telephoto;
-# beyond 1e10 K is numerically singular (focal lengths and principal point in different units).
-MAX_INTRINSICS_CONDITION = 1e10
-# How far outside the image the principal point may lie, as a fraction of its width / height on
-# each side: -0.5 W <= cx <= 1.5 W, -0.5 H <= cy <= 1.5 H (the image extended by half its size).
-PRINCIPAL_POINT_MARGIN = 0.5
-
-
-def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """(3, 3) float64 copy of ``K`` after checking it is a plausible pinhole matrix of the image.
-
-    Accepts a 3x3 nested list, array or tensor, or 9 numbers (row-major). Requires, in this order:
-
-    - finite numbers;
-    - focal lengths ``fx = K[0,0] > 0`` and ``fy = K[1,1] > 0``;
-    - last row 0 0 1 and ``K[1,0] = 0`` (upper triangular; within ``INTRINSICS_TOLERANCE`` = 1e-6,
-      ``K[1,0]`` relative to fy): a transposed K or a projection matrix's other rows fail here;
-    - a skew ``|K[0,1]| <= MAX_SKEW_RATIO * fx`` (0.1 fx);
-    - non-singular: condition number at most ``MAX_INTRINSICS_CONDITION`` (1e10);
-
-    and, when ``image_size`` = (height, width) in pixels is given:
-
-    - the principal point within half an image of the image (``PRINCIPAL_POINT_MARGIN``:
-      ``-W/2 <= cx <= 1.5 W``, same for cy): further out almost always means K belongs to
-      another resolution or has cx and cy swapped (docs/design.md section 1);
-    - a field of view (the angle between the rays through the image's opposite edges,
-      horizontal or vertical, whichever is wider) in (``MIN_FOV_DEG``, ``MAX_FOV_DEG``) =
-      (1, 170) degrees. A pinhole image approaches 180 degrees only as its edges go to
-      infinity; fisheye cameras rectified to a pinhole image are cut to about 90-150 degrees
-      (the stretched borders are useless), so 170 admits every real wide-angle or rectified
-      fisheye camera while refusing fx = 4 px on a KITTI frame (179 degrees); 1 degree admits
-      long telephoto lenses (a 1000 mm lens on a 36 mm sensor: 2 degrees) while refusing K of
-      a full image applied to a few-pixel crop.
-
-    Apply it wherever a K meets an image. ``what`` is the user's name of K (``K``,
-    ``--intrinsics``, ``K (rig.yaml)``). Messages quote at most a short prefix of a value
-    that is not a matrix of numbers, never its whole repr.
-    """
-    if isinstance(K, torch.Tensor):
-        K = K.detach().cpu().numpy()
-    try:
-        K = np.array(K, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        import reprlib
-
-        short = reprlib.Repr()
-        short.maxlevel, short.maxlist, short.maxtuple, short.maxdict = 2, 4, 4, 4
-        short.maxstring = short.maxother = short.maxlong = 40
-        try:
-            got = short.repr(K)
-        except Exception:  # a repr that fails (an int of 100,000 digits): the type alone
-            got = type(K).__name__
-        raise InputError(f"{what}: expected a 3x3 matrix of numbers, got {got}") from None
-    K = _as_matrix(K, (3, 3), what, allow_flat=True)
-    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    if fx <= 0 or fy <= 0:
-        raise InputError(f"{what}: expected focal lengths fx = K[0][0] > 0 and fy = K[1][1] > 0 (pixels), got "
-                         f"fx={fx:g}, fy={fy:g}")
-    tol = INTRINSICS_TOLERANCE
-    if abs(K[2, 0]) > tol or abs(K[2, 1]) > tol or abs(K[2, 2] - 1.0) > tol:
-        hint = (": K looks transposed (cx and cy belong in the last column)"
-                if cx == 0 and cy == 0 and K[2, 2] == 1 else "")
-        raise InputError(f"{what}: expected the last row of K to be 0 0 1, got "
-                         f"{' '.join(f'{v:g}' for v in K[2])} (tolerance {tol:g}){hint}")
-    if abs(K[1, 0]) > tol * fy:
-        raise InputError(f"{what}: expected an upper-triangular K, K[1][0] = 0 (within {tol:g} fy), got "
-                         f"K[1][0]={K[1, 0]:g}: K is mistyped, or a rotation is mixed into it")
-    if abs(skew) > MAX_SKEW_RATIO * fx:
-        raise InputError(f"{what}: expected a skew |K[0][1]| <= {MAX_SKEW_RATIO:g} fx = {MAX_SKEW_RATIO * fx:g} px "
-                         f"(pixel grids are rectangular: 0 or nearly), got K[0][1]={skew:g} ({skew / fx:.3g} fx): "
-                         f"K is mistyped, or a rotation is mixed into it")
-    condition = float(np.linalg.cond(K))
-    if not condition <= MAX_INTRINSICS_CONDITION:
-        raise InputError(f"{what}: expected a non-singular K (condition number <= {MAX_INTRINSICS_CONDITION:g}), got "
-                         f"condition number {condition:.3g} (fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g}): focal "
-                         f"lengths and principal point in different units?")
-    if image_size is not None:
-        height, width = image_size
-        low, high = -PRINCIPAL_POINT_MARGIN, 1.0 + PRINCIPAL_POINT_MARGIN
-        if not (low * width <= cx <= high * width and low * height <= cy <= high * height):
-            raise InputError(f"{what}: expected the principal point of the {width}x{height} (WxH) image within "
-                             f"half an image of it (cx in [{low * width:g}, {high * width:g}], cy in "
-                             f"[{low * height:g}, {high * height:g}] px), got (cx, cy) = ({cx:g}, {cy:g}), far "
-                             f"outside: K probably belongs to another image size (scale K with the image after a "
-                             f"resize or crop) or cx and cy are swapped")
-        # Field of view: the angle between the rays of the image's two edges, cx and cy anywhere.
-        fov_x = math.degrees(math.atan((width - cx) / fx) + math.atan(cx / fx))
-        fov_y = math.degrees(math.atan((height - cy) / fy) + math.atan(cy / fy))
-        if max(fov_x, fov_y) >= MAX_FOV_DEG:
-            raise InputError(f"{what}: expected a field of view below {MAX_FOV_DEG:g} degrees over the {width}x{height} "
-                             f"(WxH) image, got {fov_x:.1f} x {fov_y:.1f} degrees (fx={fx:g}, fy={fy:g} "
-                             f"px): the focal lengths are too short for this image; K is probably for a "
-                             f"smaller image, in other units (mm instead of pixels) or the focal length is mistyped")
-        if max(fov_x, fov_y) <= MIN_FOV_DEG:
-            raise InputError(f"{what}: expected a field of view above {MIN_FOV_DEG:g} degree over the {width}x{height} "
-                             f"(WxH) image, got {fov_x:.3g} x {fov_y:.3g} degrees (fx={fx:g}, fy={fy:g} "
-                             f"px): the focal lengths are too long for this image; K is probably for a larger "
-                             f"image (scale K with the image after a resize)")
-    return K
-
-
 def check_rigid(T: object, what: str = "T_cam_lidar", tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
     """(4, 4) float64 copy of ``T`` after checking it is a rigid transform (metres).
 
@@ -378,7 +266,7 @@ def check_rigid(T: object, what: str = "T_cam_lidar", tolerance: float = RIGID_T
     (e.g. a transform meant for millimetre points) fails the orthonormality test; the
     direction of the transform is not checked here (see :func:`crfdepth.inputs.points_to_sparse`).
     """
-    T = _as_matrix(T, (4, 4), what, allow_flat=False)
+    T = as_matrix(T, (4, 4), what, allow_flat=False)
     if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tolerance:
         raise InputError(f"{what}: expected the last row of a rigid 4x4 transform to be 0 0 0 1, got "
                          f"{' '.join(f'{v:g}' for v in T[3])}")

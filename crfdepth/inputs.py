@@ -17,9 +17,10 @@ import warnings
 import numpy as np
 import torch
 
-from crfdepth.checks import check_has_data, check_intrinsics, check_return_depths
+from crfdepth.checks import check_has_data, check_return_depths
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, project_points
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_plausible
 
@@ -179,7 +180,7 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
         calibration: :class:`~crfdepth.io.calibration.RigCalibration` (or a KITTI
             :class:`~crfdepth.io.calibration.Calibration`) of the camera.
         image_size: (height, width) of the image, pixels; K must fit it
-            (:func:`crfdepth.checks.check_intrinsics`).
+            (:func:`crfdepth.intrinsics.check_intrinsics`).
         trust_transform: use ``T_cam_lidar`` even when it looks inverted (the ground test).
 
     Raises:

@@ -21,10 +21,11 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crfdepth.checks import check_frames, check_intrinsics, check_number
+from crfdepth.checks import check_frames, check_number
 from crfdepth.config import MODES, POTENTIALS, PRIORS, UNCERTAINTIES, VARIABLES, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
+from crfdepth.intrinsics import check_batch_intrinsics
 from crfdepth.linalg import solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput
@@ -263,7 +264,7 @@ class CRFDepth(ConstrainedWeights):
 
         Raises:
             InputError: bad inputs (:func:`crfdepth.checks.check_frames`), a ``K`` that is not a
-                plausible pinhole matrix of the image (:func:`crfdepth.checks.check_intrinsics`,
+                plausible pinhole matrix of the image (:func:`crfdepth.intrinsics.check_intrinsics`,
                 each frame's as ``K[b]`` when K is (B, 3, 3) with B > 1), a frame smaller
                 than 2x2 pixels, or (:class:`crfdepth.memory.MemoryRefusal`) an estimated
                 peak memory above ``memory_limit_gb`` or, without it, above the memory the
@@ -285,14 +286,4 @@ class CRFDepth(ConstrainedWeights):
             return PIPELINES[self.mode](self, image, sparse, K, return_std)
 
 
-def check_batch_intrinsics(K: torch.Tensor, image_size: tuple[int, int], batched: bool) -> None:
-    """Check each frame's intrinsics of a (B, 3, 3) ``K`` (as :func:`crfdepth.checks.check_frames`
-    returns it) against the (height, width) of the image with :func:`crfdepth.checks.check_intrinsics`:
-    named ``K[b]`` when ``batched`` (K was given per frame), else ``K`` and checked once. One copy of
-    the B x 9 numbers to the host."""
-    values = K.detach().to("cpu", torch.float64).numpy()
-    for b in range(values.shape[0] if batched else min(1, values.shape[0])):
-        check_intrinsics(values[b], f"K[{b}]" if batched else "K", image_size)
-
-
-__all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "check_batch_intrinsics", "energy"]
+__all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

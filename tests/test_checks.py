@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.checks import check_choice, check_intrinsics, check_rigid
+from crfdepth.checks import check_choice, check_rigid
 from crfdepth.errors import InputError
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_units
 
 KITTI_K = [[721.5377, 0.0, 596.5593], [0.0, 721.5377, 149.854], [0.0, 0.0, 1.0]]

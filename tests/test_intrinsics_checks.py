@@ -1,4 +1,4 @@
-"""K must be a plausible pinhole matrix everywhere it enters (crfdepth.checks.check_intrinsics),
+"""K must be a plausible pinhole matrix everywhere it enters (crfdepth.intrinsics.check_intrinsics),
 ``CRFDepth.forward`` included: finite, upper triangular with K[2][2] = 1, non-singular, positive focal
 lengths, a skew of at most 0.1 fx, the principal point within half an image of the image and a field of
 view in (1, 170) degrees. Oracle: KITTI's K (cameras 2 of 2011_09_26) passes, each hand-broken copy fails
@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from crfdepth.checks import (
+from crfdepth.errors import InputError
+from crfdepth.intrinsics import (
     INTRINSICS_TOLERANCE,
     MAX_INTRINSICS_CONDITION,
     MAX_SKEW_RATIO,
     PRINCIPAL_POINT_MARGIN,
     check_intrinsics,
 )
-from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
 
 KITTI_K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
@@ -118,8 +118,8 @@ def model():
      "K: expected an upper-triangular K, K[1][0] = 0"),
     (lambda K: K.index_put_((torch.tensor(2), torch.tensor(2)), torch.tensor(2.0, dtype=K.dtype)),
      "K: expected the last row of K to be 0 0 1, got 0 0 2"),
-    (lambda K: K.index_put_((torch.tensor(0), torch.tensor(2)), torch.tensor(100.0, dtype=K.dtype)),
-     "K: expected the principal point of the 16x12 (WxH) image within half an image of it"),
+    (lambda K: K.index_put_((torch.tensor(0), torch.tensor(2)), torch.tensor(400.0, dtype=K.dtype)),
+     "K: expected every pixel of the 16x12 (WxH) image within 85 degrees of the optical axis"),
     (lambda K: K * torch.tensor([[0.01, 1, 1], [1, 0.01, 1], [1, 1, 1]], dtype=K.dtype),
      "K: expected a field of view below 170 degrees over the 16x12 (WxH) image"),
 ])
@@ -127,6 +127,28 @@ def test_forward_refuses_an_implausible_k(model, change, message):
     image, sparse, K = _frames()
     with pytest.raises(InputError, match="^" + re.escape(message)):
         model(image, sparse, change(K.clone()))
+
+
+def test_forward_takes_a_crop_far_from_the_principal_point(model):
+    """A training crop of a wide frame: the principal point lies outside the crop, several crop widths away;
+    forward takes it (the file readers, given a whole image, would refuse it)."""
+    image, sparse, K = _frames()
+    K[0, 2], K[1, 2] = -60.0, 30.0  # the crop's pixels 3-4 crop widths right of and below the axis: < 80 degrees
+    out = model(image, sparse, K)
+    assert bool(torch.isfinite(out.depth).all())
+    with pytest.raises(InputError, match=r"^--intrinsics: expected the principal point of the 16x12"):
+        check_intrinsics(K, "--intrinsics", (12, 16))
+
+
+def test_a_crop_must_lie_within_85_degrees_of_the_axis():
+    """crop=True drops the principal-point band, not the pinhole: a 4000-pixel-wide crop 8000 px right of a
+    721 px lens's axis sees rays 86.6 degrees off it (its field of view, 1.7 degrees, passes)."""
+    K = np.array([[721.5, 0, -8000.0], [0, 721.5, 150.0], [0, 0, 1]])
+    with pytest.raises(InputError, match=r"^K: expected every pixel of the 4000x300 \(WxH\) image within 85 degrees "
+                                         r"of the optical axis \(a pinhole image\), got a corner 86\.6 degrees off it"):
+        check_intrinsics(K, "K", (300, 4000), crop=True)
+    K[0, 2] = -3000.0  # 81 degrees: a plausible crop
+    check_intrinsics(K, "K", (300, 4000), crop=True)
 
 
 def test_forward_names_the_frame_of_a_batched_k(model):

@@ -126,6 +126,7 @@ def test_the_concept_table_covers_the_paper_and_its_additions():
 LAYERS = [  # bottom first (docs/design.md section 8); a module imports only its own package or lower layers
     {"crfdepth.errors", "crfdepth._version"},
     {"crfdepth.checks", "crfdepth.plausibility", "crfdepth.config", "crfdepth.precision"},
+    {"crfdepth.intrinsics"},
     {"crfdepth.io", "crfdepth.metrics"},
     {"crfdepth.geometry", "crfdepth.linalg", "crfdepth.superpixels", "crfdepth.weights"},
     {"crfdepth.fill", "crfdepth.sequences", "crfdepth.uncertainty"},

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from crfdepth.api import check_frame, complete_depth
-from crfdepth.checks import check_intrinsics
 from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import ground_normal, ground_tilt_deg, keep_every_ring
 from crfdepth.inputs import points_to_sparse
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
 from crfdepth.io.kitti import read_velodyne
 from crfdepth.output import CRFOutput

@@ -13,7 +13,7 @@ naming its flag (``--velodyne``, ``--calib``, ``--image``; a ``.pcd`` / ``.ply``
 cloud or a rig YAML/JSON is pointed to ``crfdepth complete --points --calib``), the
 calibration's transforms (rigid, the same check as ``complete``'s:
 :func:`crfdepth.checks.check_rigid` in :mod:`crfdepth.io.calibration`'s readers) and K
-against the image size (:func:`crfdepth.checks.check_intrinsics`, field of view included). The scan is
+against the image size (:func:`crfdepth.intrinsics.check_intrinsics`, field of view included). The scan is
 read and checked by :func:`crfdepth.io.kitti.read_velodyne`, the reader of ``crfdepth complete --points
 X.bin`` too (empty, truncated, float64 or N x 3 float32 files, non-finite values and coordinates not in
 metres are refused). The projected map is refused, naming ``--velodyne``, when no point lands in the
@@ -31,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from crfdepth.checks import check_intrinsics, check_return_depths
+from crfdepth.checks import check_return_depths
 from crfdepth.cli.arguments import fraction, int_at_least
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 from crfdepth.inputs import no_points_message
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import RIG_SUFFIXES, RigCalibration, load_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import check_png_depth, read_rgb, read_velodyne, write_depth_png

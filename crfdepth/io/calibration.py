@@ -25,7 +25,7 @@ Projecting points with either type is :mod:`crfdepth.geometry.projection`'s job;
 ``key: values`` text is parsed by :mod:`crfdepth.io.key_values`. This module imports nothing
 above :mod:`crfdepth.checks` and :mod:`crfdepth.io` (``files``, ``key_values``).
 
-Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.checks.check_intrinsics` and
+Checks: ``K`` and ``T_cam_lidar`` by :func:`crfdepth.intrinsics.check_intrinsics` and
 :func:`~crfdepth.checks.check_rigid` (a transform in millimetres passes, its rotation being
 fine: it is caught when no point lands in the image); KITTI's transforms by ``check_rigid``
 as read (``project`` and ``complete`` refuse the same files); binary files refused; ``distortion`` 4, 5, 8, 12 or 14
@@ -45,8 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from crfdepth.checks import check_intrinsics, check_rigid
+from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.distortion import DISTORTION_LENGTHS, check_distortion  # noqa: F401 (DISTORTION_LENGTHS: re-exported)
 from crfdepth.io.files import MAX_CALIBRATION_BYTES, check_input_file, read_text
 from crfdepth.io.key_values import entry_array, list_keys, quote_value, read_key_values, read_mapping

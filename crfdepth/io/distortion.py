@@ -38,7 +38,7 @@ def check_distortion(value: object, K: np.ndarray, image_size: tuple[int, int] |
     Args:
         value: D numbers, D in ``DISTORTION_LENGTHS``, finite.
         K: (3, 3) checked intrinsics of the undistorted image, pixels
-            (:func:`crfdepth.checks.check_intrinsics`).
+            (:func:`crfdepth.intrinsics.check_intrinsics`).
         image_size: (height, width) in pixels; None: the image centred on the principal point
             (``2 cy`` x ``2 cx``), the grid test skipped when that is under 2 pixels.
         what: the user's name of the coefficients (``distortion``, ``distortion (rig.yaml)``).

@@ -45,8 +45,9 @@ from kornia.geometry.camera import project_points, unproject_points
 from kornia.geometry.conversions import normalize_pixel_coordinates
 from kornia.geometry.linalg import transform_points
 
-from crfdepth.checks import check_intrinsics, check_map, check_number, check_rigid, describe
+from crfdepth.checks import check_map, check_number, check_rigid, describe
 from crfdepth.errors import InputError
+from crfdepth.intrinsics import check_intrinsics
 
 __all__ = ["AUTOMASK_MARGIN", "MIN_SOURCE_DEPTH_M", "SSIM_WINDOW", "PhotometricMaps", "photometric_error",
            "photometric_loss", "warp_to_target"]

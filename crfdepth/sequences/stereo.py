@@ -41,8 +41,9 @@ import numpy as np
 import torch
 from kornia.geometry.transform import remap
 
-from crfdepth.checks import check_has_data, check_intrinsics, check_number, describe
+from crfdepth.checks import check_has_data, check_number, describe
 from crfdepth.errors import InputError
+from crfdepth.intrinsics import check_intrinsics
 
 __all__ = ["DISPARITY_TOL_PX", "DISPARITY_TOL_REL", "LR_TOL_PX", "MARGIN", "MIN_SCORE", "MIN_TEXTURE",
            "STEREO_MIN_DEPTH_M", "StereoCheck", "baseline_from_projections", "stereo_check", "stereo_consistent"]

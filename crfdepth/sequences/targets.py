@@ -33,9 +33,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from crfdepth.checks import check_intrinsics, check_number, check_rigid
+from crfdepth.checks import check_number, check_rigid
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import check_image_size
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.sequences.free_space import seen_through
 
 __all__ = [

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crfdepth.checks import check_intrinsics
 from crfdepth.errors import InputError
+from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import DISTORTION_LENGTHS
 from crfdepth.io.ros.fields import message_field, message_rows, message_size
 
