@@ -71,6 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also write a picture per frame, <drive>_image_0X_<frame>.png, into DIR (created if "
                              "missing; without DIR: <out-dir>_vis): the targets coloured by depth, dropped returns "
                              "by reason (occluded: magenta, moved: white)")
+    parser.add_argument("--stereo-check", action="store_true",
+                        help="--drive with both colour cameras: drop the target returns the stereo pair contradicts "
+                             "(crfdepth.sequences.stereo; counted in index_image_0X.csv's stereo_dropped)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     targets_bag.add_arguments(parser)
     # the output-folder checks it shares with complete's folder and bag modes read --out-std-dir
@@ -83,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--drive / --bag: expected one of them (a KITTI raw drive folder or a ROS bag), got "
                          f"{'neither' if args.drive is None else 'both'}")
     if args.bag is not None:
+        if args.stereo_check:
+            raise InputError("--stereo-check: expected a KITTI raw drive with both colour cameras (--drive), got a "
+                             "bag (one camera)")
         return targets_bag.run_bag(args)
     targets_bag.check_drive_flags(args)
     return targets_drive.run_drive(args)

@@ -58,13 +58,15 @@ from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.cli.decoder_noise import quiet_decoders
 from crfdepth.cli.file_errors import flagged
 from crfdepth.cli.outputs import check_output_folders, output_folders, write_rgb_png
+from crfdepth.data.kitti.raw_scans import remove_stereo_contradicted
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import atomic_write_bytes
-from crfdepth.io.kitti import read_velodyne, write_depth_png
+from crfdepth.io.kitti import read_rgb, read_velodyne, write_depth_png
 from crfdepth.pictures.figures import targets_picture
 from crfdepth.sequences import odometry
 from crfdepth.sequences.poses import read_imu_to_velo, read_kitti_poses, read_oxts
+from crfdepth.sequences.stereo import baseline_from_projections
 from crfdepth.sequences.targets import MOVED, OCCLUDED, OUTSIDE, camera_view_targets
 
 logger = logging.getLogger(__name__)
@@ -83,6 +85,7 @@ INDEX_COLUMNS = (
     "own_share",      # share of the target pixels whose target is from the frame's own scan
     "occluded",       # returns dropped as occluded (rule a)
     "moved",          # returns dropped as moved (rule b)
+    "stereo_dropped",  # target pixels the stereo pair contradicts, dropped (--stereo-check; empty without it)
 )
 _STEM = re.compile(r"^\d+$")
 
@@ -288,6 +291,20 @@ def _scan_density(scan: np.ndarray, T_cam_lidar: np.ndarray, K: np.ndarray, size
     return float(len(np.unique(v[inside] * width + u[inside]))) / (height * width)
 
 
+def _stereo_pair(args, drive: Path, chosen: list[int], width: int, calib) -> tuple[dict[int, Path], float]:
+    """``--stereo-check``: the other colour camera's image of every chosen frame and the pair's baseline (metres)."""
+    other = 5 - args.camera
+    folder = drive / f"image_0{other}" / "data"
+    if not folder.is_dir():
+        raise InputError(f"--stereo-check: expected the other colour camera's folder {folder} beside "
+                         f"image_0{args.camera} (a stereo check needs both cameras), got no such folder")
+    images = {f: folder / f"{_stem(f, width)}.png" for f in chosen}
+    if missing := [path for path in images.values() if not path.is_file()]:
+        raise InputError(f"--stereo-check: expected an image of camera {other} for every frame, got {len(missing)} "
+                         f"missing (the first: {missing[0]})")
+    return images, baseline_from_projections(calib.kitti.P_rect, load_any_calibration(drive.parent, other).kitti.P_rect)
+
+
 def _inside(path: Path, folder: Path) -> bool:
     path, folder = Path(os.path.realpath(path)), Path(os.path.realpath(folder))
     return path == folder or folder in path.parents
@@ -303,6 +320,7 @@ def run_drive(args: argparse.Namespace) -> int:
     outputs = check_output_folders(args, [drive], f"the input drive {drive}")
     chosen, used = select_frames(args, frames, width, f"--drive {args.drive}")
     calib = load_any_calibration(drive.parent, args.camera)
+    other = _stereo_pair(args, drive, chosen, width, calib) if args.stereo_check else None
     scans = _read_scans(used, scan_files, width)
     sizes = {f: _image_size(image_files[f]) for f in chosen}
     poses, source = _poses(args, drive, frames, used, scans, calib, width)
@@ -327,6 +345,12 @@ def run_drive(args: argparse.Namespace) -> int:
                 size = sizes[frame]
                 targets = camera_view_targets(scans, poses, calib.T_cam_lidar, calib.K, size, index, k=args.window)
                 stem = _stem(frame, width)
+                dropped = ""
+                if other is not None:
+                    kept = remove_stereo_contradicted(targets.depth.astype(np.float32), read_rgb(image_files[frame]),
+                                                      read_rgb(other[0][frame]), calib.K, other[1])
+                    dropped = int(np.count_nonzero((targets.depth > 0) & (kept == 0)))
+                    targets = dataclasses.replace(targets, depth=kept, support=np.where(kept > 0, targets.support, 0))
                 write_depth_png(depth_dir / f"{stem}.png", targets.depth)
                 _write_support(support_dir / f"{stem}.png", targets.support, wide)
                 if vis_dir is not None:
@@ -347,6 +371,7 @@ def run_drive(args: argparse.Namespace) -> int:
                     "scan_density": f"{_scan_density(scans[index], calib.T_cam_lidar, calib.K, size):.6f}",
                     "own_share": f"{(targets.own & has).sum() / max(pixels, 1):.6f}",
                     "occluded": int(np.sum(codes == OCCLUDED)), "moved": int(np.sum(codes == MOVED)),
+                    "stereo_dropped": dropped,
                 })
                 written += 1
                 progress.update(1)

@@ -22,7 +22,7 @@ import numpy as np
 
 from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
-from crfdepth.io.files import atomic_write_bytes, check_input_file, read_text
+from crfdepth.io.files import MAX_CALIBRATION_BYTES, atomic_write_bytes, check_input_file, read_text
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, TYPICAL_MEDIAN_M
 
 __all__ = ["MAX_PNG_DEPTH_M", "check_png_depth", "depth_png_codes", "read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne",
@@ -194,7 +194,7 @@ def read_intrinsics(path: PathLike) -> np.ndarray:
         InputError: the file does not hold exactly 9 numbers, or is not text (an image?).
     """
     path = check_input_file(path, "intrinsics")
-    tokens = read_text(path, "intrinsics", "9 numbers (row-major 3x3 K)").split()
+    tokens = read_text(path, "intrinsics", "9 numbers (row-major 3x3 K)", max_bytes=MAX_CALIBRATION_BYTES).split()
     try:
         values = np.array([float(token) for token in tokens], dtype=np.float64)
     except ValueError as exc:

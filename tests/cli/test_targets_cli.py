@@ -25,7 +25,7 @@ from tests.sequence_drive import stem as _stem
 
 N_FRAMES = 7
 COLUMNS = ["frame", "first_scan", "last_scan", "points", "target_pixels", "density", "scan_density",
-           "own_share", "occluded", "moved"]
+           "own_share", "occluded", "moved", "stereo_dropped"]
 
 
 @pytest.fixture(scope="module")
@@ -393,3 +393,34 @@ def test_a_failure_during_the_run_says_how_far_it_got(synthetic_drive, tmp_path,
                                f"0000000002; 2 of {N_FRAMES} frame(s) written to {out / DRIVE}]")
     rows = list(csv.DictReader((out / DRIVE / "index_image_02.csv").open()))
     assert [r["frame"] for r in rows] == [_stem(0), _stem(1)]
+
+
+@pytest.mark.kitti
+@pytest.mark.slow
+def test_stereo_check_drops_what_the_pair_contradicts(kitti_root, tmp_path, capsys):
+    """Drive 0048 has both colour cameras: --stereo-check drops a few per cent of the targets (windows, roof
+    outlines: docs/results/stereo_check), never adds one, and counts them in the index."""
+    drive = kitti_root / "stereo" / "2011_09_26" / "2011_09_26_drive_0048_sync"
+    plain, checked = tmp_path / "plain", tmp_path / "checked"
+    for out, extra in ((plain, []), (checked, ["--stereo-check"])):
+        assert run(["targets", "--drive", str(drive), "--out-dir", str(out), "--poses", "odometry", "-k", "1",
+                    "--quiet", *extra], capsys)[0] == 0
+    rows = list(csv.DictReader((checked / drive.name / "index_image_02.csv").open()))
+    assert [r["stereo_dropped"] for r in list(csv.DictReader((plain / drive.name / "index_image_02.csv").open()))] \
+        == ["", "", ""]
+    for row in rows:
+        name = f"{drive.name}/proj_depth/groundtruth/image_02/{row['frame']}.png"
+        before, after = read_depth_png(plain / name), read_depth_png(checked / name)
+        assert np.all((after == before) | (after == 0))  # only drops
+        dropped = int(np.count_nonzero((before > 0) & (after == 0)))
+        assert dropped == int(row["stereo_dropped"])
+        assert 0.005 < dropped / np.count_nonzero(before) < 0.10
+
+
+def test_stereo_check_needs_both_cameras(synthetic_drive, tmp_path, capsys):
+    code, _, err = run(["targets", "--drive", synthetic_drive, "--out-dir", tmp_path / "o", "--poses",
+                        poses_file(synthetic_drive), "--stereo-check"], capsys)
+    assert code == 2
+    assert err.splitlines()[0].startswith("crfdepth targets: error: --stereo-check: expected the other colour "
+                                          "camera's folder ")
+    assert not (tmp_path / "o").exists()

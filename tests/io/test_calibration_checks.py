@@ -334,3 +334,13 @@ def test_distortion_given_as_arguments_is_checked_too():
     _refused(RigCalibration, np.array(K), np.eye(4), "nope" * 100_000,
              match=r"^calibration.distortion: expected a list of numbers \(OpenCV k1 k2 p1 p2 \[k3 \.\.\.\]\), got "
                    r"'nopenope")
+
+
+def test_an_intrinsics_file_is_bounded_like_a_calibration(tmp_path):
+    """--intrinsics is a calibration too: at most 1 MiB is read, whatever the file holds after it."""
+    from crfdepth.io.kitti import read_intrinsics
+
+    path = tmp_path / "K.txt"
+    path.write_text("721.5 0 609.6 0 721.5 172.9 0 0 1\n" + "# padding\n" * 120_000)
+    with pytest.raises(InputError, match=r"^intrinsics: expected a text file of at most 1 MiB"):
+        read_intrinsics(path)
