@@ -36,11 +36,12 @@ from crfdepth.cli.outputs import check_output_folders, output_folders, write_fra
 from crfdepth.cli.processes import deal, in_processes, run_share
 from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.cli.resume import (
-    RUN_RECORD,
     batch_plan,
     check_resumable,
+    earlier_run_record,
+    finish_run_record,
     finished_frames,
-    remove_run_record,
+    restore_run_record,
     run_record,
     write_run_record,
 )
@@ -211,8 +212,8 @@ def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
         finally:  # also when a run stops after writing frames: the failed ones are listed for --resume (a run
             # stopped before its first frame leaves nothing: its error names the frame)
             failed_csv = _close_run(args, run, out_dir, failed, counts["written"], failing) if main else None
-        if main and not failed:
-            remove_run_record(out_dir)
+        if main and not failed and (plan or (args.resume and run["earlier_record"] is not None)):
+            finish_run_record(out_dir, run["record"])  # a run that wrote nothing leaves the record it found
     if main and not args.quiet:
         _summary(args, run, counts["written"], failed, failed_csv, time.perf_counter() - start)
     return 0
@@ -222,14 +223,14 @@ def _close_run(args: argparse.Namespace, run: dict, out_dir: Path, failed: list[
                stopped: bool) -> Path | None:
     """``failed.csv`` of a run that wrote frames (or ran with ``--skip-bad``), for ``--resume``; returns it. A run
     ``stopped`` by an error or Ctrl-C before its first frame was written leaves nothing of its own: no
-    ``failed.csv``, no ``skipped.csv`` and no run record that it wrote (those of an earlier unfinished run stay
-    as they were, for ``--resume``), so that the output folders it created are empty and removed
+    ``failed.csv``, no ``skipped.csv`` and no run record that it wrote (the record of an earlier run, stopped or
+    finished, is put back as it was, for ``--resume``: a group of ranks writes its record before the first
+    frame), so that the output folders it created are empty and removed
     (:func:`~crfdepth.cli.outputs.output_folders`). When the run is stopped by an error, a file that cannot be
     written now (a full disk) does not hide it."""
     try:
         if stopped and not written:
-            if not run["had_record"]:
-                remove_run_record(out_dir)
+            restore_run_record(out_dir, run["earlier_record"])
             if run["skipped_csv"] is not None:
                 run["skipped_csv"].unlink(missing_ok=True)
             return None
@@ -268,12 +269,12 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict,
         logger.warning("--out-dir %s already holds %d PNG file(s) that this run does not write (an earlier "
                        "run on other frames?); they stay", folders[0], others)
     skipped_csv = write_skipped(folders[0], [(dataset.names[i], m) for i, m in skipped.items()])
-    had_record = (folders[0] / RUN_RECORD).is_file()  # an earlier unfinished run's, which a failure leaves
+    earlier_record = earlier_run_record(folders[0])  # an earlier run's, which a run that writes no frame leaves
     if eager_record and plan:
         write_run_record(folders[0], record)
     return {"dataset": dataset, "plan": plan, "folders": folders, "with_std": with_std, "record": record,
             "finished": finished, "good": good, "skipped": skipped, "skipped_csv": skipped_csv, "total": total,
-            "had_record": had_record}
+            "earlier_record": earlier_record}
 
 
 def _summary(args: argparse.Namespace, run: dict, written: int, failed: list, failed_csv, seconds: float) -> None:

@@ -7,10 +7,10 @@ batches of a run planned so that a resumed run writes the same files as an unint
 - :func:`run_record` / :func:`check_resumable` / :func:`write_run_record`: ``<out-dir>/.crfdepth-run.json``,
   what decides the files' bytes (the model's configuration and a digest of its weights, the dtype, the
   device type, the batch size, the std and the pictures asked for), written before a run's first file and
-  removed when the run has written every frame, so that a finished folder holds the outputs alone (a
-  KITTI submission is the PNGs). A resumed run that would write other bytes than the unfinished run
-  before it is refused, naming what differs; a folder without the record was finished (or written by
-  hand), and its outputs are taken as they are.
+  marked ``"finished": true`` when the run has written every frame (a hidden file: ``zip *.png`` of the
+  folder, a KITTI submission, leaves it out). A resumed run that would write other bytes than the run
+  before it, stopped or finished, is refused, naming what differs; a folder without the record was
+  written by hand (or by a version before the record), and its outputs are taken as they are.
 - :func:`batch_plan`: the batches of the uninterrupted run (consecutive frames of one size, up to
   ``--batch-size``: :func:`crfdepth.cli.batches.frame_batches`' rule, the size read from each PNG's
   header). A resumed run redoes every batch that holds an unfinished frame, whole, so each frame is
@@ -31,10 +31,11 @@ from crfdepth.cli.outputs import write_files
 from crfdepth.errors import InputError
 from crfdepth.io.image_size import read_image_size
 
-__all__ = ["RUN_RECORD", "batch_plan", "check_resumable", "finished_frames", "remove_run_record", "run_record",
-           "write_run_record"]
+__all__ = ["RUN_RECORD", "batch_plan", "check_resumable", "earlier_run_record", "finish_run_record", "finished_frames",
+           "restore_run_record", "run_record", "write_run_record"]
 
 RUN_RECORD = ".crfdepth-run.json"
+FINISHED = "finished"  # the record's mark of a run that wrote every frame
 
 
 def frame_outputs(name: str, out_dir: Path, std_dir: Path | None, vis_dir: Path | None, with_std: bool
@@ -72,8 +73,8 @@ def run_record(args: argparse.Namespace, model, with_std: bool) -> dict:
 
 
 def check_resumable(out_dir: Path, record: dict) -> None:
-    """Refuse ``--resume`` into ``out_dir`` when the unfinished run that wrote it would write other bytes than
-    this one (its record differs from ``record``)."""
+    """Refuse ``--resume`` into ``out_dir`` when the run that wrote it, stopped or finished, would write other
+    bytes than this one (its record differs from ``record``)."""
     path = out_dir / RUN_RECORD
     if not path.is_file():
         return
@@ -81,11 +82,15 @@ def check_resumable(out_dir: Path, record: dict) -> None:
         earlier = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"--resume: cannot read {path} ({exc}); remove it to write every frame again") from None
+    if not isinstance(earlier, dict):
+        raise InputError(f"--resume: cannot read {path} (not a run record); remove it to write every frame again")
+    finished = earlier.pop(FINISHED, False) is True
     differ = sorted(key for key in record.keys() | earlier.keys() if record.get(key) != earlier.get(key))
     if differ:
         what = ", ".join(f"{key} {earlier.get(key)!r} -> {record.get(key)!r}" if key != "model" else "model"
                          for key in differ)
-        raise InputError(f"--resume: {out_dir} holds the unfinished run of another model or options ({what}; "
+        run = "finished" if finished else "unfinished"
+        raise InputError(f"--resume: {out_dir} holds the {run} run of another model or options ({what}; "
                          f"{path}); resume with its options, or complete into another --out-dir")
 
 
@@ -94,9 +99,38 @@ def write_run_record(out_dir: Path, record: dict) -> None:
     write_files([("--out-dir", out_dir / RUN_RECORD, (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())])
 
 
-def remove_run_record(out_dir: Path) -> None:
-    """The run has written every frame: the folder holds its outputs alone."""
-    (out_dir / RUN_RECORD).unlink(missing_ok=True)
+def earlier_run_record(out_dir: Path) -> bytes | None:
+    """The record in ``out_dir`` before this run writes its own, as it is on disk (None: there is none; ``b""``:
+    there is one that cannot be read), so that a run that writes no frame can put it back
+    (:func:`restore_run_record`)."""
+    try:
+        return (out_dir / RUN_RECORD).read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return b""
+
+
+def restore_run_record(out_dir: Path, earlier: bytes | None) -> None:
+    """The run wrote no frame: the folder's record is put back as :func:`earlier_run_record` found it (none, or
+    the earlier run's, whose outputs the folder still holds; one that could not be read is left as it is)."""
+    path = out_dir / RUN_RECORD
+    if earlier is None:
+        path.unlink(missing_ok=True)
+    elif earlier and (not path.is_file() or path.read_bytes() != earlier):
+        write_files([("--out-dir", path, earlier)])
+
+
+def finish_run_record(out_dir: Path, record: dict) -> None:
+    """The run has written every frame: its record says so (``"finished": true``), and a later ``--resume`` with
+    other options is refused. A record that says so already is left untouched."""
+    finished = {**record, FINISHED: True}
+    try:
+        if json.loads((out_dir / RUN_RECORD).read_text()) == finished:
+            return
+    except (OSError, ValueError):
+        pass
+    write_run_record(out_dir, finished)
 
 
 def batch_plan(sparse_files: list[Path], batch_size: int) -> list[list[int]]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import json
 import pickle
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from crfdepth.api import complete_depth
 from crfdepth.cli import complete_folder
 from crfdepth.cli.batches import _CheckedFrames, frame_batches
 from crfdepth.cli.completion import check_sample
+from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.sample import Sample
@@ -153,15 +155,18 @@ def completed(folder, tmp_path_factory) -> dict[str, Path]:
 
 def test_complete_batches_write_the_same_files(completed):
     names = [f"{_stem('velodyne_raw', i)}.png" for i in range(len(SIZES))]
-    for key in ("one", "three"):
-        assert _files(completed[key]) == [f"depth/{n}" for n in names] + [f"std/{n}" for n in names]
+    for key, batch_size in (("one", 1), ("three", 3)):
+        assert _files(completed[key]) == [f"depth/{RUN_RECORD}"] + [f"depth/{n}" for n in names] + [
+            f"std/{n}" for n in names]
+        record = json.loads((completed[key] / "depth" / RUN_RECORD).read_text())
+        assert record["batch_size"] == batch_size and record["finished"] is True
     for name, size in zip(names, SIZES):
         assert _codes(completed["three"] / "depth" / name).shape == size
 
 
 def test_complete_batched_depth_within_one_png_unit_of_batch_one(completed):
     worst_depth, worst_std = 0, 0.0
-    for png in sorted((completed["one"] / "depth").iterdir()):
+    for png in sorted((completed["one"] / "depth").glob("*.png")):
         one, three = _codes(png), _codes(completed["three"] / "depth" / png.name)
         assert one.min() > 0 and three.min() > 0
         worst_depth = max(worst_depth, int(np.abs(one - three).max()))

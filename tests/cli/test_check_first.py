@@ -13,6 +13,7 @@ import pytest
 
 from crfdepth import api
 from crfdepth.cli import complete_folder, complete_one
+from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.cli.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
@@ -76,7 +77,7 @@ def test_skip_bad_completes_the_others_and_lists_the_bad_ones(tmp_path, workers)
     code, stdout, err = run(["complete", "--input-dir", data, "--out-dir", out, "--skip-bad", "--workers", workers,
                              "--batch-size", 2, "--potentials", "colour"])
     assert code == 0, err
-    assert files(out) == sorted([png(0), png(3), "skipped.csv"])
+    assert files(out) == sorted([png(0), png(3), "skipped.csv", RUN_RECORD])  # the run finished, frames 1, 2 left out
     skipped = _skipped(out)
     assert [r["frame"] for r in skipped] == [stem("velodyne_raw", 1), stem("velodyne_raw", 2)]
     assert "no LiDAR point" in skipped[0]["reason"] and "not a readable image" in skipped[1]["reason"]
@@ -103,7 +104,7 @@ def test_a_clean_rerun_removes_an_earlier_skipped_csv(tmp_path):
     (out / "skipped.csv").write_text("frame,reason\nx,y\n")
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", out, "--skip-bad", *FAST])
     assert code == 0, err
-    assert files(out) == [png(0), png(1)]
+    assert files(out) == sorted([png(0), png(1), RUN_RECORD])
 
 
 def test_skip_bad_needs_a_run_over_many_frames(tmp_path):

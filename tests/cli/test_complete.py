@@ -21,6 +21,7 @@ import torch
 
 from crfdepth import cli
 from crfdepth.checkpoints import save_model
+from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
@@ -115,7 +116,7 @@ def test_complete_val_folder_uses_velodyne_raw_names(main, val_dir, tmp_path):
     assert main(["complete", "--input-dir", str(val_dir), "--out-dir", str(out_dir), *FAST]) == 0
     names = sorted(p.name for p in (val_dir / "velodyne_raw").glob("*.png"))
     assert len(names) == 2 and all("_velodyne_raw_" in n for n in names)
-    assert _files(out_dir) == names
+    assert _files(out_dir) == sorted([*names, RUN_RECORD])
     for name in names:
         raw = cv2.imread(str(out_dir / name), cv2.IMREAD_UNCHANGED)
         assert raw.dtype == np.uint16 and raw.shape == (352, 1216) and raw.min() > 0
@@ -139,7 +140,7 @@ def test_complete_test_layout_names(main, val_dir, tmp_path):
     root = _fake_test_layout(val_dir, tmp_path / "test_depth_completion_anonymous")
     out_dir = tmp_path / "submission"
     assert main(["complete", "--input-dir", str(root), "--out-dir", str(out_dir), *FAST]) == 0
-    assert _files(out_dir) == ["0000000000.png", "0000000001.png"]
+    assert _files(out_dir) == sorted(["0000000000.png", "0000000001.png", RUN_RECORD])
     # Frame 0 is the image_02 frame: the same depth as completing that file alone.
     single = tmp_path / "single.png"
     assert main(_one(_val_frame(val_dir, 2), single, *FAST[:-1])) == 0
@@ -227,7 +228,8 @@ def test_complete_folder_std_and_default_vis(main, tmp_path, capsys):
                  "--vis", *FAST[:-1]]) == 0
     assert "2/2" not in capsys.readouterr().err  # no progress bar when stderr is not a terminal
     names = ["0000000000.png", "0000000001.png"]
-    assert _files(out_dir) == names  # nothing else in the submission folder
+    assert _files(out_dir) == sorted([*names, RUN_RECORD])  # nothing else in the submission folder but the
+    # hidden run record (left out by zip *.png)
     assert _files(std_dir) == names
     assert _files(tmp_path / "submission_vis") == [
         "0000000000_vis_depth.png", "0000000000_vis_std.png", "0000000001_vis_depth.png", "0000000001_vis_std.png"]

@@ -35,7 +35,9 @@ def test_each_frame_equals_the_one_frame_run_on_its_scan(drive, tmp_path):
     out = tmp_path / "out"
     code, _, err = run(["complete", "--input-dir", drive, "--out-dir", out, "--batch-size", 2, *FAST])
     assert code == 0, err
-    assert files(out) == [f"{stem(i)}.png" for i in range(COUNT)]
+    assert files(out) == [RUN_RECORD] + [f"{stem(i)}.png" for i in range(COUNT)]
+    record = json.loads((out / RUN_RECORD).read_text())  # the finished run says what it was
+    assert record["camera"] == 2 and record["batch_size"] == 2 and record["finished"] is True
     for i in range(COUNT):
         one = tmp_path / f"one{i}.png"
         code, _, err = run(["complete", "--image", drive / "image_02" / "data" / f"{stem(i)}.png", "--points",
@@ -101,8 +103,9 @@ def test_an_input_list_completes_a_folder_and_a_drive_and_names_a_missing_line(d
     listing.write_text(f"{folder}\n{drive}\n")
     code, _, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "out", *FAST])
     assert code == 0, err
-    assert files(tmp_path / "out") == [f"{drive.name}/{stem(i)}.png" for i in range(COUNT)] + [
-        f"val_selection_cropped/{png(0)}"]
+    assert files(tmp_path / "out") == [f"{drive.name}/{RUN_RECORD}"] + [
+        f"{drive.name}/{stem(i)}.png" for i in range(COUNT)] + [f"val_selection_cropped/{RUN_RECORD}",
+                                                                f"val_selection_cropped/{png(0)}"]
     listing.write_text(f"{drive.parent}\n")
     code, _, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "out2", *FAST])
     assert code == 2 and err == (f"crfdepth complete: error: --input-list {listing}, line 1: {drive.parent}: expected "
@@ -146,7 +149,7 @@ def test_a_bad_frame_is_named_or_left_out_with_skip_bad(tmp_path):
     assert not (tmp_path / "a").exists()
     code, _, err = run(["complete", "--input-dir", drive, "--out-dir", tmp_path / "b", "--skip-bad", *FAST])
     assert code == 0, err
-    assert files(tmp_path / "b") == [f"{stem(0)}.png", f"{stem(2)}.png", "skipped.csv"]
+    assert files(tmp_path / "b") == [RUN_RECORD, f"{stem(0)}.png", f"{stem(2)}.png", "skipped.csv"]
     assert (tmp_path / "b" / "skipped.csv").read_text().splitlines()[1].startswith(f"{stem(1)},")
 
 

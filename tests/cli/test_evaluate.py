@@ -28,6 +28,7 @@ from crfdepth import cli
 from crfdepth.api import complete_depth
 from crfdepth.checkpoints import save_model
 from crfdepth.cli.completion import complete_batch_with_cli_advice
+from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
@@ -430,8 +431,12 @@ def test_complete_exports_a_kitti_submission(val_dir, tmp_path):
     code, _, stderr = _run(["complete", "--input-dir", folder, "--out-dir", out,
                             "--no-refine", "--potentials", "colour", "--quiet"])
     assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == ["0000000000.png", "0000000001.png", "0000000002.png"]
-    for png in sorted(out.iterdir()):
+    # what the KITTI server takes (zip *.png leaves hidden files out): the PNGs, nothing else; hidden, the run
+    # record alone (no lock, no temporary file)
+    names = sorted(p.name for p in out.iterdir())
+    assert [n for n in names if not n.startswith(".")] == ["0000000000.png", "0000000001.png", "0000000002.png"]
+    assert [n for n in names if n.startswith(".")] == [RUN_RECORD]
+    for png in sorted(out.glob("*.png")):
         raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
         sparse = read_depth_png(folder / "velodyne_raw" / png.name)
         assert raw.dtype == np.uint16 and raw.shape == sparse.shape == (352, 1216)

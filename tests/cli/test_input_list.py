@@ -5,8 +5,11 @@ write what one process writes, and go on or stop alike."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
+from crfdepth.cli.resume import RUN_RECORD
 from tests.cli.frames import FAST, files, png, run, same_pngs, write_folder
 from tests.cli.launching import two_ranks
 
@@ -28,8 +31,8 @@ def test_every_input_is_completed_into_its_own_folder(folders, tmp_path):
     code, stdout, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "out",
                              *[f for f in FAST if f != "--quiet"]])
     assert code == 0, err
-    assert files(tmp_path / "out") == [f"{name}/{png(i)}" for name in ("drive1", "val_selection_cropped")
-                                       for i in range(2)]
+    assert files(tmp_path / "out") == [f"{name}/{leaf}" for name in ("drive1", "val_selection_cropped")
+                                       for leaf in (RUN_RECORD, png(0), png(1))]  # each folder's run finished
     assert f"completed 2 of 2 input(s) of --input-list {listing}" in stdout
 
 
@@ -86,7 +89,10 @@ def test_two_ranks_complete_the_list_as_one_process_and_skip_bad_alike(folders, 
     same_pngs(tmp_path / "one", tmp_path / "two")  # the bad frame left out, listed in its skipped.csv
     skipped = "val_selection_cropped-2/skipped.csv"
     assert (tmp_path / "two" / skipped).read_text() == (tmp_path / "one" / skipped).read_text()
-    assert len(files(tmp_path / "two")) == 2 + 2 + 2 + 1
+    assert len(files(tmp_path / "two")) == 2 + 2 + 2 + 1 + 3  # PNGs, skipped.csv, a run record per folder
+    for name in ("val_selection_cropped-1", "val_selection_cropped-2", "val_selection_cropped-4"):
+        record = json.loads((tmp_path / "two" / name / RUN_RECORD).read_text())  # written once, by rank 0
+        assert record == json.loads((tmp_path / "one" / name / RUN_RECORD).read_text()) and record["finished"]
     summary = f"completed 3 of 4 input(s) of --input-list {listing} into {tmp_path / 'two'}"
     assert summary in ranks[0].stdout and f"failed: --input-list line 3 ({empty}): " in ranks[0].stdout
     assert ranks[1].stdout == ""  # rank 0 reports for the group
@@ -99,7 +105,7 @@ def test_two_ranks_stop_the_list_alike_at_a_bad_input(folders, tmp_path):
     last = [r.stderr.splitlines()[-1] for r in ranks]
     assert last[0] == last[1] and last[0].startswith("crfdepth complete: error: --input-list line 2 (")
     assert "every pixel is 0 (no LiDAR point)" in last[0] and "[1 of 4 input(s) completed before it" in last[0]
-    assert files(tmp_path / "o") == [f"val_selection_cropped-1/{png(i)}" for i in range(2)]
+    assert files(tmp_path / "o") == [f"val_selection_cropped-1/{leaf}" for leaf in (RUN_RECORD, png(0), png(1))]
 
 
 def test_two_ranks_complete_a_recording_of_the_list_on_rank_0(folders, tmp_path):

@@ -80,7 +80,7 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
                           f"crfdepth complete --input-dir A --out-dir B); wait for it to finish or choose another "
                           f"folder; if that run is gone, delete {out / LOCK_NAME}\n")
     assert inner["files"] == [LOCK_NAME]  # run 2 wrote nothing (run 1 had not written its first frame yet)
-    assert files(out) == [png(i) for i in range(3)]  # run 1 complete, its lock removed
+    assert files(out) == sorted([png(i) for i in range(3)] + [RUN_RECORD])  # run 1 complete, its lock removed
 
 
 @pytest.mark.parametrize("flag", ["--out-dir", "--out-std-dir", "--vis"])
@@ -119,7 +119,7 @@ def test_a_stale_lock_is_taken_over_with_a_warning(folder, tmp_path, caplog):
     warnings = [r.getMessage() for r in caplog.records if r.name == "crfdepth.io.files"]
     assert len(warnings) == 1 and warnings[0].startswith(f"--out-dir: taking over the lock of crfdepth run (pid {dead} ")
     assert "no longer running" in warnings[0]
-    assert files(out) == [png(i) for i in range(3)]  # completed, and the lock removed
+    assert files(out) == sorted([png(i) for i in range(3)] + [RUN_RECORD])  # completed, and the lock removed
 
 
 def test_an_unreadable_lock_counts_as_held(folder, tmp_path):
@@ -203,7 +203,7 @@ def test_a_folder_with_an_earlier_runs_outputs_is_replaced_in_place(folder, tmp_
     with caplog.at_level(logging.WARNING):
         code, _, err = run(["complete", "--input-dir", folder, "--out-dir", out, *FAST])
     assert code == 0, err
-    assert files(out) == sorted([png(i) for i in range(3)] + ["other_frame.png"])
+    assert files(out) == sorted([png(i) for i in range(3)] + ["other_frame.png", RUN_RECORD])
     assert (out / png(1)).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # replaced by this run's PNG
     assert any("already holds 1 PNG file(s) that this run does not write" in r.getMessage() for r in caplog.records)
 

@@ -1,12 +1,14 @@
 """``complete --input-dir --resume``: a run stopped part-way and resumed writes the same files as one
 uninterrupted run, byte for byte, for any batch size; the frames an earlier run finished are not done
-again; another model or other options are refused; a frame that fails when completed is listed in
-failed.csv (and, with --skip-bad, the others are completed)."""
+again; another model or other options than the earlier run's, stopped or finished, are refused; a
+finished folder resumed with its own options is left byte for byte as it is; a frame that fails when
+completed is listed in failed.csv (and, with --skip-bad, the others are completed)."""
 
 from __future__ import annotations
 
 import filecmp
 import json
+import os
 
 import pytest
 
@@ -40,6 +42,11 @@ def _stop_after(monkeypatch, batches: int) -> list:
 
     monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", step)
     return seen
+
+
+def _snapshot(out) -> dict:
+    """Every file under ``out`` (hidden ones included) with its bytes and modification time."""
+    return {name: ((out / name).read_bytes(), (out / name).stat().st_mtime_ns) for name in files(out)}
 
 
 def _same_tree(a, b) -> None:
@@ -97,16 +104,82 @@ def test_resume_refuses_the_unfinished_run_of_another_model_or_options(folder, t
     code, _, err = run(_argv(folder, out, "--resume", "--weights", "paper"))
     assert code == 2 and "of another model or options (model, weights_sha256 " in err
     assert run(_argv(folder, out, "--resume"))[0] == 0
-    assert not (out / "d" / RUN_RECORD).exists()  # finished: the folder holds the outputs alone
+    # finished: the record stays, marked so (hidden: zip *.png of the folder, a submission, leaves it out)
+    assert json.loads((out / "d" / RUN_RECORD).read_text()) == {**record, "finished": True}
+    assert [name for name in files(out / "d") if name.startswith(".")] == [RUN_RECORD]
+
+
+def _other_potentials(data, out, *extra) -> list:
+    """:func:`_argv` with ``--potentials colour,normal`` instead of FAST's ``colour``."""
+    argv = _argv(data, out, *extra)
+    return [*argv[:argv.index("--potentials")], "--potentials", "colour,normal", "--quiet"]
+
+
+@pytest.mark.parametrize(("other", "what"), [
+    (lambda data, out: _argv(data, out, "--resume", "--weights", "paper"), "model, weights_sha256 "),
+    (lambda data, out: _other_potentials(data, out, "--resume"), "model"),
+    (lambda data, out: _argv(data, out, "--resume", "--batch-size", "3"), "batch_size 1 -> 3; "),
+], ids=["weights", "potentials", "batch-size"])
+def test_resume_refuses_the_finished_run_of_another_model_or_options(folder, tmp_path, monkeypatch, other, what):
+    """As for a stopped run: another model or options than the finished run's are refused, and nothing is written."""
+    out = tmp_path / "o"
+    assert run(_argv(folder, out))[0] == 0
+    before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
+    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", None)  # must not be called
+    code, stdout, err = run(other(folder, out))
+    assert code == 2 and stdout == ""
+    assert err.splitlines()[0].startswith(f"crfdepth complete: error: --resume: {out / 'd'} holds the finished run of "
+                                          f"another model or options ({what}")
+    assert f"{out / 'd' / RUN_RECORD}); resume with its options, or complete into another --out-dir" in err
+    assert {sub: _snapshot(out / sub) for sub in ("d", "s", "v")} == before  # nothing written, no lock left
 
 
 def test_a_finished_folder_is_left_as_it_is(folder, tmp_path, monkeypatch):
+    """--resume with the finished run's own options: nothing to do, and no byte of any file changes."""
     out = tmp_path / "o"
     assert run(_argv(folder, out))[0] == 0
-    assert not any(name.startswith(".") for name in files(out / "d"))
+    record = json.loads((out / "d" / RUN_RECORD).read_text())
+    assert record["finished"] is True and record["batch_size"] == 1 and len(record["weights_sha256"]) == 64
+    before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
     monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", None)  # must not be called
-    code, stdout, _ = run(_argv(folder, out, "--resume", "--batch-size", "3", quiet=False))
+    code, stdout, _ = run(_argv(folder, out, "--resume", quiet=False))
     assert code == 0 and f"{COUNT} of {COUNT} frame(s) were finished by an earlier run" in stdout
+    assert {sub: _snapshot(out / sub) for sub in ("d", "s", "v")} == before
+
+
+def test_a_rerun_without_resume_replaces_the_finished_record(folder, tmp_path):
+    """Completing again into a finished folder, without --resume, replaces its files and its record: --resume then
+    goes with the new run's options, and refuses the first run's."""
+    out = tmp_path / "o"
+    assert run(_argv(folder, out))[0] == 0
+    first = json.loads((out / "d" / RUN_RECORD).read_text())
+    assert run(_argv(folder, out, "--weights", "paper"))[0] == 0
+    second = json.loads((out / "d" / RUN_RECORD).read_text())
+    assert second["finished"] is True and second["weights_sha256"] != first["weights_sha256"]
+    code, _, err = run(_argv(folder, out, "--resume"))
+    assert code == 2 and f"{out / 'd'} holds the finished run of another model or options (model, " in err
+    assert run(_argv(folder, out, "--resume", "--weights", "paper"))[0] == 0
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="--devices 2 needs 2 CPU cores")
+def test_a_run_stopped_before_its_first_frame_puts_the_finished_record_back(folder, tmp_path, monkeypatch):
+    """A --devices run writes its record before its processes start; stopped before any frame is written, it puts
+    back the record of the finished run whose files the folder still holds, so that --resume still knows them."""
+    out = tmp_path / "o"
+    assert run(_argv(folder, out))[0] == 0
+    before = (out / "d" / RUN_RECORD).read_bytes()
+
+    def stopped(args, shares, work):
+        assert (out / "d" / RUN_RECORD).read_bytes() != before  # this run's record, written before its processes
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(complete_folder, "in_processes", stopped)
+    code, _, err = run(_argv(folder, out, "--weights", "paper", "--devices", "2"))
+    assert code == 130 and "interrupted" in err
+    assert (out / "d" / RUN_RECORD).read_bytes() == before
+    monkeypatch.undo()
+    code, _, err = run(_argv(folder, out, "--resume", "--weights", "paper"))
+    assert code == 2 and "holds the finished run of another model or options (model, " in err
 
 
 def test_resume_applies_to_a_folder_only(tmp_path):
