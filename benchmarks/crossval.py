@@ -34,7 +34,6 @@ import logging
 import math
 import sys
 import time
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,8 +42,11 @@ import torch
 from torch.utils.data import ConcatDataset, Dataset, Subset
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+for folder in (ROOT, ROOT / "benchmarks"):  # the package, and accuracy_parts beside this file
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+
+from accuracy_parts.fits import train_module  # noqa: E402
 
 from crfdepth.config import CRFConfig  # noqa: E402
 from crfdepth.data import build_dataset  # noqa: E402
@@ -52,9 +54,7 @@ from crfdepth.errors import InputError  # noqa: E402
 from crfdepth.model import CRFDepth  # noqa: E402
 
 DEFAULT_ROOT = ROOT.parent / "shared" / "data" / "kitti"
-CLEAN_SHARE = 0.22  # the a22 protocol's share of the annotation given as input
 SHIPPED_STRUCTURE = {"structure": {"mode": "pixel", "variable": "log"}, "gate": {"enabled": True}}
-DRIVE_0001 = "2011_09_26_drive_0001_sync"
 
 
 def _frames(drive: str, *numbers: int) -> list[str]:
@@ -151,9 +151,8 @@ def train_fold(root: Path, folds: Sequence[str], recipe: Recipe, epochs: int, se
                device: str, workers: int = 0) -> tuple[CRFDepth, float, int]:
     """Weights learned on ``folds`` by ``recipe``: (model, seconds, frames per epoch)."""
     import lightning.pytorch as pl
-    from torch.utils.data import DataLoader
 
-    from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, collate_samples
+    from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning
     from train.data import TransformedDataset
     from train.module import CRFDepthModule
     from train.sources import weighted
@@ -169,14 +168,7 @@ def train_fold(root: Path, folds: Sequence[str], recipe: Recipe, epochs: int, se
     data = TransformedDataset(ConcatDataset(parts), Compose(augment))
     pl.seed_everything(seed, verbose=False)
     module = CRFDepthModule(crf=CRFConfig.build(recipe.crf()).groups(), loss=recipe.loss, lr=recipe.lr)
-    loader = DataLoader(data, batch_size=1, shuffle=True, collate_fn=collate_samples, num_workers=workers,
-                        persistent_workers=workers > 0)
-    trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
-                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)
-    with warnings.catch_warnings():  # "validation_step but no val_dataloader": intended
-        warnings.filterwarnings("ignore", message=".*val_dataloader.*")
-        trainer.fit(module, train_dataloaders=loader)
+    train_module(module, data, epochs, device, workers=workers)
     return module.model.to(device).eval(), time.perf_counter() - start, len(data)
 
 

@@ -32,10 +32,9 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
     epoch's mean training loss.
     """
     import lightning.pytorch as pl
-    from torch.utils.data import DataLoader
 
     from crfdepth.config import CRFConfig
-    from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning, collate_samples
+    from crfdepth.data import Compose, HorizontalFlip, RandomCrop, RandomThinning
     from train.data import TransformedDataset
     from train.module import CRFDepthModule
 
@@ -50,15 +49,28 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
         ([RandomCrop(*data["crop"])] if data.get("crop") else []) + \
         ([RandomThinning(*data["thin"])] if data.get("thin") else [])
     dataset = TransformedDataset(list(frames), Compose(augment)) if augment else list(frames)
-    loader = DataLoader(dataset, batch_size=data.get("batch_size", 1), shuffle=True, collate_fn=collate_samples)
+    trainer = train_module(module, dataset, epochs, device, batch_size=data.get("batch_size", 1))
+    loss = float(trainer.callback_metrics.get("train/loss_epoch", float("nan")))
+    return module.model.to(device).eval(), loss
+
+
+def train_module(module, dataset, epochs: int, device: str, batch_size: int = 1, workers: int = 0):
+    """Fit the trainer's ``module`` on ``dataset`` (shuffled, ``epochs`` epochs) with Lightning: no validation,
+    logging or checkpoints. Returns the Trainer (its ``callback_metrics`` hold the last epoch's loss)."""
+    import lightning.pytorch as pl
+    from torch.utils.data import DataLoader
+
+    from crfdepth.data import collate_samples
+
+    loader = DataLoader(dataset, batch_size=batch_size, shuffle=True, collate_fn=collate_samples,
+                        num_workers=workers, persistent_workers=workers > 0)
     trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
                          logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)
     with warnings.catch_warnings():  # "validation_step but no val_dataloader": intended
         warnings.filterwarnings("ignore", message=".*val_dataloader.*")
         trainer.fit(module, train_dataloaders=loader)
-    loss = float(trainer.callback_metrics.get("train/loss_epoch", float("nan")))
-    return module.model.to(device).eval(), loss
+    return trainer
 
 
 def get_fit(source, args, fits: dict, log) -> CRFDepth:
