@@ -38,7 +38,6 @@ def fit_recipe(frames: Sequence, epochs: int, device: str, crf: dict | None = No
     from train.data import TransformedDataset
     from train.module import CRFDepthModule
 
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)  # no device / summary banners
     config = recipe()
     data = config["data"]
     pl.seed_everything(config.get("seed_everything", 0), verbose=False)
@@ -64,12 +63,18 @@ def train_module(module, dataset, epochs: int, device: str, batch_size: int = 1,
 
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=True, collate_fn=collate_samples,
                         num_workers=workers, persistent_workers=workers > 0)
-    trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
-                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)
-    with warnings.catch_warnings():  # "validation_step but no val_dataloader": intended
-        warnings.filterwarnings("ignore", message=".*val_dataloader.*")
-        trainer.fit(module, train_dataloaders=loader)
+    lightning_log = logging.getLogger("lightning.pytorch")
+    level = lightning_log.level
+    lightning_log.setLevel(logging.WARNING)  # no device / summary banners, for this fit only
+    try:
+        trainer = pl.Trainer(max_epochs=epochs, accelerator="gpu" if device.startswith("cuda") else "cpu", devices=1,
+                             logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                             enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0)
+        with warnings.catch_warnings():  # "validation_step but no val_dataloader": intended
+            warnings.filterwarnings("ignore", message=".*val_dataloader.*")
+            trainer.fit(module, train_dataloaders=loader)
+    finally:
+        lightning_log.setLevel(level)
     return trainer
 
 

@@ -160,7 +160,7 @@ def test_two_processes_write_what_one_writes(drive, tmp_path):
         code, _, err = run(["complete", "--input-dir", drive, "--out-dir", tmp_path / str(devices), "--devices",
                             devices, *FAST])
         assert code == 0, err
-    assert files(tmp_path / "1") == files(tmp_path / "2") == [f"{stem(i)}.png" for i in range(COUNT)]
+    assert files(tmp_path / "1") == files(tmp_path / "2") == [RUN_RECORD] + [f"{stem(i)}.png" for i in range(COUNT)]
     for i in range(COUNT):
         assert np.abs(_codes(tmp_path / "1" / f"{stem(i)}.png") - _codes(tmp_path / "2" / f"{stem(i)}.png")).max() <= 1
 
@@ -178,5 +178,5 @@ def test_a_list_of_a_folder_and_a_drive_on_two_ddp_ranks_writes_what_one_process
         done = alone(["complete", "--input-list", listing, "--out-dir", tmp_path / name, "--batch-size", "2",
                       *FAST, *scale])
         assert done.returncode == 0, done.stderr[-3000:]
-    assert len(files(tmp_path / "one")) == COUNT + 3
+    assert len(files(tmp_path / "one")) == COUNT + 3 + 2  # and each folder's run record
     same_pngs(tmp_path / "one", tmp_path / "ddp")
