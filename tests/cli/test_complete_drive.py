@@ -130,7 +130,7 @@ def test_frames_of_the_shared_drive_keep_their_lidar_depth(kitti_root, tmp_path)
     code, _, err = run(["complete", "--input-dir", drive, "--out-dir", tmp_path / "out", *FAST])
     assert code == 0, err
     dataset = KittiDrive(drive)
-    assert files(tmp_path / "out") == ["0000000010.png", "0000000011.png"]
+    assert files(tmp_path / "out") == [RUN_RECORD, "0000000010.png", "0000000011.png"]
     for index, name in enumerate(dataset.names):
         depth = read_depth_png(tmp_path / "out" / f"{name}.png")
         lidar = dataset[index].sparse[0].numpy()
