@@ -24,7 +24,6 @@ fixed (``seed + i``), for validation.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ import torch
 
 from crfdepth.checks import check_choice
 from crfdepth.data.kitti import loading
-from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform
+from crfdepth.data.kitti.loading import CAMERAS, DRIVE_NAME, FrameDataset, PathLike, Transform, check_cameras
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop
 from crfdepth.errors import InputError
@@ -50,8 +49,6 @@ __all__ = ["HDL64_ELEVATIONS_DEG", "KittiAnnotated", "ring_pixels"]
 
 INPUTS = ("share", "rings", "scan")
 DEFAULT_SHARE = 0.22  # input_from="share": the clean-input protocols' share (benchmarks/accuracy.py, a22)
-_CAMERAS = ("image_02", "image_03")
-_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_sync$")
 
 #: Elevation of the 64 lasers of a Velodyne HDL-64E (KITTI's scanner), degrees, top to bottom:
 #: the upper block from +2 to -8.33 in steps of 1/3, the lower block from -8.83 to -24.33 in steps of 1/2.
@@ -149,7 +146,7 @@ class KittiAnnotated(FrameDataset):
         self,
         root: PathLike,
         split: Literal["train", "val"] = "train",
-        camera: str | Sequence[str] = _CAMERAS,
+        camera: str | Sequence[str] = CAMERAS,
         raw_root: PathLike | None = None,
         input_from: Literal["share", "rings", "scan"] = "share",
         input_share: float | None = None,
@@ -170,9 +167,7 @@ class KittiAnnotated(FrameDataset):
             raise InputError(f"keep_every_ring: expected an integer in [1, 64] (one ring in k), got {keep_every_ring!r}")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
             raise InputError(f"seed: expected an integer or None, got {seed!r}")
-        cameras = (camera,) if isinstance(camera, str) else tuple(camera)
-        if not cameras or any(c not in _CAMERAS for c in cameras):
-            raise InputError(f"camera: expected 'image_02', 'image_03' or both, got {camera!r}")
+        cameras = check_cameras(camera)
         self.root = loading.require_root(root)
         if raw_root is None:
             raw_root = self.root / "raw" if (self.root / "raw").is_dir() else self.root.parent / "raw"
@@ -184,7 +179,7 @@ class KittiAnnotated(FrameDataset):
         velodyne_dir = self.root / "data_depth_velodyne" / split
         frames: list[_AnnotatedFrame] = []
         for drive_dir in sorted(p for p in annotated_dir.iterdir() if p.is_dir()):
-            match = _DRIVE.match(drive_dir.name)
+            match = DRIVE_NAME.match(drive_dir.name)
             if match is None:
                 raise InputError(f"{layout}: expected drive folders named <date>_drive_<NNNN>_sync in "
                                  f"{annotated_dir}, got {drive_dir.name!r}")

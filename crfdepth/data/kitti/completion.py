@@ -7,7 +7,6 @@ semi-dense annotation (docs/design.md section 7).
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,15 +25,7 @@ if TYPE_CHECKING:
 
 __all__ = ["KittiDepthCompletion"]
 
-_CAMERAS = ("image_02", "image_03")
-_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_sync$")
-
-
-def _check_cameras(camera: str | Sequence[str]) -> tuple[str, ...]:
-    cameras = (camera,) if isinstance(camera, str) else tuple(camera)
-    if not cameras or any(c not in _CAMERAS for c in cameras):
-        raise InputError(f"camera: expected 'image_02', 'image_03' or both, got {camera!r}")
-    return cameras
+from crfdepth.data.kitti.loading import CAMERAS, DRIVE_NAME, check_cameras
 
 
 @dataclass(frozen=True)
@@ -87,7 +78,7 @@ class KittiDepthCompletion(FrameDataset):
         self,
         root: PathLike,
         split: Literal["train", "val"] = "train",
-        camera: str | Sequence[str] = _CAMERAS,
+        camera: str | Sequence[str] = CAMERAS,
         raw_root: PathLike | None = None,
         transform: Transform | None = BottomCenterCrop(),
     ) -> None:
@@ -96,7 +87,7 @@ class KittiDepthCompletion(FrameDataset):
             raise InputError(f"split: expected 'train' or 'val', got {split!r}")
         self.root = loading.require_root(root)
         self.split = split
-        self.cameras = _check_cameras(camera)
+        self.cameras = check_cameras(camera)
         self.raw_root = loading.require_root(self.root.parent / "raw" if raw_root is None else raw_root, "raw_root")
         self.transform = transform
 
@@ -106,7 +97,7 @@ class KittiDepthCompletion(FrameDataset):
         frames: list[_CompletionFrame] = []
         for drive_dir in sorted(p for p in velodyne_dir.iterdir() if p.is_dir()):
             drive = drive_dir.name
-            match = _DRIVE.match(drive)
+            match = DRIVE_NAME.match(drive)
             if match is None:
                 raise InputError(
                     f"{layout}: expected drive folders named <date>_drive_<NNNN>_sync in "

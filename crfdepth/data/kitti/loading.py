@@ -10,7 +10,8 @@ does not match the layout or holds no frame.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import re
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +21,22 @@ from torch.utils.data import Dataset
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 
-__all__ = ["FrameDataset", "PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
+__all__ = ["CAMERAS", "DRIVE_NAME", "FrameDataset", "check_cameras", "PathLike", "Transform", "load_sample", "no_frames", "require_dir", "require_root", "rgb_tensor"]
 
 PathLike = str | os.PathLike
 Transform = Callable[[Sample], Sample]
+
+#: The colour cameras of KITTI's depth-completion trees, and a raw drive's folder name (its date in group 1).
+CAMERAS = ("image_02", "image_03")
+DRIVE_NAME = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_sync$")
+
+
+def check_cameras(camera: str | Sequence[str]) -> tuple[str, ...]:
+    """``camera`` ("image_02", "image_03" or both) as a tuple; InputError naming ``camera`` otherwise."""
+    cameras = (camera,) if isinstance(camera, str) else tuple(camera)
+    if not cameras or any(c not in CAMERAS for c in cameras):
+        raise InputError(f"camera: expected 'image_02', 'image_03' or both, got {camera!r}")
+    return cameras
 
 
 class FrameDataset(Dataset):
