@@ -11,11 +11,15 @@ reads the image, the annotation and the day's calibration and makes the input on
   a 64-beam Velodyne HDL-64E, the pattern of one scan: each pixel is lifted to 3D with its
   annotated depth, moved into the Velodyne frame with the calibration, and kept when its
   elevation lies within half a pixel's angle of a kept ring's elevation;
+- ``input_from="lidar"``: a Velodyne scan of the annotated scene, simulated from the calibration
+  (:func:`crfdepth.data.kitti.lidar_view.simulate_scan`): every ``keep_every_ring``-th ring, the
+  see-through returns a scan carries at depth edges included; the target is then the whole
+  annotation, as with a real scan;
 - ``input_from="scan"``: the frame's own LiDAR, the ``velodyne_raw`` map of the depth-completion
   layout when the root has one, else the raw scan ``.bin`` projected; the target is then the
   whole annotation.
 
-In the first two the input pixels leave the target (the model is scored on the pixels it was not
+With "share" and "rings" the input pixels leave the target (the model is scored on the pixels it was not
 given). With ``seed=None`` the draw uses torch's generator as it stands (the trainer seeds it per
 frame and epoch, so each epoch draws another input); with an integer the draw of frame ``i`` is
 fixed (``seed + i``), for validation.
@@ -34,6 +38,7 @@ import torch
 
 from crfdepth.checks import check_choice
 from crfdepth.data.kitti import loading
+from crfdepth.data.kitti.lidar_view import HDL64_ELEVATIONS_DEG, lift_to_velodyne, simulate_scan
 from crfdepth.data.kitti.loading import CAMERAS, DRIVE_NAME, FrameDataset, PathLike, Transform, check_cameras
 from crfdepth.data.sample import Sample
 from crfdepth.data.transforms import BottomCenterCrop
@@ -47,12 +52,9 @@ if TYPE_CHECKING:
 
 __all__ = ["HDL64_ELEVATIONS_DEG", "KittiAnnotated", "ring_pixels"]
 
-INPUTS = ("share", "rings", "scan")
+INPUTS = ("share", "rings", "lidar", "scan")
 DEFAULT_SHARE = 0.22  # input_from="share": the clean-input protocols' share (benchmarks/accuracy.py, a22)
 
-#: Elevation of the 64 lasers of a Velodyne HDL-64E (KITTI's scanner), degrees, top to bottom:
-#: the upper block from +2 to -8.33 in steps of 1/3, the lower block from -8.83 to -24.33 in steps of 1/2.
-HDL64_ELEVATIONS_DEG = np.concatenate([2.0 - np.arange(32) / 3.0, -8.83 - 0.5 * np.arange(32)])
 
 
 def _check_share(value: object) -> float:
@@ -82,12 +84,7 @@ def ring_pixels(target: np.ndarray, calib: Calibration, keep_every_ring: int, of
     if v.size == 0:
         return keep
     P = calib.P_rect
-    d = target[v, u].astype(np.float64)
-    z = d - P[2, 3]
-    x = (u * d - P[0, 2] * z - P[0, 3]) / P[0, 0]
-    y = (v * d - P[1, 2] * z - P[1, 3]) / P[1, 1]
-    rect = np.stack([x, y, z, np.ones_like(z)])
-    velo = np.linalg.inv(calib.R_rect @ calib.T_velo_to_cam) @ rect
+    velo = lift_to_velodyne(v, u, target[v, u].astype(np.float64), calib)
     elevation = np.degrees(np.arctan2(velo[2], np.hypot(velo[0], velo[1])))
     rings = HDL64_ELEVATIONS_DEG[offset::keep_every_ring]
     gap = np.abs(elevation[:, None] - rings[None, :]).min(axis=1)
@@ -128,10 +125,10 @@ class KittiAnnotated(FrameDataset):
         camera: "image_02", "image_03" or both (default both; a camera without annotation is skipped).
         raw_root: root of the raw data (holding ``<date>/``); None = ``root/raw`` if it exists, else
             ``root/../raw``.
-        input_from: "share", "rings" or "scan" (module docstring).
+        input_from: "share", "rings", "lidar" or "scan" (module docstring).
         input_share: share of the annotated pixels given as input ("share"; None = 0.22), or kept of
-            the ring pixels ("rings"; None = all); in (0, 1]. Not used by "scan".
-        keep_every_ring: "rings": one ring in k (1 = 64 beams, 4 = 16 beams).
+            the ring pixels ("rings"; None = all); in (0, 1]. Not used by "lidar" and "scan".
+        keep_every_ring: "rings" and "lidar": one ring in k (1 = 64 beams, 4 = 16 beams).
         seed: None = draw from torch's generator (training); an int = a fixed draw per frame.
         transform: applied to every sample; default ``BottomCenterCrop(352, 1216)``.
 
@@ -148,7 +145,7 @@ class KittiAnnotated(FrameDataset):
         split: Literal["train", "val"] = "train",
         camera: str | Sequence[str] = CAMERAS,
         raw_root: PathLike | None = None,
-        input_from: Literal["share", "rings", "scan"] = "share",
+        input_from: Literal["share", "rings", "lidar", "scan"] = "share",
         input_share: float | None = None,
         keep_every_ring: int = 1,
         seed: int | None = None,
@@ -157,6 +154,9 @@ class KittiAnnotated(FrameDataset):
         layout = "KittiAnnotated"
         check_choice("split", split, ("train", "val"))
         check_choice("input_from", input_from, INPUTS)
+        if input_from in ("lidar", "scan") and input_share is not None:
+            raise InputError(f"input_share: not used with input_from {input_from!r} (the input is a whole scan), "
+                             f"got {input_share!r}; leave it out")
         if input_share is None:
             input_share = DEFAULT_SHARE if input_from == "share" else 1.0
         self.input_share = _check_share(input_share)
@@ -225,6 +225,13 @@ class KittiAnnotated(FrameDataset):
         generator = None if self.seed is None else torch.Generator().manual_seed(self.seed + index)
         return torch.rand(shape, generator=generator).numpy()
 
+    def _generator(self, index: int) -> np.random.Generator:
+        """numpy's generator of frame ``index``'s simulated scan: seeded from torch's generator
+        (training, ``seed=None``) or from ``seed + index``."""
+        if self.seed is None:
+            return np.random.default_rng(int(torch.randint(2**31 - 1, (1,))))
+        return np.random.default_rng(self.seed + index)
+
     def __getitem__(self, index: int) -> Sample:
         f = self._frames[index]
         rgb = read_rgb(f.image)
@@ -241,6 +248,11 @@ class KittiAnnotated(FrameDataset):
                 sparse = read_depth_png(f.scan)
             else:
                 sparse = project_velodyne(read_velodyne(f.scan), calib, target.shape)
+        elif self.input_from == "lidar":
+            rng = self._generator(index)
+            offset = int(rng.integers(self.keep_every_ring))
+            sparse = simulate_scan(target, calib, keep_every_ring=self.keep_every_ring, ring_offset=offset,
+                                   generator=rng)
         else:
             given = target > 0 if self.input_from == "share" else ring_pixels(target, calib, self.keep_every_ring)
             if self.input_share < 1.0:

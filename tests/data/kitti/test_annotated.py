@@ -128,7 +128,8 @@ def test_scan_input_without_a_scan_is_refused(annotated):
 
 @pytest.mark.kitti
 @pytest.mark.parametrize(("options", "message"), [
-    ({"input_from": "lidar"}, r"^input_from: expected one of 'share', 'rings', 'scan', got 'lidar'"),
+    ({"input_from": "radar"}, r"^input_from: expected one of 'share', 'rings', 'lidar', 'scan', got 'radar'"),
+    ({"input_from": "lidar", "input_share": 0.5}, r"^input_share: not used with input_from 'lidar'"),
     ({"input_share": 0.0}, r"^input_share: expected a number in \(0, 1\]"),
     ({"input_share": 1.0}, r"^input_share: expected a number below 1 for input_from 'share'"),
     ({"keep_every_ring": 0}, r"^keep_every_ring: expected an integer in \[1, 64\]"),
