@@ -91,11 +91,26 @@ class Recipe:
         return {**SHIPPED_STRUCTURE, "structure": structure}
 
 
+# how an annotated frame's input is drawn (Recipe.annotated_inputs): KittiAnnotated's options
+ANNOTATED_INPUTS = {
+    "share": {"input_from": "share"},  # 22% of the annotation, a clean input
+    "rings": {"input_from": "rings"},  # the annotated pixels on a 64-beam ring pattern, a clean input
+    "lidar": {"input_from": "lidar"},  # a simulated 64-beam scan, see-through returns included
+    "lidar16": {"input_from": "lidar", "keep_every_ring": 4},  # the same, 16 beams
+}
+
 RECIPES = {
     "l1": Recipe(),
     "huber": Recipe(loss="huber"),
     "l2": Recipe(loss="l2"),
     "l1-annotated": Recipe(sources={"annotated": 1.0}),
+    # the annotation alone, half its inputs clean, half a simulated scan with its see-through returns
+    "l1-annotated-lidar": Recipe(sources={"annotated": 1.0}, annotated_inputs=("share", "lidar")),
+    # as l1-annotated-lidar, and a 16-beam simulated scan: the weights also see sparse inputs
+    "l1-annotated-lidar-beams": Recipe(sources={"annotated": 1.0}, annotated_inputs=("share", "lidar", "lidar16")),
+    # as l1-annotated-lidar-beams with the learned head, which sees the local LiDAR mask (the input's density)
+    "head-annotated-lidar-beams": Recipe(head=True, sources={"annotated": 1.0},
+                                         annotated_inputs=("share", "lidar", "lidar16")),
     "l1-scans": Recipe(sources={"scans": 1.0}),  # the shipped recipe's sources: LiDAR hold-outs only
     "l1-share": Recipe(annotated_inputs=("share",)),
     "l1-annotated-x3": Recipe(sources={"annotated": 3.0, "scans": 1.0}),
@@ -124,7 +139,7 @@ def fold_datasets(root: Path, fold: str, train: bool, recipe: Recipe | None = No
         if kind in ("dc", "annotated"):
             if train and "annotated" in recipe.sources:
                 for mode in recipe.annotated_inputs:
-                    group.append(("annotated", build_dataset("annotated", where, input_from=mode)))
+                    group.append(("annotated", build_dataset("annotated", where, **ANNOTATED_INPUTS[mode])))
             elif not train:
                 group.append(("a22", build_dataset("annotated", where, input_from="share", seed=0)))
                 if kind == "dc":
@@ -132,8 +147,10 @@ def fold_datasets(root: Path, fold: str, train: bool, recipe: Recipe | None = No
         elif not train or "scans" in recipe.sources:
             layout = "object" if kind == "object" else "raw"
             fraction = {"holdout": "fraction", "holdout_fraction": 0.2, "seed": 0}
-            for options in [fraction, {"holdout": "rings", "keep_every_ring": 4}] if train else [fraction]:
-                group.append(("scans" if train else "holdout", build_dataset(layout, where, **options)))
+            sixteen = {"holdout": "rings", "keep_every_ring": 4}
+            for protocol, options in ([("scans", fraction), ("scans", sixteen)] if train
+                                      else [("holdout", fraction), ("holdout16", sixteen)]):
+                group.append((protocol, build_dataset(layout, where, **options)))
         picked = [(p, _only(d, frames)) for p, d in group]
         if not train and any(d is None for _, d in picked):
             raise InputError(f"--folds: fold {fold!r} would be empty: no frame of {', '.join(frames)} in {where}")

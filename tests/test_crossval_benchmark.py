@@ -47,6 +47,15 @@ def test_source_choice_follows_the_recipe(bench, kitti_root):
 
 
 @pytest.mark.kitti
+def test_simulated_scan_recipes_draw_their_inputs(bench, kitti_root):
+    parts = bench.fold_datasets(kitti_root, "0001-50", train=True, recipe=bench.RECIPES["l1-annotated-lidar-beams"])
+    datasets = [d.dataset for _, d in parts]
+    assert [(d.input_from, d.keep_every_ring) for d in datasets[:3]] == [("share", 1), ("lidar", 1), ("lidar", 4)]
+    # a scan fold is scored with 20% held out (its figure) and at 16 beams
+    assert [p for p, _ in bench.fold_datasets(kitti_root, "0048", train=False)] == ["holdout", "holdout16"]
+
+
+@pytest.mark.kitti
 @pytest.mark.slow
 def test_a_short_run_prints_a_table_and_json(bench, kitti_root, capsys):
     rows = bench.main(["--recipes", "l1", "--folds", "0001-50", "0048", "--epochs", "1",
