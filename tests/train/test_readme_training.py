@@ -118,7 +118,7 @@ def test_the_documents_hold_the_training_commands():
     ids = [c.id for c in COMMANDS]
     for expected in ("README.md:fit:synthetic+debug", "README.md:fit:synthetic", "README.md:fit:kitti_raw",
                      "README.md:fit:kitti_dc", "README.md:fit:kitti_raw+ddp", "README.md:validate:kitti_raw",
-                     "README.md:fit:kitti_weights", "README.md:fit:bag_sequence", "README.md:fit:kitti_sequence"):
+                     "README.md:fit:kitti_weights", "README.md:fit:kitti_annotated", "README.md:fit:bag_sequence", "README.md:fit:kitti_sequence"):
         assert expected in ids, ids
     for command in COMMANDS:
         for config in command.configs:
