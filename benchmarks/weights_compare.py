@@ -33,16 +33,14 @@ for folder in (ROOT, ROOT / "benchmarks"):
     if str(folder) not in sys.path:
         sys.path.insert(0, str(folder))
 
-from accuracy_parts.methods import predict  # noqa: E402
+from accuracy_parts.methods import method_config, predict  # noqa: E402
 from accuracy_parts.protocols import CLEAN_SHARE, load_group  # noqa: E402
 
 from crfdepth.checkpoints import load_model  # noqa: E402
-from crfdepth.config import CRFConfig  # noqa: E402
 from crfdepth.errors import InputError  # noqa: E402
 from crfdepth.model import CRFDepth  # noqa: E402
 
 DEFAULT_ROOT = ROOT.parent / "shared" / "data" / "kitti"
-SHIPPED_STRUCTURE = {"structure": {"mode": "pixel", "variable": "log"}, "gate": {"enabled": True}}
 SCANS = [("raw", "raw"), ("object", "object/training"), ("raw", "stereo")]
 PROTOCOLS = {
     "a": [("val_selection", "depth_selection/val_selection_cropped", {})],
@@ -53,7 +51,8 @@ PROTOCOLS = {
 
 
 def models(weights: dict[str, Path]) -> dict[str, CRFDepth | None]:
-    out: dict[str, CRFDepth | None] = {"ipbasic": None, "hand-set": CRFDepth(CRFConfig.build(SHIPPED_STRUCTURE))}
+    # hand-set: the shipped recipe's structure with the constructor's weights, as benchmarks/accuracy.py builds it
+    out: dict[str, CRFDepth | None] = {"ipbasic": None, "hand-set": CRFDepth(**method_config("hand-set"))}
     for name, path in weights.items():
         if not path.is_file():
             raise InputError(f"--weights: {name}={path}: no such file")
