@@ -105,10 +105,13 @@ def simulate_scan(
         raise InputError(f"keep_every_ring: expected an integer in [1, 64], got {keep_every_ring!r}")
     if not 0 <= ring_offset < keep_every_ring:
         raise InputError(f"ring_offset: expected an integer in [0, {keep_every_ring}), got {ring_offset!r}")
-    if not azimuth_step_deg > 0 or not fill_radius >= 0 or not range_noise >= 0:
-        raise InputError(f"azimuth_step_deg > 0, fill_radius >= 0 and range_noise >= 0 expected, got "
-                         f"{azimuth_step_deg}, {fill_radius}, {range_noise}")
-    if len(hidden_window) != 2 or any(int(n) != n or n < 1 or n % 2 == 0 for n in hidden_window):
+    for name, value, low in (("azimuth_step_deg", azimuth_step_deg, "> 0"), ("fill_radius", fill_radius, ">= 0"),
+                             ("range_noise", range_noise, ">= 0")):
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not number or not (value > 0 if low == "> 0" else value >= 0):
+            raise InputError(f"{name}: expected a finite number {low}, got {value!r}")
+    window = tuple(hidden_window) if isinstance(hidden_window, (tuple, list)) else ()
+    if len(window) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 or n % 2 == 0 for n in window):
         raise InputError(f"hidden_window: expected (height, width) of odd positive integers, got {hidden_window!r}")
     rng = generator if generator is not None else np.random.default_rng()
     height, width = target.shape

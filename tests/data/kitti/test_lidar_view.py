@@ -86,8 +86,12 @@ def test_a_seeded_generator_repeats_the_scan():
     ({"target": np.zeros((2, 3, 4), np.float32)}, r"^target: expected an \(H, W\) floating depth map"),
     ({"keep_every_ring": 0}, r"^keep_every_ring: expected an integer in \[1, 64\], got 0"),
     ({"keep_every_ring": 4, "ring_offset": 4}, r"^ring_offset: expected an integer in \[0, 4\), got 4"),
-    ({"range_noise": -1.0}, r"range_noise >= 0 expected"),
+    ({"range_noise": -1.0}, r"^range_noise: expected a finite number >= 0, got -1.0"),
+    ({"azimuth_step_deg": 0.0}, r"^azimuth_step_deg: expected a finite number > 0, got 0.0"),
+    ({"fill_radius": "4"}, r"^fill_radius: expected a finite number >= 0, got '4'"),
     ({"hidden_window": (4, 5)}, r"^hidden_window: expected \(height, width\) of odd positive integers"),
+    ({"hidden_window": ("a", "b")}, r"^hidden_window: expected \(height, width\) of odd positive integers"),
+    ({"hidden_window": 17}, r"^hidden_window: expected \(height, width\) of odd positive integers"),
 ])
 def test_bad_arguments_are_named(options, message):
     arguments = {"target": _wall(), "calib": KITTI, **options}
