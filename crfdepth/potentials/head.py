@@ -59,8 +59,8 @@ class PotentialHead(nn.Module):
         super().__init__()
         self.limit = float(limit)
         self.net = nn.Sequential(
-            nn.Conv2d(FEATURES, hidden, 3, padding=1, padding_mode="replicate"), nn.ReLU(),
-            nn.Conv2d(hidden, hidden, 3, padding=1, padding_mode="replicate"), nn.ReLU(),
+            nn.Conv2d(FEATURES, hidden, 3, padding=1, padding_mode="replicate"), nn.ReLU(inplace=True),
+            nn.Conv2d(hidden, hidden, 3, padding=1, padding_mode="replicate"), nn.ReLU(inplace=True),
             nn.Conv2d(hidden, 3, 1),
         )
         nn.init.zeros_(self.net[-1].weight)
@@ -68,6 +68,8 @@ class PotentialHead(nn.Module):
 
     def forward(self, image: torch.Tensor, sparse: torch.Tensor, prior: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.net(head_features(image, sparse, prior))
+        # channels-last: the 3x3 convolutions' fast CPU path (oneDNN), about 2x at 1216 x 352; same values
+        features = head_features(image, sparse, prior).contiguous(memory_format=torch.channels_last)
+        out = self.net(features).contiguous()
         factor = torch.exp(self.limit * torch.tanh(out / self.limit))
         return factor[:, :1], factor[:, 1:]
