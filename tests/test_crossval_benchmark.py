@@ -56,6 +56,19 @@ def test_simulated_scan_recipes_draw_their_inputs(bench, kitti_root):
 
 
 @pytest.mark.kitti
+@pytest.mark.parametrize("recipe, hidden", [("head-annotated-lidar-beams", 16), ("head8-annotated-lidar-beams", 8)])
+def test_a_head_recipe_trains_a_head_of_its_width(bench, kitti_root, monkeypatch, recipe, hidden):
+    trained = []
+    monkeypatch.setattr(bench, "train_module", lambda module, *args, **kwargs: trained.append(module))
+    model, _, frames = bench.train_fold(kitti_root, ["0001-50", "0001-100"], bench.RECIPES[recipe], epochs=1,
+                                        seed=0, device="cpu")
+    assert frames == 6  # frames 50 and 100, three inputs each (a share, 64- and 16-beam simulated scans)
+    assert model.head.net[0].out_channels == hidden
+    # the optimiser is built from the trained module's parameters: the head's weights are among them
+    assert any(p is model.head.net[0].weight for p in trained[0].parameters())
+
+
+@pytest.mark.kitti
 @pytest.mark.slow
 def test_a_short_run_prints_a_table_and_json(bench, kitti_root, capsys):
     rows = bench.main(["--recipes", "l1", "--folds", "0001-50", "0048", "--epochs", "1",
