@@ -22,8 +22,8 @@ from crfdepth import cli
 from crfdepth.cli import warnings_as_lines
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.io.pointcloud import read_points
+from tests.documents import DOCUMENTS, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "docs" / "example"
 
 
@@ -99,15 +99,18 @@ _DEFAULT_OUTPUTS = {("crfdepth", "demo"): "crfdepth_demo/", ("crfdepth", "evalua
 
 
 def _readme_commands() -> list[list[str]]:
-    """Every ``crfdepth ...`` / ``python ...`` command of README.md: bash blocks and inline code."""
-    readme = (ROOT / "README.md").read_text()
+    """Every ``crfdepth ...`` / ``python ...`` command of README.md and the pages: bash blocks and inline code."""
     texts = []
-    for block in re.findall(r"^```bash\n(.*?)^```", readme, flags=re.S | re.M):
-        texts += block.replace("\\\n", " ").splitlines()
-    texts += [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", re.sub(r"```.*?```", "", readme, flags=re.S))]
+    for path in DOCUMENTS:
+        readme = path.read_text()
+        for block in re.findall(r"^```bash\n(.*?)^```", readme, flags=re.S | re.M):
+            texts += block.replace("\\\n", " ").splitlines()
+        texts += [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", re.sub(r"```.*?```", "", readme, flags=re.S))]
     commands = []
     for text in texts:
         for part in re.split(r"&&|;", text):
+            if not part.split() or part.split()[0] not in ("crfdepth", "python", "python3"):
+                continue  # prose in code spans (a prime, an apostrophe) is not a command
             words = shlex.split(part, comments=True)
             if words and words[0] in ("crfdepth", "python", "python3") and len(words) > 1:
                 commands.append(words)

@@ -171,12 +171,11 @@ def _exists(path: str) -> bool:
 
 
 def _layout_entries(readme: str) -> list[tuple[str, str]]:
-    """README.md's Layout block as (path, description) pairs, paths relative to the repository.
+    """The Layout block of docs/layout.md as (path, description) pairs, paths relative to the repository.
 
     A line at indent 0 names a folder or file of the repository, one at indent 2 a file or
     folder inside the last indent-0 folder; a deeper line continues the description above."""
-    block = readme[readme.index("## Layout"):]
-    block = block[block.index("```\n") + 4:]
+    block = readme[readme.index("```\n") + 4:]
     block = block[:block.index("```")]
     entries: list[tuple[str, str]] = []
     top = ""
@@ -205,8 +204,8 @@ def _layout_missing(readme: str) -> list[str]:
     return missing
 
 
-def test_every_path_the_readme_layout_names_exists():
-    readme = (ROOT / "README.md").read_text()
+def test_every_path_the_layout_page_names_exists():
+    readme = (ROOT / "docs" / "layout.md").read_text()
     paths = [path for path, _ in _layout_entries(readme)]
     for path in ("crfdepth/", "crfdepth/linalg/", "crfdepth/io/", "crfdepth/api.py", "train/", "tests/", "docs/"):
         assert path in paths, path
@@ -216,7 +215,7 @@ def test_every_path_the_readme_layout_names_exists():
 
 
 def test_the_layout_check_finds_a_missing_file_and_a_missing_name_in_a_description():
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "layout.md").read_text()
     for old, new, found in [("\n  api.py ", "\n  apx.py ", "crfdepth/apx.py"),
                             ("(adjoint.py)", "(adjoin.py)", "crfdepth/linalg/adjoin.py"),
                             ("ros/:", "rox/:", "crfdepth/io/rox/")]:

@@ -1,20 +1,19 @@
-"""Every Python block of README.md runs as pasted (the blocks are read from README.md itself)."""
-
-import re
-from pathlib import Path
+"""Every Python block of README.md and of the documentation pages runs as pasted (read from the files themselves)."""
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-BLOCKS = re.findall(r"^```python\n(.*?)^```", (ROOT / "README.md").read_text(), flags=re.S | re.M)
+from tests.documents import ROOT, code_blocks
+
+BLOCKS = code_blocks("python")
 
 
-def test_readme_has_python_blocks():
-    assert len(BLOCKS) >= 4
+def test_the_documents_have_python_blocks():
+    documents = {document for document, _, _ in BLOCKS}
+    assert {"README.md", "docs/getting-started.md", "docs/own-sensors.md", "docs/layer.md"} <= documents
 
 
-@pytest.mark.parametrize("index", range(len(BLOCKS)), ids=lambda i: f"block{i + 1}")
-def test_readme_python_block_runs(index, monkeypatch):
-    monkeypatch.chdir(ROOT)  # the README's relative paths (docs/example/...) are from the repository root
-    namespace = {"__name__": f"readme_block{index + 1}"}
-    exec(compile(BLOCKS[index], f"README.md python block {index + 1}", "exec"), namespace)
+@pytest.mark.parametrize("document, index, code", BLOCKS, ids=[f"{d}:block{i}" for d, i, _ in BLOCKS])
+def test_python_block_runs(document, index, code, monkeypatch):
+    monkeypatch.chdir(ROOT)  # the documents' relative paths (docs/example/...) are from the repository root
+    namespace = {"__name__": f"{document}_block{index}"}
+    exec(compile(code, f"{document} python block {index}", "exec"), namespace)

@@ -128,10 +128,13 @@ def test_the_rig_is_a_realistic_mount():
 
 
 def _readme_own_sensor_command() -> list[str]:
-    """The README's own-sensor ``crfdepth complete ...`` command (backslash continuations joined)."""
-    readme = (EXAMPLE.parents[1] / "README.md").read_text()
-    found = re.findall(r"^crfdepth complete --image docs/example/.*$", readme.replace("\\\n", " "), flags=re.M)
-    assert len(found) == 1, found
+    """The own-sensor ``crfdepth complete ...`` command of docs/own-sensors.md, the same in README.md
+    (backslash continuations joined)."""
+    found = []
+    for name in ("docs/own-sensors.md", "README.md"):
+        text = (EXAMPLE.parents[1] / name).read_text()
+        found += re.findall(r"^crfdepth complete --image docs/example/.*$", text.replace("\\\n", " "), flags=re.M)
+    assert len(found) == 2 and found[0] == found[1], found
     return shlex.split(found[0])[1:]
 
 

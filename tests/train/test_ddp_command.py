@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _readme_ddp_command() -> list[str]:
-    """The arguments of the README's ``python -m train fit ... configs/ddp.yaml`` line."""
-    lines = [line for line in (ROOT / "README.md").read_text().splitlines()
+    """The arguments of the ``python -m train fit ... configs/ddp.yaml`` line of docs/training.md."""
+    lines = [line for line in (ROOT / "docs" / "training.md").read_text().splitlines()
              if line.startswith("python -m train fit") and "configs/ddp.yaml" in line]
     assert len(lines) == 1, lines
     return shlex.split(lines[0])[3:]  # after "python -m train"

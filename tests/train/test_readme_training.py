@@ -42,7 +42,7 @@ import yaml
 
 from tests.train.conftest import ROOT, subprocess_env
 
-DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 PLACEHOLDER_DATA = "/data/kitti"
 ONE_STEP = ["--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1", "--trainer.limit_val_batches", "1",
             "--trainer.num_sanity_val_steps", "0", "--trainer.enable_progress_bar", "false",
@@ -114,11 +114,11 @@ COMMANDS = training_commands()
 
 
 def test_the_documents_hold_the_training_commands():
-    """The reading above finds the README's recipes (a block that is not ```bash would be missed)."""
+    """The reading above finds the training page's recipes (a block that is not ```bash would be missed)."""
     ids = [c.id for c in COMMANDS]
-    for expected in ("README.md:fit:synthetic+debug", "README.md:fit:synthetic", "README.md:fit:kitti_raw",
-                     "README.md:fit:kitti_dc", "README.md:fit:kitti_raw+ddp", "README.md:validate:kitti_raw",
-                     "README.md:fit:kitti_weights", "README.md:fit:kitti_annotated", "README.md:fit:bag_sequence", "README.md:fit:kitti_sequence"):
+    for expected in ("training.md:fit:synthetic+debug", "training.md:fit:synthetic", "training.md:fit:kitti_raw",
+                     "training.md:fit:kitti_dc", "training.md:fit:kitti_raw+ddp", "training.md:validate:kitti_raw",
+                     "training.md:fit:kitti_weights", "training.md:fit:kitti_annotated", "training.md:fit:bag_sequence", "training.md:fit:kitti_sequence"):
         assert expected in ids, ids
     for command in COMMANDS:
         for config in command.configs:
