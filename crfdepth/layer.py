@@ -184,11 +184,13 @@ def crf_refine(
         return_std: also return ``std_scale * sqrt(diag(A^-1))`` (extra solves, no
             gradient except to ``std_scale``).
         std_scale: ``sigma > 0``, metres per unit of ``sqrt(diag(A^-1))``.
-        std_samples, seed: samples and seed of the variance estimate
+        std_samples: samples of the variance estimate
             (:func:`crfdepth.uncertainty.posterior.grid_posterior_variance`; superpixel graphs of up
             to 1,000 segments are exact).
-        rtol, max_iter, on_nonconvergence: settings of the CG solve
-            (:func:`crfdepth.linalg.solve_grid_laplacian`).
+        seed: seed of the variance estimate.
+        rtol: tolerance of the CG solve (:func:`crfdepth.linalg.solve_grid_laplacian`).
+        max_iter: iteration cap of the CG solve.
+        on_nonconvergence: "warn", "raise" or "ignore" a CG solve that does not converge.
 
     Returns:
         :class:`RefineOutput` with ``depth`` (B, 1, H, W) metres, ``std`` or None, ``info``.
@@ -276,7 +278,9 @@ class CRFRefine(nn.Module):
             and the output is piecewise constant on the segments.
         init_scale: standard deviation of the initial projection weights (small, so that
             edges start close to ``s``: a smooth prior that the training sharpens).
-        std_samples, rtol, max_iter: as in :func:`crf_refine`.
+        std_samples: as in :func:`crf_refine`.
+        rtol: as in :func:`crf_refine`.
+        max_iter: as in :func:`crf_refine`.
     """
 
     def __init__(

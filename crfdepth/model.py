@@ -71,59 +71,61 @@ class CRFDepth(ConstrainedWeights):
             ``model.config``, weights files and checkpoints hold) or of flat names; None: the
             defaults below.
         **options: groups (``gate={"enabled": True}``) or flat names that replace what
-            ``config`` sets. The flat names, each a field of one group (:data:`crfdepth.config.FLAT`):
+            ``config`` sets; the flat names are listed below.
 
-        mode: "superpixel" (paper) or "pixel".
-        superpixels: SLIC segments for a 1216x352 image (paper: 1200, 2400, 5500).
-        scale_superpixels: scale the segment count with the image area (any image size
-            gets superpixels of the same pixel size); False uses ``superpixels`` as is.
-        potentials: pairwise potentials that are on, a subset of ("colour", "normal",
-            "distance"); the paper's ablation is ("colour",), ("colour", "normal"), all.
-        aggregate: "mean" or "median" of the LiDAR depths in a superpixel.
-        refine: superpixel mode only: follow the superpixel solve with a pixel-level solve
-            whose prior is the painted superpixel solution (docs/design.md section 6); False
-            keeps the paper's piecewise-constant painting.
-        rounds: solves with the 3D-distance term after the first pass (>= 1).
-        alpha, beta, gamma, delta: initial weights in (0, 1). ``gamma`` defaults low: the
-            normal potential joins *parallel* surfaces across a depth step as readily as
-            one surface (a car's back and the wall behind it), so it is a tie-breaker
-            where colour edges are not depth edges, not a main smoothness term.
-        sigma_d: initial colour scale (RGB in [0, 1]); sigma_n: normal scale; sigma_p:
-            3D-distance scale in metres.
-        confidence: initial data confidence ``c`` > 0.
-        eps: prior weight relative to the mean potential weight (keeps A positive
-            definite; where nothing else informs a node, its depth falls back to x0).
-        refine_prior: initial weight of the superpixel solution as the refinement's prior,
-            relative to the mean potential weight (learnable: smaller lets the pixel solve
-            depart further from the piecewise-constant superpixel depth).
-        std_scale: initial ``s`` > 0.
-        std_samples: samples of the posterior-variance estimate on large graphs
-            (:mod:`crfdepth.uncertainty.posterior`); graphs up to 1,000 nodes are exact.
-        rtol, max_iter, method: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
-        variable: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper),
-            ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly) or
-            ``"log"`` (log z: between the two where a pixel mixes a near and a far surface).
-            Data, prior and warm start are mapped to it, depth and std are mapped back
-            (``std_z = z^2 std_(1/z)``, ``z std_(log z)``); ``CRFOutput.terms`` hold the system in it.
-        gate: multiply each return's data weight by the soft occlusion gate of
-            :mod:`crfdepth.potentials.occlusion` (see-through returns lose weight); ``gate_window``
-            (odd pixels), ``gate_threshold`` and ``gate_softness`` (1/m, learnable) set it.
-        prior: the fill that is ``x0`` and the warm start, "nearest" or "ip_basic".
-        irls: robust reweighting rounds of the pixel-grid data term after the last solve
-            (:mod:`crfdepth.potentials.robust`; 0 = none): each scales a return's data weight by a
-            Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
-        irls_scale: initial ``sigma`` of that factor, inverse depth in 1/m (learnable).
-        head: add the small learned :class:`~crfdepth.potentials.head.PotentialHead` (per-pixel data
-            and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
-        uncertainty: the std of ``return_std`` (docs/design.md section 5): "predictive" (the
-            posterior's local part with depth, edge, data-distance and gate signals,
-            :mod:`crfdepth.uncertainty.predictive`; about 0.15 x the forward's time) or "posterior"
-            (``s sqrt(diag(A^-1))`` alone, sampled: about 40 solves).
-        std_terms: initial weights of the predictive std by name
-            (:data:`crfdepth.uncertainty.predictive.STD_TERMS`; None: the hand-set ones), learnable.
-        memory_limit_gb: refuse a forward whose estimated peak memory
-            (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
-            allocating; None: the memory the device has available at each forward.
+    The flat names, each a field of one group (:data:`crfdepth.config.FLAT`):
+
+    - ``mode``: "superpixel" (paper) or "pixel".
+    - ``superpixels``: SLIC segments for a 1216x352 image (paper: 1200, 2400, 5500).
+    - ``scale_superpixels``: scale the segment count with the image area (any image size
+      gets superpixels of the same pixel size); False uses ``superpixels`` as is.
+    - ``potentials``: pairwise potentials that are on, a subset of ("colour", "normal",
+      "distance"); the paper's ablation is ("colour",), ("colour", "normal"), all.
+    - ``aggregate``: "mean" or "median" of the LiDAR depths in a superpixel.
+    - ``refine``: superpixel mode only: follow the superpixel solve with a pixel-level solve
+      whose prior is the painted superpixel solution (docs/design.md section 6); False
+      keeps the paper's piecewise-constant painting.
+    - ``rounds``: solves with the 3D-distance term after the first pass (>= 1).
+    - ``alpha``, ``beta``, ``gamma``, ``delta``: initial weights in (0, 1). ``gamma`` defaults
+      low: the normal potential joins *parallel* surfaces across a depth step as readily as
+      one surface (a car's back and the wall behind it), so it is a tie-breaker
+      where colour edges are not depth edges, not a main smoothness term.
+    - ``sigma_d``: initial colour scale (RGB in [0, 1]); ``sigma_n``: normal scale; ``sigma_p``:
+      3D-distance scale in metres.
+    - ``confidence``: initial data confidence ``c`` > 0.
+    - ``eps``: prior weight relative to the mean potential weight (keeps A positive
+      definite; where nothing else informs a node, its depth falls back to x0).
+    - ``refine_prior``: initial weight of the superpixel solution as the refinement's prior,
+      relative to the mean potential weight (learnable: smaller lets the pixel solve
+      depart further from the piecewise-constant superpixel depth).
+    - ``std_scale``: initial ``s`` > 0.
+    - ``std_samples``: samples of the posterior-variance estimate on large graphs
+      (:mod:`crfdepth.uncertainty.posterior`); graphs up to 1,000 nodes are exact.
+    - ``rtol``, ``max_iter``, ``method``: settings of every solve (:func:`crfdepth.linalg.solve_laplacian`).
+    - ``variable``: the CRF's unknown (docs/design.md section 3b): ``"depth"`` (the paper),
+      ``"inverse"`` (1/z: the smoothness terms then reproduce planes exactly) or
+      ``"log"`` (log z: between the two where a pixel mixes a near and a far surface).
+      Data, prior and warm start are mapped to it, depth and std are mapped back
+      (``std_z = z^2 std_(1/z)``, ``z std_(log z)``); ``CRFOutput.terms`` hold the system in it.
+    - ``gate``: multiply each return's data weight by the soft occlusion gate of
+      :mod:`crfdepth.potentials.occlusion` (see-through returns lose weight); ``gate_window``
+      (odd pixels), ``gate_threshold`` and ``gate_softness`` (1/m, learnable) set it.
+    - ``prior``: the fill that is ``x0`` and the warm start, "nearest" or "ip_basic".
+    - ``irls``: robust reweighting rounds of the pixel-grid data term after the last solve
+      (:mod:`crfdepth.potentials.robust`; 0 = none): each scales a return's data weight by a
+      Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
+    - ``irls_scale``: initial ``sigma`` of that factor, inverse depth in 1/m (learnable).
+    - ``head``: add the small learned :class:`~crfdepth.potentials.head.PotentialHead` (per-pixel data
+      and edge-weight factors of the pixel-grid solves; docs/design.md section 3b).
+    - ``uncertainty``: the std of ``return_std`` (docs/design.md section 5): "predictive" (the
+      posterior's local part with depth, edge, data-distance and gate signals,
+      :mod:`crfdepth.uncertainty.predictive`; about 0.15 x the forward's time) or "posterior"
+      (``s sqrt(diag(A^-1))`` alone, sampled: about 40 solves).
+    - ``std_terms``: initial weights of the predictive std by name
+      (:data:`crfdepth.uncertainty.predictive.STD_TERMS`; None: the hand-set ones), learnable.
+    - ``memory_limit_gb``: refuse a forward whose estimated peak memory
+      (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
+      allocating; None: the memory the device has available at each forward.
     """
 
     def __init__(self, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> None:

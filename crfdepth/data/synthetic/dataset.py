@@ -20,7 +20,9 @@ class SyntheticScenes(torch.utils.data.Dataset):
     Args:
         count: number of scenes, >= 1.
         seed: seed of the first scene; use disjoint ranges for train and validation.
-        height, width, beams: as for :func:`make_scene`.
+        height: image rows, as for :func:`make_scene`.
+        width: image columns, as for :func:`make_scene`.
+        beams: LiDAR beams, as for :func:`make_scene`.
     """
 
     def __init__(self, count: int = 8, seed: int = 0, height: int = 352, width: int = 1216, beams: int = 64):
