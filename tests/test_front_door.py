@@ -127,7 +127,7 @@ def _outputs(words: list[str]) -> set[str]:
     if "--vis" in words and "--out" in words:  # a bare --vis: pictures next to --out
         stem = Path(words[words.index("--out") + 1]).with_suffix("")
         found |= {f"{stem}_vis_depth.png", f"{stem}_vis_std.png"}
-    if words[1:3] == ["-m", "crfdepth.data.example_bag"]:
+    if words[1:3] == ["-m", "crfdepth.data.example_bag"] and len(words) > 3:
         found.add(words[3])
     if not any(flag in words for flag in _OUTPUT_FLAGS):
         for prefix, default in _DEFAULT_OUTPUTS.items():

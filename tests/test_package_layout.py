@@ -102,9 +102,8 @@ def test_the_model_builds_from_files_without_the_functions_that_build_it():
 
 
 def _concept_table() -> list[tuple[str, list[str]]]:
-    """The rows of docs/design.md section 8's concept table: (concept, files named)."""
-    text = (PACKAGE.parent / "docs" / "design.md").read_text()
-    section = text[text.index("## 8. How the code is organised"):text.index("## 9.")]
+    """The rows of design section 8's concept table (docs/design/08-how-the-code-is-organised.md): (concept, files named)."""
+    section = (PACKAGE.parent / "docs" / "design" / "08-how-the-code-is-organised.md").read_text()
     rows = [line for line in section.splitlines() if line.startswith("| ") and not line.startswith("| concept")]
     return [(row.split("|")[1].strip(), re.findall(r"`([\w/.]+\.py)`", row.split("|")[2])) for row in rows]
 
