@@ -14,8 +14,8 @@ import numpy as np
 
 from crfdepth.errors import InputError
 
-__all__ = ["BAD_INPUT", "VisRange", "add_topic_arguments", "fraction", "int_at_least", "positive_number",
-           "vis_range_type"]
+__all__ = ["BAD_INPUT", "VisRange", "add_rerun_argument", "add_topic_arguments", "fraction", "int_at_least",
+           "positive_number", "vis_range_type"]
 
 # What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
 BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
@@ -98,3 +98,16 @@ def add_topic_arguments(group: argparse._ArgumentGroup, *, only_one_default: boo
                        help=f"sensor_msgs/PointCloud2 topic{default}")
     group.add_argument("--camera-info-topic", metavar="TOPIC",
                        help="sensor_msgs/CameraInfo topic (default: camera_info beside --image-topic)")
+
+
+def add_rerun_argument(parser: argparse.ArgumentParser, frames: str) -> None:
+    """``--rerun [FILE.rrd]`` (:func:`crfdepth.cli.outputs.rerun_recording`); ``frames`` says what the recording
+    holds per frame. ``args.recorder``, None until the command opens the recording, is what the code paths log
+    their frames into."""
+    parser.set_defaults(recorder=None)
+    parser.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd",
+                        help=f"also write a Rerun recording (needs pip install 'crfdepth[viewer]'), one time step "
+                             f"per frame: {frames} (entities: crfdepth.pictures.rerun_recording). Its folder must "
+                             f"exist; the file appears when the run ends, and not at all when it fails. Without "
+                             f"FILE: stream to the Rerun viewer listening on its default port (9876), spawning "
+                             f"one if none runs")

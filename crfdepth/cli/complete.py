@@ -115,13 +115,21 @@ A ROS 1 / ROS 2 recording (:mod:`crfdepth.cli.complete_bag`)::
 
     crfdepth complete --bag RUN.bag --image-topic /cam/image_raw --points-topic /lidar/points \\
         --out-dir depth/ [--out-std-dir std/] [--out-bag RUN_depth.bag]
+
+``--rerun FILE.rrd`` (one frame, ``--input-dir``, ``--bag``) also writes a Rerun recording, one time step
+per frame completed (:mod:`crfdepth.pictures.rerun_recording`: the camera, the image, the LiDAR points in 3D
+and on the image, the depth, and the std when one is asked for); a bare ``--rerun`` streams to a viewer.
+Checked with the other outputs, before any computation (a ``.rrd`` name in a folder that takes new files;
+rerun-sdk installed); the file appears when the run ends and not at all when it fails. One process
+records: ``--input-list``, ``--devices``, ``--num-nodes``, ``--strategy`` and a launcher's rank are refused with it.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 
-from crfdepth.cli.arguments import VisRange, vis_range_type
+from crfdepth.cli.arguments import VisRange, add_rerun_argument, vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
@@ -129,6 +137,7 @@ from crfdepth.cli.complete_folder import run_folder
 from crfdepth.cli.complete_list import run_list
 from crfdepth.cli.complete_one import run_one
 from crfdepth.cli.model_options import add_model_arguments
+from crfdepth.cli.outputs import rerun_recording
 from crfdepth.errors import InputError
 from crfdepth.plausibility import SPARSE_UNITS
 
@@ -212,6 +221,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "takes; # comments), each "
                              "completed into <out-dir>/<its name>; every line is checked first")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    add_rerun_argument(parser, "the image, its LiDAR points, the depth and the std (when --out-std, --out-std-dir "
+                               "or --vis asks for it)")
     add_bag_arguments(parser)
     add_model_arguments(parser)
 
@@ -244,13 +255,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--resume: applies to --input-dir and --input-list (folders of frames); a single frame is "
                          "simply run again" + (", and --bag writes its index.csv afresh" if args.bag is not None
                                                else ""))
+    launched = os.environ.get("WORLD_SIZE", "1") not in ("", "1")  # a rank of torchrun / srun
+    if args.rerun is not None and (args.input_list is not None or scale or launched):
+        raise InputError(f"--rerun: records the frames of one process (one frame, --input-dir or --bag), got "
+                         f"{' '.join(scale) or ('--input-list' if args.input_list is not None else 'a launcher')}")
     if args.input_list is not None:
         return run_list(args, run_folder, run_bag)
-    if args.bag is not None:
-        return run_bag(args)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]
-    if stray:
+    if stray and args.bag is None:
         raise InputError(f"{', '.join(stray)}: bag options need --bag")
-    if args.input_dir is not None:
-        return run_folder(args)
-    return run_one(args)
+    with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
+        if args.bag is not None:
+            return run_bag(args)
+        return run_folder(args) if args.input_dir is not None else run_one(args)

@@ -275,6 +275,8 @@ def _one(args, model, plan: Plan, i: int, image_msg, cloud_msg, c: int, out_dir:
                  "points_in_view": int(in_view), "depth_png": name, "std_png": name if std_dir is not None else ""})
     write_frame(depth, std, out_dir / name, std_dir / name if std_dir is not None else None, vis_dir, str(stamp),
                 args.vis_range, ("--out-dir", "--out-std-dir", "--vis"))  # the frame's files: all of them or none
+    if args.recorder is not None:
+        args.recorder.complete_frame(rgb, depth, std, points=xyz, calibration=calibration, stamp_ns=stamp)
     if writer is not None:
         log_ns, frame_id = int(plan.images.log_ns[i]), plan.images.frame_ids[i]
         writer.write(topics["depth"], log_ns, writer.image(depth, stamp, frame_id, "32FC1"))

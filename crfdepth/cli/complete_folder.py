@@ -1,15 +1,13 @@
 """``crfdepth complete --input-dir``: every frame of a KITTI ``val_selection_cropped`` or
-``test_depth_completion_anonymous`` folder, or of a KITTI raw drive folder, checked first, then completed
-in batches (see :mod:`crfdepth.cli.complete`).
+``test_depth_completion_anonymous`` folder, or of a KITTI raw drive folder, checked first, then completed in batches
+(see :mod:`crfdepth.cli.complete`).
 
-A raw drive (``<day>/<day>_drive_<NNNN>_sync``: ``velodyne_points/data/<frame>.bin``,
-``image_0X/data/<frame>.png``, the day's ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the
-folder above) is read by :class:`~crfdepth.data.kitti.KittiDrive`: each scan projected whole into the
-``--camera`` image (2 or 3), uncropped, as ``--points SCAN --calib DAY`` does for one frame; outputs
-``<out-dir>/<frame>.png``. A day folder holding drives is refused, naming them. Everything else
-(batches, ``--resume``, ``--skip-bad``, ``--devices``) is the same for both kinds; resume's batch plan
-reads each frame's size from its image, the drive's scans being ``.bin`` files, and the run record
-holds the camera.
+A raw drive (``<day>/<day>_drive_<NNNN>_sync``: ``velodyne_points/data/<frame>.bin``, ``image_0X/data/<frame>.png``, the
+day's ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the folder above) is read by
+:class:`~crfdepth.data.kitti.KittiDrive`: each scan projected whole into the ``--camera`` image (2 or 3), uncropped, as
+``--points SCAN --calib DAY`` does for one frame; outputs ``<out-dir>/<frame>.png``; a day folder holding drives is
+refused, naming them. The rest (batches, ``--resume``, ``--skip-bad``, ``--devices``, ``--rerun``) is the same for both;
+resume's batch plan reads a frame's size from its image (a drive's scan is a ``.bin``), the run record holds the camera.
 """
 
 from __future__ import annotations
@@ -393,8 +391,10 @@ def _complete_batch(args, model, batch, with_std: bool, folders: tuple, first_wr
     std = std.cpu().numpy() if std is not None else [None] * len(batch)
     if first_write is not None:
         first_write()
-    for name, frame_depth, frame_std in zip(batch.names, depth, std):
-        write_frame(frame_depth, frame_std, out_dir / f"{name}.png", std_dir / f"{name}.png" if std_dir else None,
+    for k, name in enumerate(batch.names):
+        write_frame(depth[k], std[k], out_dir / f"{name}.png", std_dir / f"{name}.png" if std_dir else None,
                     vis_dir, name, args.vis_range, FOLDER_FLAGS)  # the frame's files: all of them or none
         counts["written"] += 1
         unwritten.remove(name)
+        if args.recorder is not None:  # --rerun
+            args.recorder.complete_frame(batch.image[k], depth[k], std[k], sparse=batch.sparse[k], K=batch.K[k])

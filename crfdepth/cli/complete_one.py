@@ -120,6 +120,9 @@ def run_one(args: argparse.Namespace) -> int:
             with contextlib.suppress(OSError):
                 vis_dir.rmdir()  # the --vis folder this run created, empty again
         raise
+    if args.recorder is not None:  # --rerun
+        lidar = dict(points=points, calibration=calibration) if points_mode else dict(sparse=sparse, K=K)
+        args.recorder.complete_frame(rgb, depth, std, **lidar)
     if not args.quiet:
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
               f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - start:.1f} s")

@@ -29,9 +29,14 @@ Synthetic ground truth is dense up to the horizon; metrics use its pixels below 
 first LiDAR scan line and up to 80 m, the part of the image KITTI's ground truth covers
 (docs/design.md section 7).
 
-Bad flags are refused when parsed; a ``--out-dir`` that is a file or not writable, or a
-``--kitti`` folder without frames, is refused before any computation. Nothing is created
-before the inputs and the model are known to be good, and every file appears atomically.
+With ``--rerun FILE.rrd`` it also writes a Rerun recording, one time step per frame: the camera, the image,
+the LiDAR points in 3D and on the image, the depth and the std (:mod:`crfdepth.pictures.rerun_recording`); a
+bare ``--rerun`` streams to a viewer.
+
+Bad flags are refused when parsed; a ``--out-dir`` that is a file or not writable, a ``--rerun`` file not
+ending in ``.rrd`` or in a folder that does not take new files, or a ``--kitti`` folder without frames, is
+refused before any computation. Nothing is created before the inputs and the model are known to be good, and
+every file appears atomically (the recording when the run ends, not at all when it fails).
 """
 
 from __future__ import annotations
@@ -47,9 +52,9 @@ import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.checkpoints import load_pretrained, own_structure
-from crfdepth.cli.arguments import VisRange, int_at_least, vis_range_type
+from crfdepth.cli.arguments import VisRange, add_rerun_argument, int_at_least, vis_range_type
 from crfdepth.cli.model_options import model_line
-from crfdepth.cli.outputs import write_rgb_png
+from crfdepth.cli.outputs import rerun_recording, write_rgb_png
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
@@ -102,6 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar=("MIN", "MAX"),
                         help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
                              "frame (default: 2nd to 98th percentile of each frame's depth)")
+    add_rerun_argument(parser, "the image, its LiDAR points, the depth and the std")
 
 
 # --------------------------------------------------------------------------- checks and inputs
@@ -205,6 +211,12 @@ def run(args: argparse.Namespace) -> int:
     what was written where.
     """
     out_dir = _check_out_dir(args.out_dir)
+    with rerun_recording(args) as recorder:  # checked now, written when the run ends
+        return _demo(args, out_dir, recorder)
+
+
+def _demo(args: argparse.Namespace, out_dir: Path, recorder) -> int:
+    """:func:`run` once ``--out-dir`` and ``--rerun`` are checked; the frames logged into ``recorder`` (or None)."""
     frames = _frames(args)
     overrides = {} if args.mode is None else {"mode": args.mode}
     model = load_pretrained(args.weights, **overrides)
@@ -229,6 +241,8 @@ def run(args: argparse.Namespace) -> int:
               f"{vis_range[0]:.3g}-{vis_range[1]:.3g} m)")
         write_depth_png(data_dir / f"{name}_depth16.png", depth_np)
         print(f"  data:     {data_dir / name}_depth16.png (uint16 KITTI PNG, metres * 256)")
+        if recorder is not None:
+            recorder.complete_frame(image, depth_np, std_np, sparse=sparse, K=K)
         count += 1
     print(f"wrote {len(PICTURES)} pictures per frame for {count} frame(s) to {out_dir.resolve()} and the "
           f"depth data to {data_dir.resolve()} ({time.perf_counter() - start:.1f} s in all)")

@@ -8,7 +8,8 @@
   and bag modes, checked up front (another run writing there is refused at once), then
   created and locked for the run (:func:`crfdepth.io.files.lock_folder`);
 - :func:`write_files` / :func:`write_frame` / :func:`write_pictures` / :func:`write_rgb_png`: a
-  completed frame's PNGs and pictures, and the commands' other files.
+  completed frame's PNGs and pictures, and the commands' other files;
+- :func:`rerun_recording`: the Rerun recording of ``--rerun`` (:mod:`crfdepth.pictures.rerun_recording`).
 
 Every file is written to a temporary file beside it (``.crfdepth-<random>.tmp``) and renamed over
 it only when complete; the files of one frame are renamed only when all of them are written, and a
@@ -32,12 +33,14 @@ import numpy as np
 
 from crfdepth.cli.file_errors import cannot_write, flagged
 from crfdepth.errors import InputError
-from crfdepth.io.files import check_not_locked, lock_folder, probe_folder
+from crfdepth.io.files import check_not_locked, check_output_file, lock_folder, probe_folder
 from crfdepth.io.kitti import depth_png_codes
 from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.pictures.rerun_recording import Recorder, import_rerun, open_recording
 
 __all__ = ["check_output_folder", "check_output_folders", "check_writable_dir", "make_output_dir", "output_folders",
-           "same_file", "write_depth_png", "write_files", "write_frame", "write_pictures", "write_rgb_png"]
+           "rerun_recording", "same_file", "write_depth_png", "write_files", "write_frame", "write_pictures",
+           "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 
@@ -253,3 +256,21 @@ def write_frame(depth: np.ndarray, std: np.ndarray | None, out: Path, out_std: P
         files += _pictures(vis_dir, stem, depth, std, vis_range, flags[2])
     write_files(files)
     return [path for _, path, _ in files]
+
+
+@contextlib.contextmanager
+def rerun_recording(args: argparse.Namespace) -> Iterator[Recorder | None]:
+    """``--rerun FILE.rrd`` checked (a ``.rrd`` name in a folder that takes new files) and rerun-sdk imported,
+    before any computation, then a :class:`~crfdepth.pictures.rerun_recording.Recorder` for the ``with`` block,
+    written atomically when the block ends (none on an error); a bare ``--rerun`` streams to a viewer; None
+    without ``--rerun``. Errors are one line naming ``--rerun``."""
+    if args.rerun is None:
+        yield None
+        return
+    path = None
+    if args.rerun:
+        with flagged("--rerun", args.rerun, "write"):  # a name too long, a path through a file ...
+            path = check_output_file(args.rerun, "--rerun", suffix=".rrd")
+    import_rerun("--rerun")
+    with open_recording(path, name="--rerun") as stream:  # not flagged: the block's own errors are the command's
+        yield Recorder(stream)

@@ -4,7 +4,8 @@ The options and the choice between the two inputs: ``--drive`` (:mod:`crfdepth.c
 accumulates the scans ``t - k .. t + k`` of a KITTI raw drive into each frame's camera and
 writes the targets under ``--out-dir`` in KITTI's depth-completion layout; ``--bag``
 (:mod:`crfdepth.cli.targets_bag`) writes the bag's frames as a KITTI raw drive
-``OUT/<date>/<bag name>_sync`` and then runs the drive code path on it, into ``OUT``.
+``OUT/<date>/<bag name>_sync`` and then runs the drive code path on it, into ``OUT``. ``--rerun FILE.rrd``
+records both (:func:`crfdepth.cli.outputs.rerun_recording`, checked before anything is read).
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from __future__ import annotations
 import argparse
 
 from crfdepth.cli import targets_bag, targets_drive
-from crfdepth.cli.arguments import int_at_least
+from crfdepth.cli.arguments import add_rerun_argument, int_at_least
+from crfdepth.cli.outputs import rerun_recording
 from crfdepth.errors import InputError
 
 __all__ = ["DESCRIPTION", "HELP", "add_arguments", "parse_frames", "run"]
@@ -75,6 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--drive with both colour cameras: drop the target returns the stereo pair contradicts "
                              "(crfdepth.sequences.stereo; counted in index_image_0X.csv's stereo_dropped)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
+    add_rerun_argument(parser, "the camera at its pose, its trajectory, the image, the frame's scan and its targets")
     targets_bag.add_arguments(parser)
     # the output-folder checks it shares with complete's folder and bag modes read --out-std-dir
     parser.set_defaults(out_std_dir=None)
@@ -85,10 +88,10 @@ def run(args: argparse.Namespace) -> int:
     if (args.drive is None) == (args.bag is None):
         raise InputError(f"--drive / --bag: expected one of them (a KITTI raw drive folder or a ROS bag), got "
                          f"{'neither' if args.drive is None else 'both'}")
-    if args.bag is not None:
-        if args.stereo_check:
-            raise InputError("--stereo-check: expected a KITTI raw drive with both colour cameras (--drive), got a "
-                             "bag (one camera)")
-        return targets_bag.run_bag(args)
-    targets_bag.check_drive_flags(args)
-    return targets_drive.run_drive(args)
+    if args.bag is not None and args.stereo_check:
+        raise InputError("--stereo-check: expected a KITTI raw drive with both colour cameras (--drive), got a "
+                         "bag (one camera)")
+    if args.bag is None:
+        targets_bag.check_drive_flags(args)
+    with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
+        return targets_bag.run_bag(args) if args.bag is not None else targets_drive.run_drive(args)

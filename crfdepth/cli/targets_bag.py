@@ -329,7 +329,8 @@ def run_bag(args: argparse.Namespace) -> int:
                 run = argparse.Namespace(
                     drive=str(drive), bag=None, camera=2, frames=args.frames, window=args.window, poses=poses,
                     out_dir=str(staging / "targets"), vis=None if vis_dir is None else str(staging / "vis"),
-                    quiet=True, out_std_dir=None, stereo_check=False, **{key: None for key in _BAG_FLAGS})
+                    quiet=True, out_std_dir=None, stereo_check=False, recorder=args.recorder,
+                    **{key: None for key in _BAG_FLAGS})
                 try:
                     targets_drive.run_drive(run)
                 except BAD_INPUT as exc:

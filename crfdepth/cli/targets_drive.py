@@ -1,38 +1,36 @@
 """``crfdepth targets --drive``: camera-view depth targets from a KITTI raw drive (docs/design.md section 14).
 
-For each frame of a drive folder (``<day>/<drive>_sync`` with ``velodyne_points/data/*.bin``
-and ``image_0X/data/*.png``; the calibration is the day folder's ``calib_cam_to_cam.txt`` and
-``calib_velo_to_cam.txt``) the scans ``t - k .. t + k`` are registered with the drive's poses
-and accumulated into the frame's camera by :func:`crfdepth.sequences.targets.camera_view_targets`,
-which keeps only the returns the camera sees (movers and occluded returns dropped, the
-frame's own scan first).
+For each frame of a drive folder (``<day>/<drive>_sync`` with ``velodyne_points/data/*.bin`` and
+``image_0X/data/*.png``; the calibration is the day folder's ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt``) the
+scans ``t - k .. t + k`` are registered with the drive's poses and accumulated into the frame's camera by
+:func:`crfdepth.sequences.targets.camera_view_targets`, which keeps only the returns the camera sees (movers and
+occluded returns dropped, the frame's own scan first).
 
-Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR
-odometry), ``odometry`` (KISS-ICP over the scans the run uses, every step checked, the
-registration too (:func:`crfdepth.sequences.registration.step_alignment`); when the registration slid it is
-retried without the ground (:func:`crfdepth.sequences.odometry.lidar_odometry_with_fallback`); a failed
-step is an error naming the frame, never accumulated), ``oxts``, or a KITTI odometry
-``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
+Poses (``--poses``): ``auto`` (the drive's ``oxts/data`` GPS/IMU when present, else LiDAR odometry), ``odometry``
+(KISS-ICP over the scans the run uses, every step checked, the registration too
+(:func:`crfdepth.sequences.registration.step_alignment`); when the registration slid it is retried without the ground
+(:func:`crfdepth.sequences.odometry.lidar_odometry_with_fallback`); a failed step is an error naming the frame, never
+accumulated), ``oxts``, or a KITTI odometry ``poses.txt`` (one camera-0 pose per frame of the drive, in frame order).
 
 Written under ``--out-dir OUT`` in KITTI's depth-completion layout:
 
 - ``OUT/<drive>/proj_depth/groundtruth/image_0X/<frame>.png``: the targets, KITTI depth PNG
   (uint16, metres * 256, 0 = no target);
-- ``OUT/<drive>/proj_depth/support/image_0X/<frame>.png``: per pixel, how many scans of the
-  window agree with the target (uint8 PNG; uint16 when the window holds more than 255 scans);
-- ``OUT/<drive>/poses.txt``: the poses used, KITTI odometry format (rectified camera-0 poses
-  ``[R | t]``, 12 numbers a line, relative to the first scan used), one line per scan the run
-  used in frame order (frames ``index_image_0X.csv`` names in ``first_scan`` / ``last_scan``);
-  a run over the whole drive writes one line per frame, so the file can be given back as
-  ``--poses``;
+- ``OUT/<drive>/proj_depth/support/image_0X/<frame>.png``: per pixel, how many scans of the window agree with the target
+  (uint8 PNG; uint16 when the window holds more than 255 scans);
+- ``OUT/<drive>/poses.txt``: the poses used, KITTI odometry format (rectified camera-0 poses ``[R | t]``, 12 numbers a
+  line, relative to the first scan used), one line per scan the run used in frame order (frames ``index_image_0X.csv``
+  names in ``first_scan`` / ``last_scan``); a run over the whole drive writes one line per frame, so the file can be
+  given back as ``--poses``;
 - ``OUT/<drive>/index_image_0X.csv``: one row per frame (see :data:`INDEX_COLUMNS`);
-- with ``--vis [DIR]``: ``DIR/<drive>_image_0X_<frame>.png``, the targets coloured by depth and
-  the dropped returns by reason (:func:`crfdepth.pictures.figures.targets_picture`).
+- with ``--vis [DIR]``: ``DIR/<drive>_image_0X_<frame>.png``, the targets coloured by depth and the dropped returns by
+  reason (:func:`crfdepth.pictures.figures.targets_picture`);
+- with ``--rerun FILE.rrd``: a Rerun recording, one time step per frame: the camera at its pose, its trajectory,
+  the image, the frame's scan and its targets (:mod:`crfdepth.pictures.rerun_recording`).
 
-Everything is checked before anything is written (the drive's files, frame numbers, the
-calibration, every scan used, the poses, the odometry, the output folder). Frame numbers must
-be consecutive: a gap is refused, naming the first one, unless ``--frames A:B`` selects a
-gap-free range (its windows then stop at the gap). A drive of one frame is refused
+Everything is checked before anything is written (the drive's files, frame numbers, the calibration, every scan used,
+the poses, the odometry, the output folder). Frame numbers must be consecutive: a gap is refused, naming the first one,
+unless ``--frames A:B`` selects a gap-free range (its windows then stop at the gap). A drive of one frame is refused
 (accumulation needs neighbouring scans).
 """
 
@@ -353,6 +351,9 @@ def run_drive(args: argparse.Namespace) -> int:
                     targets = dataclasses.replace(targets, depth=kept, support=np.where(kept > 0, targets.support, 0))
                 write_depth_png(depth_dir / f"{stem}.png", targets.depth)
                 _write_support(support_dir / f"{stem}.png", targets.support, wide)
+                if args.recorder is not None:  # --rerun
+                    args.recorder.targets_frame(read_rgb(image_files[frame]), targets.depth, scan=scans[index],
+                                                calibration=calib, pose=poses[index])
                 if vis_dir is not None:
                     with quiet_decoders():
                         image = cv2.imread(str(image_files[frame]), cv2.IMREAD_COLOR)

@@ -1,0 +1,77 @@
+"""benchmarks/plots.py: the documentation's figures drawn from benchmark JSON, and its refusals."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.benchmark_scripts import load_benchmark
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_benchmark("plots")
+
+
+def _accuracy_lines(std: bool = True) -> str:
+    lines = ["[   3 s] protocol a"]  # a benchmark's printed output is accepted as it is
+    for protocol, rmse in (("a", 1000.0), ("c", 4000.0)):
+        for method, factor in (("ipbasic", 1.0), ("hand-set", 0.9), ("learned", 0.8)):
+            record = {"protocol": protocol, "method": method, "rmse": rmse * factor}
+            if std and method == "learned":
+                record |= {"coverage_1_std": 0.7, "coverage_2_std": 0.9, "ause_ratio_std": 0.2}
+            lines.append(json.dumps(record))
+    return "\n".join(lines) + "\n"
+
+
+def _speed_line() -> str:
+    rows = [{"config": c, "std": s, "size": [352, 1216], "seconds": t * (1.2 if s else 1.0)}
+            for c, t in (("default", 0.07), ("ip-basic", 0.04)) for s in (False, True) if not (c == "ip-basic" and s)]
+    rows.append({"config": "default", "std": False, "size": [3000, 4000], "seconds": 7.5})
+    return "table\n" + json.dumps({"device": "cpu", "rows": rows}) + "\n"
+
+
+def test_the_three_figures_are_drawn_from_the_json(bench, tmp_path, capsys):
+    (tmp_path / "acc.jsonl").write_text(_accuracy_lines())
+    (tmp_path / "speed.txt").write_text(_speed_line())
+    paths = bench.main(["--accuracy", str(tmp_path / "acc.jsonl"), "--speed", str(tmp_path / "speed.txt"),
+                        "--out-dir", str(tmp_path / "plots")])
+    assert [p.name for p in paths] == ["accuracy.png", "speed.png", "std.png"]
+    for path in paths:
+        image = cv2.imread(str(path))
+        assert image is not None and image.shape[0] > 200 and image.shape[1] > 500
+        assert np.unique(image.reshape(-1, 3), axis=0).shape[0] > 10  # something is drawn, not a blank canvas
+    assert capsys.readouterr().out.count("plot: ") == 3
+
+
+def test_the_tables_read_what_the_figures_need(bench):
+    records = [json.loads(line) for line in _accuracy_lines().splitlines()[1:]]
+    table = bench.accuracy_table(records)
+    assert sorted(table) == ["a", "c"] and table["c"]["learned"]["rmse"] == pytest.approx(3200.0)
+    assert bench.std_protocols(table) == ["a", "c"]
+    rows = bench.speed_rows([json.loads(_speed_line().splitlines()[1])])
+    assert {r["config"] for r in rows} == {"default", "ip-basic"} and len(rows) == 3  # the large frame left out
+
+
+@pytest.mark.parametrize("accuracy, speed, message", [
+    (None, _speed_line(), "--accuracy: cannot read"),
+    ("no json here\n", _speed_line(), "--accuracy: expected JSON lines"),
+    (json.dumps({"protocol": "a", "method": "learned", "rmse": 1.0}) + "\n", _speed_line(),
+     "--accuracy: expected rows of the methods"),
+    (_accuracy_lines(std=False), _speed_line(), "--accuracy: expected the learned model's std figures"),
+    (_accuracy_lines(), json.dumps({"rows": []}) + "\n", "--speed: expected rows of a 1216 x 352 frame"),
+])
+def test_bad_inputs_exit_2_with_one_line_and_write_nothing(bench, tmp_path, capsys, accuracy, speed, message):
+    if accuracy is not None:
+        (tmp_path / "acc.jsonl").write_text(accuracy)
+    (tmp_path / "speed.txt").write_text(speed)
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--accuracy", str(tmp_path / "acc.jsonl"), "--speed", str(tmp_path / "speed.txt"),
+                    "--out-dir", str(tmp_path / "plots")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.startswith(f"plots.py: error: {message}") and err.count("\n") == 1
+    assert not (tmp_path / "plots").exists()
+
