@@ -127,7 +127,6 @@ records: ``--input-list``, ``--devices``, ``--num-nodes``, ``--strategy`` and a 
 from __future__ import annotations
 
 import argparse
-import os
 
 from crfdepth.cli.arguments import VisRange, add_rerun_argument, vis_range_type
 from crfdepth.cli.batches import add_batch_arguments
@@ -138,6 +137,7 @@ from crfdepth.cli.complete_list import run_list
 from crfdepth.cli.complete_one import run_one
 from crfdepth.cli.model_options import add_model_arguments
 from crfdepth.cli.outputs import rerun_recording
+from crfdepth.cli.ranks import launcher_world_size
 from crfdepth.errors import InputError
 from crfdepth.plausibility import SPARSE_UNITS
 
@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--resume: applies to --input-dir and --input-list (folders of frames); a single frame is "
                          "simply run again" + (", and --bag writes its index.csv afresh" if args.bag is not None
                                                else ""))
-    launched = os.environ.get("WORLD_SIZE", "1") not in ("", "1")  # a rank of torchrun / srun
+    launched = launcher_world_size() > 1  # a rank of torchrun / srun
     if args.rerun is not None and (args.input_list is not None or scale or launched):
         raise InputError(f"--rerun: records the frames of one process (one frame, --input-dir or --bag), got "
                          f"{' '.join(scale) or ('--input-list' if args.input_list is not None else 'a launcher')}")

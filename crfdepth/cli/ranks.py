@@ -40,7 +40,7 @@ from crfdepth.cli.launch import launch_ranks
 from crfdepth.cli.processes import check_devices
 from crfdepth.errors import InputError
 
-__all__ = ["Ranks", "ranks_from_environment", "run_in_group"]
+__all__ = ["Ranks", "launcher_world_size", "ranks_from_environment", "run_in_group"]
 
 logger = logging.getLogger(__name__)
 
@@ -99,12 +99,17 @@ class Ranks:
             dist.destroy_process_group()
 
 
+def launcher_world_size() -> int:
+    """The size of the launcher's group this process is a rank of (torchrun, srun: ``WORLD_SIZE``); 1 without one."""
+    return int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
 def run_in_group(args: argparse.Namespace, run: Callable[[argparse.Namespace, Ranks | None], int]) -> int:
     """``run(args, ranks)`` as ``--strategy`` says (module docstring): alone (``ranks`` None; ``--devices`` local
     processes checked against the machine), as this process's rank of the launcher's group, which it leaves
     again afterwards, or (``ddp`` without a launcher) in ``--devices`` ranks started here, whose exit status
     is returned."""
-    launcher = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    launcher = launcher_world_size()
     if args.strategy == "spawn" and args.num_nodes > 1:
         raise InputError(f"--strategy spawn: starts the --devices processes on this machine only, got --num-nodes "
                          f"{args.num_nodes}; give --strategy ddp (or auto) and start the command on every node with "
@@ -136,7 +141,7 @@ def ranks_from_environment(args: argparse.Namespace) -> Ranks | None:
     """The group this process belongs to when torchrun started it (``WORLD_SIZE`` > 1), joined; None when it
     runs alone. Refuses ``--num-nodes`` > 1 without such a launcher, and a group of another size than
     ``--num-nodes`` x ``--devices``."""
-    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    world = launcher_world_size()
     expected = args.num_nodes * args.devices
     if world == 1:
         if args.num_nodes > 1:
