@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tests.benchmark_scripts import load_benchmark
+from tests.documents import ROOT, page
 
 
 @pytest.fixture(scope="module")
@@ -75,3 +76,29 @@ def test_bad_inputs_exit_2_with_one_line_and_write_nothing(bench, tmp_path, caps
     assert exit_info.value.code == 2 and err.startswith(f"plots.py: error: {message}") and err.count("\n") == 1
     assert not (tmp_path / "plots").exists()
 
+
+
+def test_the_committed_figures_are_redrawn_from_the_committed_json(bench, tmp_path):
+    """The docs' figures (docs/results/plots) are what plots.py draws from the committed benchmark JSON: redrawn
+    here, each matches the committed PNG to a mean of 3 grey levels (fonts may render a little differently)."""
+    results = ROOT / "docs" / "results"
+    paths = bench.main(["--accuracy", str(results / "accuracy.jsonl"), "--speed", str(results / "speed.json"),
+                        "--out-dir", str(tmp_path)])
+    for path in paths:
+        committed = cv2.imread(str(results / "plots" / path.name), cv2.IMREAD_GRAYSCALE)
+        drawn = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        assert committed is not None, path.name
+        assert drawn.shape == committed.shape, (path.name, drawn.shape, committed.shape)
+        assert np.abs(drawn.astype(float) - committed.astype(float)).mean() <= 3.0, path.name
+
+
+def test_the_evaluation_table_holds_the_committed_json(bench):
+    """docs/evaluation.md's IP-Basic, hand-set (shipped structure) and learned rows give, for (a), (b) and (c),
+    the RMSE of docs/results/accuracy.jsonl to the millimetre."""
+    table = bench.accuracy_table(bench.read_json_lines(ROOT / "docs" / "results" / "accuracy.jsonl", "--accuracy"))
+    rows = {"ipbasic": "| IP-Basic", "hand-set": "(the shipped structure)", "learned": "shipped learned weights"}
+    lines = page("evaluation.md").splitlines()
+    for method, marker in rows.items():
+        cells = next(line for line in lines if line.startswith("|") and marker in line).split("|")[2:-1]
+        for protocol, cell in zip(("a", "b", "c"), (cells[0], cells[1], cells[3])):
+            assert int(cell.split("/")[0]) == round(table[protocol][method]["rmse"]), (method, protocol, cell)
