@@ -4,8 +4,8 @@ All projection math lives here: the z-buffer (:func:`project_to_depth`), the exa
 KITTI chain (:func:`project_velodyne`), either calibration type
 (:func:`project_points`), the in-image count (:func:`count_in_image`) and the scan's
 ground plane used to spot an inverted transform (:func:`ground_normal`,
-:func:`ground_tilt_deg`). Calibrations come from :mod:`crfdepth.io.calibration`, which
-knows nothing of this module.
+:func:`ground_tilt_deg`). Calibrations come from :mod:`crfdepth.io.calibration`, above this
+module: it reads them by their fields (``P_rect``, ``R_rect`` ... ; ``K``, ``T_cam_lidar``, ``kitti``).
 
 Also the subsampling transforms used to simulate sparser LiDAR: keeping every k-th
 laser ring of a raw scan (rings recovered from the scan order) or a random fraction of
@@ -15,10 +15,14 @@ complement is the held-out set.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from crfdepth.errors import InputError
-from crfdepth.io.calibration import Calibration, RigCalibration
+
+if TYPE_CHECKING:  # geometry sits below io (docs/design.md section 8): the calibrations are read by type name
+    from crfdepth.io.calibration import Calibration, RigCalibration
 
 __all__ = [
     "count_in_image",
@@ -143,11 +147,12 @@ def project_points(points: np.ndarray, calibration: RigCalibration | Calibration
     Returns:
         (H, W) float32 sparse z-depth in metres, 0 where no point lands.
     """
-    if isinstance(calibration, Calibration):
+    kind = type(calibration).__name__
+    if kind == "Calibration":
         return project_velodyne(points, calibration, image_size)
-    if not isinstance(calibration, RigCalibration):
+    if kind != "RigCalibration":
         raise InputError(f"calibration: expected a RigCalibration or a KITTI Calibration "
-                         f"(crfdepth.io.calibration), got {type(calibration).__name__}")
+                         f"(crfdepth.io.calibration), got {kind}")
     if calibration.kitti is not None:
         return project_velodyne(points, calibration.kitti, image_size)
     T = calibration.T_cam_lidar

@@ -23,8 +23,8 @@ import numpy as np
 
 from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
+from crfdepth.geometry.rigid import camera_relative_pose, invert_rigid
 from crfdepth.sequences.pose_checks import check_poses, step_sizes
-from crfdepth.sequences.poses import camera_relative_pose, invert_rigid
 from crfdepth.sequences.registration import (
     ALIGN_ABOVE_GROUND_M,
     ALIGN_HINT_KEY,

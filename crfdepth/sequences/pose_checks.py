@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crfdepth.sequences.poses import invert_rigid, rotation_deg
+from crfdepth.geometry.rigid import invert_rigid, rotation_deg
 from crfdepth.sequences.registration import MAX_ALIGN_OFFSET_DEG, MAX_ALIGN_OFFSET_M
 
 __all__ = ["check_poses", "step_sizes"]

@@ -1,12 +1,10 @@
-"""Poses given, and the maths of rigid poses every pose source shares (docs/design.md section 12).
+"""Poses given (docs/design.md section 12).
 
 - :func:`read_kitti_poses`: KITTI odometry ``poses.txt`` (camera-0 poses, 12 numbers a line).
 - :func:`read_oxts`: KITTI raw ``oxts/data/*.txt`` (GPS/IMU), the devkit's Mercator
   conversion (:func:`oxts_to_pose`); :func:`read_imu_to_velo` reads the day's ``calib_imu_to_velo.txt``.
-- :func:`camera_relative_pose`: the camera's motion through the fixed extrinsic.
-- :func:`invert_rigid`, :func:`rotation_deg`, :func:`axis_rotation`: rigid-transform maths,
-  used here and by :mod:`crfdepth.sequences.registration` and :mod:`crfdepth.sequences.odometry`
-  (``invert_rigid`` is :func:`crfdepth.io.ros.tf.invert_rigid`, shared with the ROS transform tree).
+- The rigid-transform maths every pose source shares (``invert_rigid``, ``camera_relative_pose``, ...)
+  is :mod:`crfdepth.geometry.rigid`.
 
 Convention, here and in LiDAR odometry (:mod:`crfdepth.sequences.odometry`): poses are LiDAR
 poses ``T_world<-lidar(t)`` as (n, 4, 4) float64, ``p_world = T @ p_lidar``, with the world =
@@ -23,57 +21,19 @@ import numpy as np
 
 from crfdepth.checks import check_rigid
 from crfdepth.errors import InputError
+from crfdepth.geometry.rigid import axis_rotation, invert_rigid
 from crfdepth.io.files import check_input_file, read_text
 from crfdepth.io.key_values import entry_array, read_key_values
-from crfdepth.io.ros.tf import invert_rigid
 
 __all__ = [
-    "axis_rotation",
-    "camera_relative_pose",
-    "invert_rigid",
     "oxts_to_pose",
     "read_imu_to_velo",
     "read_kitti_poses",
     "read_oxts",
-    "rotation_deg",
 ]
 
 POSE_TOLERANCE = 1e-3
 """Largest |R^T R - I| accepted in a pose file (KITTI writes 6-7 significant digits)."""
-
-
-# --------------------------------------------------------------------------- pose maths
-
-
-def rotation_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix, degrees."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
-
-
-def camera_relative_pose(T_w_lidar_s, T_w_lidar_t, T_cam_lidar) -> np.ndarray:
-    """``T_cam(s)<-cam(t) = T_cam_lidar T_lidar(s)<-lidar(t) T_cam_lidar^-1`` (design 3c).
-
-    Args:
-        T_w_lidar_s, T_w_lidar_t: (4, 4) world<-LiDAR poses at times s and t.
-        T_cam_lidar: (4, 4) LiDAR-to-camera extrinsic (rigidly mounted).
-
-    Returns:
-        (4, 4) float64: maps points of camera frame t into camera frame s.
-    """
-    T_cam_lidar = check_rigid(T_cam_lidar, "T_cam_lidar")
-    s = check_rigid(T_w_lidar_s, "T_w_lidar_s")
-    t = check_rigid(T_w_lidar_t, "T_w_lidar_t")
-    return T_cam_lidar @ invert_rigid(s) @ t @ invert_rigid(T_cam_lidar)
-
-
-def axis_rotation(axis: int, a: float) -> np.ndarray:
-    """(3, 3) rotation by ``a`` radians about axis 0, 1 or 2 (x, y, z)."""
-    c, s = math.cos(a), math.sin(a)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    R = np.eye(3)
-    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-    return R
 
 
 # --------------------------------------------------------------------------- poses given

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crfdepth.sequences.poses import axis_rotation
+from crfdepth.geometry.rigid import axis_rotation
 
 __all__ = [
     "Alignment",

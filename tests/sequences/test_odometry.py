@@ -11,16 +11,10 @@ import pytest
 
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.errors import InputError
+from crfdepth.geometry.rigid import camera_relative_pose, invert_rigid, rotation_deg
 from crfdepth.sequences.odometry import lidar_odometry, lidar_odometry_with_fallback
 from crfdepth.sequences.pose_checks import check_poses
-from crfdepth.sequences.poses import (
-    camera_relative_pose,
-    invert_rigid,
-    oxts_to_pose,
-    read_kitti_poses,
-    read_oxts,
-    rotation_deg,
-)
+from crfdepth.sequences.poses import oxts_to_pose, read_kitti_poses, read_oxts
 from crfdepth.sequences.registration import ground_plane, scan_structure, step_alignment
 
 SPEED, RATE = 10.0, 10.0

@@ -34,8 +34,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from crfdepth.errors import InputError
+from crfdepth.geometry.rigid import invert_rigid
 
-__all__ = ["TransformError", "TransformTree", "invert_rigid"]
+__all__ = ["TransformError", "TransformTree"]
 
 _log = logging.getLogger(__name__)
 
@@ -103,14 +104,6 @@ def _matrix(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
     T[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
     T[:3, 3] = translation
     return T
-
-
-def invert_rigid(T: np.ndarray) -> np.ndarray:
-    """(4, 4) float64 inverse of a rigid (4, 4) transform: ``[R^T | -R^T t]``."""
-    inv = np.eye(4)
-    inv[:3, :3] = T[:3, :3].T
-    inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return inv
 
 
 def _frame(name: object, what: str) -> str:
