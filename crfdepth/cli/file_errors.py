@@ -14,17 +14,18 @@ commands wrap each read and write of a file the user named:
   (``--out: cannot write out/depth.png: No space left on device``);
 - :func:`error_message`: what ``crfdepth.cli.main`` prints for an OS error that no wrapper told:
   the flag whose path the error concerns, found in the command line.
+
+:func:`flagged`, :func:`cannot_write` and :class:`FileError` are the library's
+(:mod:`crfdepth.io.file_errors`), so that library code reading a file the user named tells its errors alike.
 """
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import re
-from collections.abc import Iterator
 
-from crfdepth.errors import InputError
+from crfdepth.io.file_errors import FileError, cannot_write, flagged, is_system_error, reason
 
 __all__ = ["FileError", "cannot_write", "error_message", "flagged", "reason"]
 
@@ -32,76 +33,6 @@ __all__ = ["FileError", "cannot_write", "error_message", "flagged", "reason"]
 _TEMPORARY = re.compile(r"^\.(.+)\.[0-9a-f]{12}\.tmp$")
 # Errors that only a write meets: named "cannot write" even by the last resort.
 _WRITE_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EDQUOT, errno.EFBIG}
-
-
-class FileError(OSError):
-    """A file the user named could not be read or written; the message is one line naming the flag,
-    the file and the system's reason (``--out: cannot write d/depth.png: Read-only file system``).
-
-    Not one of :data:`crfdepth.cli.arguments.BAD_INPUT`: a run over many frames stops on it even with
-    ``--skip-bad`` (a full disk or a read-only folder fails every later frame the same way).
-    ``crfdepth.cli.main`` prints it as the other errors (exit status 2).
-    """
-
-
-def reason(exc: OSError) -> str:
-    """The system's words for ``exc`` (``Permission denied``), without the errno and file name."""
-    return exc.strerror or (os.strerror(exc.errno) if exc.errno else str(exc))
-
-
-def cannot_write(exc: OSError, flag: str, path: os.PathLike | str) -> FileError:
-    """The error of a failed write of ``path`` (the file the user asked for, under ``flag``)."""
-    return FileError(f"{flag}: cannot write {path}: {reason(exc)}")
-
-
-def _is_system_error(exc: BaseException) -> bool:
-    """An ``OSError`` raised by the system (errno set), not a message a reader wrote itself (``FileNotFoundError(
-    "image: no such file: x")`` has no errno)."""
-    return isinstance(exc, OSError) and not isinstance(exc, FileError) and exc.errno is not None
-
-
-def _relabelled(exc: BaseException, flag: str, labels: tuple[str, ...]) -> BaseException | None:
-    """``exc`` of the same class with its message naming ``flag``: its leading label (one of ``labels``,
-    ``<label>: ...``) replaced by the flag, or the flag put before it; None when it starts with a flag already
-    (this one, or another that the message is about: ``--camera 0: ...``)."""
-    text = str(exc)
-    if not text or text.startswith("--"):
-        return None
-    label = next((label for label in labels if text.startswith(f"{label}: ")), None)
-    message = f"{flag}: {text[len(label) + 2:]}" if label is not None else f"{flag}: {text}"
-    try:
-        return type(exc)(message)
-    except TypeError:  # a subclass that takes other arguments
-        return InputError(message)
-
-
-@contextlib.contextmanager
-def flagged(flag: str, path: os.PathLike | str, verb: str = "read", labels: tuple[str, ...] = ()
-            ) -> Iterator[None]:
-    """Within the block, errors on the file(s) of ``flag`` (``path``) name the flag.
-
-    Args:
-        verb: what the block does with ``path``: ``read`` or ``write``.
-        labels: the names the readers in the block give the argument (``image``, ``depth png``):
-            a message ``<label>: ...`` becomes ``<flag>: ...``, of the same class; any other message that
-            does not start with a flag gets the flag in front (``--points: PLY x.ply: malformed header``).
-
-    An ``OSError`` of the system becomes :class:`FileError` ``<flag>: cannot <verb> <file>: <reason>``
-    (``<file>``: for a read, the file the system names, which may lie inside the folder ``path``; for a
-    write, ``path`` itself, never a temporary file beside it). A :class:`FileError` passes unchanged.
-    """
-    try:
-        yield
-    except FileError:
-        raise
-    except (InputError, OSError) as exc:
-        if _is_system_error(exc):
-            file = exc.filename if verb == "read" and exc.filename is not None else path
-            raise FileError(f"{flag}: cannot {verb} {os.fsdecode(file)}: {reason(exc)}") from None
-        relabelled = _relabelled(exc, flag, labels)
-        if relabelled is None:
-            raise
-        raise relabelled from None
 
 
 def _flag_values(argv: list[str]) -> list[tuple[str, str]]:
@@ -156,7 +87,7 @@ def error_message(exc: BaseException, argv: list[str]) -> str:
     OS error that no :func:`flagged` told, ``<flag>: cannot <use|write> <file>: <reason>`` with the flag whose
     path the error names (the path itself, a file in that folder, or a hidden temporary file beside that
     output file), or ``cannot <use|write> <file>: <reason>`` when no flag's path matches."""
-    if not _is_system_error(exc):
+    if not is_system_error(exc):
         return str(exc)
     verb = "write" if exc.errno in _WRITE_ERRNOS else "use"
     for filename in (exc.filename, exc.filename2):

@@ -1,21 +1,34 @@
 """``crfdepth targets``: camera-view depth targets from a KITTI raw drive or a ROS bag (docs/design.md section 14).
 
-The options and the choice between the two inputs: ``--drive`` (:mod:`crfdepth.cli.targets_drive`)
-accumulates the scans ``t - k .. t + k`` of a KITTI raw drive into each frame's camera and
-writes the targets under ``--out-dir`` in KITTI's depth-completion layout; ``--bag``
-(:mod:`crfdepth.cli.targets_bag`) writes the bag's frames as a KITTI raw drive
-``OUT/<date>/<bag name>_sync`` and then runs the drive code path on it, into ``OUT``. ``--rerun FILE.rrd``
-records both (:func:`crfdepth.cli.outputs.rerun_recording`, checked before anything is read).
+::
+
+    crfdepth targets (--drive DIR | --bag RUN.bag) --out-dir OUT [-k K] [--frames A:B]
+        [--poses auto|tf|odometry|oxts|FILE] [--camera 2|3] [--stereo-check] [--vis [DIR]] [--rerun FILE.rrd]
+        [--image-topic T] [--points-topic T] [--camera-info-topic T] [--calib FILE] [--max-dt S]
+
+The options, read and handed to :func:`crfdepth.sequences.make_targets`, which does the work: ``--drive``
+accumulates the scans ``t - k .. t + k`` of a KITTI raw drive into each frame's camera and writes the targets under
+``--out-dir`` in KITTI's depth-completion layout; ``--bag`` first writes the bag's frames as a KITTI raw drive
+``OUT/<date>/<bag name>_sync`` (:mod:`crfdepth.sequences.bag_drive`). The command checks the options first, then
+``--rerun FILE.rrd`` (:func:`crfdepth.cli.outputs.rerun_recording`) and the output folders (created and locked for
+the run), and draws the ``--vis`` pictures with :func:`crfdepth.pictures.figures.targets_picture`; it shows a
+progress bar and prints a summary line.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-from crfdepth.cli import targets_bag, targets_drive
-from crfdepth.cli.arguments import add_rerun_argument, int_at_least
-from crfdepth.cli.outputs import rerun_recording
-from crfdepth.errors import InputError
+from tqdm import tqdm
+
+from crfdepth.cli.arguments import add_rerun_argument, add_topic_arguments, int_at_least, positive_number
+from crfdepth.cli.outputs import check_output_folders, output_folders, rerun_recording
+from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S
+from crfdepth.pictures.figures import targets_picture
+from crfdepth.sequences import DriveTargets, make_targets
+from crfdepth.sequences.recording_targets import check_targets_options
 
 __all__ = ["DESCRIPTION", "HELP", "add_arguments", "parse_frames", "run"]
 
@@ -78,20 +91,65 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(crfdepth.sequences.stereo; counted in index_image_0X.csv's stereo_dropped)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no summary line")
     add_rerun_argument(parser, "the camera at its pose, its trajectory, the image, the frame's scan and its targets")
-    targets_bag.add_arguments(parser)
+    bag = parser.add_argument_group(
+        "a ROS bag", "ROS 1 .bag or ROS 2 (sqlite3, mcap) recordings, needs pip install 'crfdepth[ros]'. The frames "
+                     "are also written as a KITTI raw drive OUT/<date>/<bag name>_sync (+ the day calibration), the "
+                     "targets to OUT/<bag name>_sync: layout \"sequence\" reads OUT as root and targets_root")
+    add_topic_arguments(bag, only_one_default=True, points_aliases=("--cloud-topic",))
+    bag.add_argument("--calib", metavar="FILE",
+                     help="rig YAML/JSON or KITTI calibration: replaces the CameraInfo and the /tf LiDAR -> camera "
+                          "transform")
+    bag.add_argument("--max-dt", type=positive_number("seconds"), default=None, metavar="SECONDS",
+                     help=f"largest time between an image and its cloud (default {DEFAULT_MAX_DT_S})")
     # the output-folder checks it shares with complete's folder and bag modes read --out-std-dir
     parser.set_defaults(out_std_dir=None)
 
 
+class _Progress:
+    """The progress bar of a drive's frames (none with ``--quiet`` or when stderr is not a terminal)."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet, self.bar = quiet, None
+
+    def __call__(self, written: int, total: int) -> None:
+        if self.bar is None:
+            self.bar = tqdm(total=total, unit="frame", desc="targets", disable=self.quiet or not sys.stderr.isatty())
+        else:
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _summary(args: argparse.Namespace, done: DriveTargets) -> str:
+    ratio = f" ({done.density / done.scan_density:.2f}x)" if done.scan_density > 0 else ""
+    densities = f"mean density {done.density:.4f} against {done.scan_density:.4f} for the single scan{ratio}"
+    if args.bag is not None:
+        return (f"wrote {done.frames} frame(s) of {args.bag} as the drive {done.drive} and their targets to "
+                f"{done.out} (image_02, k={args.window}, poses: {done.source}): {densities}")
+    return (f"wrote targets of {done.frames} frame(s) of {done.drive.name} ({done.camera}, k={args.window}, poses: "
+            f"{done.source}) to {done.out}: {densities}, in {done.seconds:.1f} s")
+
+
 def run(args: argparse.Namespace) -> int:
-    """Write the targets of ``--drive`` or ``--bag`` as ``args`` asks; returns 0."""
-    if (args.drive is None) == (args.bag is None):
-        raise InputError(f"--drive / --bag: expected one of them (a KITTI raw drive folder or a ROS bag), got "
-                         f"{'neither' if args.drive is None else 'both'}")
-    if args.bag is not None and args.stereo_check:
-        raise InputError("--stereo-check: expected a KITTI raw drive with both colour cameras (--drive), got a "
-                         "bag (one camera)")
-    if args.bag is None:
-        targets_bag.check_drive_flags(args)
-    with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
-        return targets_bag.run_bag(args) if args.bag is not None else targets_drive.run_drive(args)
+    """Write the targets of ``--drive`` or ``--bag`` as ``args`` asks (:func:`crfdepth.sequences.make_targets`);
+    returns 0."""
+    options = {"drive": args.drive, "bag": args.bag, "camera": args.camera, "frames": args.frames,
+               "window": args.window, "poses": args.poses, "stereo_check": args.stereo_check,
+               "image_topic": args.image_topic, "points_topic": args.points_topic,
+               "camera_info_topic": args.camera_info_topic, "calib": args.calib, "max_dt": args.max_dt}
+    check_targets_options(args.out_dir, vis_dir=args.vis or None, **options)
+    with rerun_recording(args) as recorder:  # checked now, written when the run ends
+        source = Path(args.drive if args.bag is None else args.bag)
+        outputs = check_output_folders(args, [source], "the --bag input" if args.bag else f"the input drive {source}")
+        progress = _Progress(args.quiet)
+        try:
+            with output_folders(outputs) as folders:
+                done = make_targets(folders[0], vis_dir=folders[2] if args.vis is not None else None,
+                                    picture=targets_picture, recorder=recorder, progress=progress, **options)
+        finally:
+            progress.close()
+    if not args.quiet:
+        print(_summary(args, done))
+    return 0

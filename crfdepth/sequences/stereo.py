@@ -46,7 +46,8 @@ from crfdepth.errors import InputError
 from crfdepth.intrinsics import check_intrinsics
 
 __all__ = ["DISPARITY_TOL_PX", "DISPARITY_TOL_REL", "LR_TOL_PX", "MARGIN", "MIN_SCORE", "MIN_TEXTURE",
-           "STEREO_MIN_DEPTH_M", "StereoCheck", "baseline_from_projections", "stereo_check", "stereo_consistent"]
+           "STEREO_MIN_DEPTH_M", "StereoCheck", "baseline_from_projections", "remove_stereo_contradicted",
+           "stereo_check", "stereo_consistent"]
 
 # --- Thresholds (docs/design.md section 16; measured by benchmarks/stereo_check.py) -----------------
 # Disparity tolerance: KITTI's LiDAR-camera calibration is good to about a pixel, a return is stored at
@@ -383,3 +384,17 @@ def stereo_consistent(depth, left, right, K, baseline_m: float, **options) -> to
     ``options``: ``window``, ``min_depth_m``."""
     keep = stereo_check(depth, left, right, K, baseline_m, **options).keep
     return keep.reshape(depth.shape) if isinstance(depth, torch.Tensor) else keep
+
+
+def remove_stereo_contradicted(target: np.ndarray, left: np.ndarray, right: np.ndarray, K: np.ndarray,
+                                baseline_m: float) -> np.ndarray:
+    """A new (H, W) float32 ``target`` (z-depth, metres, 0 = no target; not modified) with the pixels
+    :func:`stereo_consistent` drops set to 0. ``left``, ``right``: (H, W, 3) uint8 RGB images of the target's
+    camera and of the other camera of the rectified pair; ``K``: (3, 3) of both (pixels); ``baseline_m``: metres,
+    > 0 when ``right``'s camera is right of ``left``'s (:func:`baseline_from_projections`)."""
+    images = [torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0 for image in (left, right)]
+    keep = stereo_consistent(torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)), images[0], images[1],
+                             K, baseline_m)
+    out = np.array(target, dtype=np.float32, copy=True)
+    out[~keep.numpy()] = 0.0
+    return out

@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crfdepth.cli import main, targets_drive
+from crfdepth.cli import main
 from crfdepth.data.sequences import SequenceFrames
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.calibration import read_raw_calibration
 from crfdepth.io.kitti import read_depth_png, read_velodyne
+from crfdepth.sequences import pose_source
 from crfdepth.sequences.poses import read_kitti_poses
 from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
@@ -286,7 +287,7 @@ def test_tf_poses_demanded_without_tf(sequence, tmp_path, capsys, monkeypatch):
              "crfdepth targets: error: --poses tf: expected odometry on /tf (a transform from a fixed frame such as "
              "odom or map to the LiDAR frame 'velodyne' that changes over time), got no transform above it; use "
              "--poses odometry or --poses FILE")
-    monkeypatch.setattr(targets_drive, "kiss_installed", lambda: False)
+    monkeypatch.setattr(pose_source, "kiss_installed", lambda: False)
     _refused(["targets", "--bag", bag, "--out-dir", out], capsys, out,
              "crfdepth targets: error: --poses auto: the bag has no odometry on /tf, and LiDAR odometry needs the "
              "kiss-icp package, not installed; pip install \"crfdepth[odometry]\", or give --poses FILE")

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from crfdepth.cli import targets_drive
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.files import LOCK_NAME
 from crfdepth.io.kitti import read_depth_png
+from crfdepth.sequences import drive_targets, pose_source
 from crfdepth.sequences.poses import read_kitti_poses
 from tests.cli.frames import run_main as run
 from tests.sequence_drive import DRIVE, poses_file, write_drive
@@ -244,7 +244,7 @@ def test_refuses_odometry_that_fails(synthetic_drive, tmp_path, capsys):
 
 @pytest.mark.parametrize("mode, why", [("odometry", ""), ("auto", "the drive has no oxts/data, and ")])
 def test_odometry_without_kiss_icp_names_the_extra(synthetic_drive, tmp_path, capsys, monkeypatch, mode, why):
-    monkeypatch.setattr(targets_drive, "kiss_installed", lambda: False)
+    monkeypatch.setattr(pose_source, "kiss_installed", lambda: False)
     _refused(["targets", "--drive", synthetic_drive, "--poses", mode, "--out-dir", tmp_path / "out"], capsys,
              tmp_path / "out", f"crfdepth targets: error: --poses {mode}: {why}LiDAR odometry needs the kiss-icp "
                                f"package, not installed; pip install \"crfdepth[odometry]\", or give --poses FILE")
@@ -254,7 +254,7 @@ def test_kiss_icp_missing_is_detected(monkeypatch):
     import sys
 
     monkeypatch.setitem(sys.modules, "kiss_icp", None)
-    assert targets_drive.kiss_installed() is False
+    assert pose_source.kiss_installed() is False
 
 
 def test_refuses_an_output_folder_inside_the_drive(synthetic_drive, tmp_path, capsys):
@@ -279,7 +279,7 @@ def test_refuses_a_locked_output_folder(synthetic_drive, tmp_path, capsys):
 
 
 def test_ctrl_c_reports_the_frames_written(synthetic_drive, tmp_path, capsys, monkeypatch):
-    real, calls = targets_drive.camera_view_targets, []
+    real, calls = drive_targets.camera_view_targets, []
 
     def interrupting(*args, **kwargs):
         if len(calls) == 2:
@@ -287,7 +287,7 @@ def test_ctrl_c_reports_the_frames_written(synthetic_drive, tmp_path, capsys, mo
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(targets_drive, "camera_view_targets", interrupting)
+    monkeypatch.setattr(drive_targets, "camera_view_targets", interrupting)
     out = tmp_path / "out"
     code, _, err = run(["targets", "--drive", synthetic_drive, "--poses", poses_file(synthetic_drive), "-k", 1,
                         "--out-dir", out], capsys)
@@ -375,7 +375,7 @@ def test_help_lists_the_options(capsys):
 def test_a_failure_during_the_run_says_how_far_it_got(synthetic_drive, tmp_path, capsys, monkeypatch):
     """A file that breaks after the checks (here: the writer fails on the 3rd frame) stops the run with the
     count of frames written; the index lists them."""
-    real, calls = targets_drive.write_depth_png, []
+    real, calls = drive_targets.write_depth_png, []
 
     def failing(path, depth):
         if len(calls) == 2:
@@ -383,7 +383,7 @@ def test_a_failure_during_the_run_says_how_far_it_got(synthetic_drive, tmp_path,
         calls.append(1)
         return real(path, depth)
 
-    monkeypatch.setattr(targets_drive, "write_depth_png", failing)
+    monkeypatch.setattr(drive_targets, "write_depth_png", failing)
     out = tmp_path / "out"
     code, _, err = run(["targets", "--drive", synthetic_drive, "--poses", poses_file(synthetic_drive), "-k", 1,
                         "--out-dir", out], capsys)

@@ -54,7 +54,7 @@ from crfdepth.geometry import projection
 from crfdepth.io.calibration import read_object_calibration, read_raw_calibration
 from crfdepth.io.kitti import read_rgb, read_velodyne
 from crfdepth.potentials.occlusion import see_through_mask
-from crfdepth.sequences.stereo import baseline_from_projections, stereo_consistent
+from crfdepth.sequences.stereo import baseline_from_projections, remove_stereo_contradicted
 
 if TYPE_CHECKING:
     from crfdepth.io.calibration import Calibration
@@ -84,30 +84,6 @@ def remove_see_through(target: np.ndarray, full: np.ndarray) -> np.ndarray:
     flagged = see_through_mask(torch.from_numpy(np.ascontiguousarray(full, dtype=np.float32))[None, None])
     out = np.array(target, dtype=np.float32, copy=True)
     out[flagged[0, 0].numpy()] = 0.0
-    return out
-
-
-def remove_stereo_contradicted(target: np.ndarray, left: np.ndarray, right: np.ndarray, K: np.ndarray,
-                                baseline_m: float) -> np.ndarray:
-    """The target without the pixels a rectified stereo pair contradicts (docs/design.md section 16).
-
-    Args:
-        target: (H, W) float32 z-depth in metres of the returns in the ``left`` image, 0 = no target.
-        left, right: (H, W, 3) uint8 RGB images of the target's camera and of the other camera of
-            the rectified pair (KITTI cameras 2 and 3, or 3 and 2).
-        K: (3, 3) intrinsics of both images (pixels).
-        baseline_m: metres, > 0 when ``right``'s camera is to the right of ``left``'s
-            (:func:`crfdepth.sequences.stereo.baseline_from_projections`).
-
-    Returns:
-        A new (H, W) float32 array: ``target`` with the pixels :func:`~crfdepth.sequences.stereo.stereo_consistent`
-        drops set to 0. ``target`` is not modified.
-    """
-    images = [torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0 for image in (left, right)]
-    keep = stereo_consistent(torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)), images[0], images[1],
-                             K, baseline_m)
-    out = np.array(target, dtype=np.float32, copy=True)
-    out[~keep.numpy()] = 0.0
     return out
 
 

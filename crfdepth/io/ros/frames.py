@@ -4,21 +4,23 @@ Pass 1 (:func:`plan_frames`) checks the topics and their types, every image enco
 cloud layout, the CameraInfo and the LiDAR -> camera transform of every pair (or takes
 ``--calib``), and pairs each image with the cloud nearest in ``header.stamp`` within
 ``--max-dt``; :func:`paired_frames` then reads the pairs in image order and
-:func:`decode_frame` decodes one (docs/design.md section 11).
+:func:`decode_frame` decodes one (docs/design.md section 11). What to read is a
+:class:`FrameTopics` (or any object with its attributes, such as the command line's options); errors
+name the options as the commands spell them (``--image-topic``, ``--calib`` ...).
 """
 
 from __future__ import annotations
 
-import argparse
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from crfdepth.cli.decoder_noise import quiet_decoders
-from crfdepth.cli.file_errors import flagged
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import RigCalibration, load_any_calibration
+from crfdepth.io.decoder_noise import quiet_decoders
+from crfdepth.io.file_errors import flagged
 from crfdepth.io.ros.bag import (
     CLOUD_TYPE,
     IMAGE_TYPES,
@@ -33,16 +35,32 @@ from crfdepth.io.ros.images import decode_image
 from crfdepth.io.ros.messages import camera_from_info, points_from_cloud
 from crfdepth.io.ros.tf import TransformTree
 
-__all__ = ["DEFAULT_MAX_DT_S", "Plan", "decode_frame", "paired_frames", "plan_frames"]
+__all__ = ["DEFAULT_MAX_DT_S", "FrameTopics", "Plan", "decode_frame", "paired_frames", "plan_frames"]
 
 # A 10 Hz LiDAR (the common rate) sweeps in 0.1 s: within half a sweep, every image of a
 # continuous recording has a cloud, and a cloud is never paired across a whole sweep.
 DEFAULT_MAX_DT_S = 0.05
 
 
+@dataclass(frozen=True)
+class FrameTopics:
+    """What to read of a bag: the camera image and point-cloud topics, the CameraInfo topic (None: the
+    ``camera_info`` topic beside the images), or a calibration file ``calib`` (a rig YAML/JSON or KITTI
+    calibration, :func:`crfdepth.io.calibration.load_any_calibration`, with its KITTI ``camera``) that replaces
+    the CameraInfo and the /tf transform; ``rectified``: the images are rectified already (also assumed for an
+    image topic whose last name holds ``rect``)."""
+
+    image_topic: str
+    points_topic: str
+    camera_info_topic: str | None = None
+    calib: str | Path | None = None
+    camera: int = 2
+    rectified: bool = False
+
+
 def _decode_quietly(msg, where: str) -> np.ndarray:
     """:func:`crfdepth.io.ros.images.decode_image` with the decoders' C warnings held back
-    (:func:`~crfdepth.cli.decoder_noise.quiet_decoders`): a CompressedImage that does not decode is told by
+    (:func:`~crfdepth.io.decoder_noise.quiet_decoders`): a CompressedImage that does not decode is told by
     its message alone."""
     with quiet_decoders():
         return decode_image(msg, where)
@@ -86,17 +104,17 @@ def _cloud_key(msg):
     return tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields), msg.point_step, msg.is_bigendian
 
 
-def _camera_infos(bag: Recording, args: argparse.Namespace) -> tuple[str, np.ndarray, list]:
+def _camera_infos(bag: Recording, topics: FrameTopics) -> tuple[str, np.ndarray, list]:
     """Record times and :class:`~crfdepth.io.ros.messages.CameraModel` s of the CameraInfo topic."""
-    default = args.camera_info_topic is None
-    topic = camera_info_topic(args.image_topic) if default else args.camera_info_topic
+    default = topics.camera_info_topic is None
+    topic = camera_info_topic(topics.image_topic) if default else topics.camera_info_topic
     flag = "--camera-info-topic" + (f" (default: {topic}, beside --image-topic)" if default else "")
     if topic not in bag.topics and default:
         raise InputError(f"{flag}: no CameraInfo for the images: {bag.name} has no topic {topic}; "
                          f"{bag.listing(INFO_TYPE)}; name one with --camera-info-topic, or give the camera and "
                          f"the transform with --calib FILE")
     bag.check_topic(topic, flag, (INFO_TYPE,), "CameraInfo")
-    rectified = args.rectified or "rect" in args.image_topic.rstrip("/").split("/")[-1]
+    rectified = topics.rectified or "rect" in topics.image_topic.rstrip("/").split("/")[-1]
     times, cameras = [], []
     for _, log_ns, msg in bag.messages([topic]):
         times.append(log_ns)
@@ -118,40 +136,44 @@ def _drop_duplicates(images: Stream, pairing: Pairing) -> int:
     return dropped
 
 
-def _no_pairs(args, images: Stream, clouds: Stream, pairing: Pairing, max_dt: float) -> InputError:
+def _no_pairs(topics: FrameTopics, images: Stream, clouds: Stream, pairing: Pairing, max_dt: float) -> InputError:
     closest = pairing.gap_ns.min() / 1e9
     return InputError(
-        f"--max-dt {max_dt:g}: no image of {args.image_topic} has a cloud of {args.points_topic} within {max_dt:g} s; "
+        f"--max-dt {max_dt:g}: no image of {topics.image_topic} has a cloud of {topics.points_topic} within "
+        f"{max_dt:g} s; "
         f"the closest gap is {closest:.6g} s (image stamps {images.stamps_ns.min() / 1e9:.3f}-"
         f"{images.stamps_ns.max() / 1e9:.3f} s, cloud stamps {clouds.stamps_ns.min() / 1e9:.3f}-"
         f"{clouds.stamps_ns.max() / 1e9:.3f} s): do the two sensors stamp with different clocks?")
 
 
-def plan_frames(bag: Recording, args: argparse.Namespace, max_dt: float) -> Plan:
-    bag.check_topic(args.image_topic, "--image-topic", IMAGE_TYPES, "camera image")
-    bag.check_topic(args.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
+def plan_frames(bag: Recording, topics: FrameTopics, max_dt: float) -> Plan:
+    """Pass 1 over ``bag``: the topics checked, each image paired with the cloud nearest in stamp
+    within ``max_dt`` seconds, and each paired frame's calibration; bad input raises ``InputError`` naming the
+    option."""
+    bag.check_topic(topics.image_topic, "--image-topic", IMAGE_TYPES, "camera image")
+    bag.check_topic(topics.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
     calibration = None
-    if args.calib is not None:
-        with flagged("--calib", args.calib, labels=("calibration",)):
-            calibration = load_any_calibration(args.calib, camera=args.camera)
+    if topics.calib is not None:
+        with flagged("--calib", topics.calib, labels=("calibration",)):
+            calibration = load_any_calibration(topics.calib, camera=topics.camera)
     else:
-        info_topic, info_times, cameras = _camera_infos(bag, args)
+        info_topic, info_times, cameras = _camera_infos(bag, topics)
     sizes = []
-    images = bag.scan(args.image_topic, _check_each_layout(_decode_quietly, _image_key, sizes), "--image-topic")
-    clouds = bag.scan(args.points_topic, _check_each_layout(points_from_cloud, _cloud_key), "--points-topic")
+    images = bag.scan(topics.image_topic, _check_each_layout(_decode_quietly, _image_key, sizes), "--image-topic")
+    clouds = bag.scan(topics.points_topic, _check_each_layout(points_from_cloud, _cloud_key), "--points-topic")
     for flag, stream in (("--image-topic", images), ("--points-topic", clouds)):
         if len(stream) == 0:
             raise InputError(f"{flag} {stream.topic}: no message in {bag.name}")
     pairing = pair_nearest(images.stamps_ns, clouds.stamps_ns, round(max_dt * 1e9))
     if pairing.paired == 0:
-        raise _no_pairs(args, images, clouds, pairing, max_dt)
+        raise _no_pairs(topics, images, clouds, pairing, max_dt)
     plan = Plan(images, clouds, pairing, duplicates=_drop_duplicates(images, pairing))
     tree = plan.tree = bag.transforms() if calibration is None else None
     for i in np.flatnonzero(pairing.cloud >= 0):
         if calibration is not None:
             if calibration.image_size not in (None, sizes[i]):
                 (h, w), (hc, wc) = sizes[i], calibration.image_size
-                raise InputError(f"--calib {args.calib}: expected the calibration of the {w}x{h} (WxH) images of "
+                raise InputError(f"--calib {topics.calib}: expected the calibration of the {w}x{h} (WxH) images of "
                                  f"--image-topic, got one of {wc}x{hc}")
             plan.calibrations[int(i)] = calibration
             continue
@@ -179,20 +201,20 @@ def plan_frames(bag: Recording, args: argparse.Namespace, max_dt: float) -> Plan
 # --------------------------------------------------------------------------- pass 2
 
 
-def paired_frames(bag: Recording, args, plan: Plan, skip=frozenset()):
+def paired_frames(bag: Recording, topics: FrameTopics, plan: Plan, skip=frozenset()):
     """``(image index, image message, cloud message, cloud index)`` of every paired frame not in ``skip``, in
     image order, holding only the clouds that a waiting image still needs."""
     cloud_of = plan.pairing.cloud.copy()
     cloud_of[list(skip)] = -1
     users = np.bincount(cloud_of[cloud_of >= 0], minlength=len(plan.clouds))
     clouds, waiting = {}, deque()
-    counters = {args.image_topic: 0, args.points_topic: 0}
-    for topic, _, msg in bag.messages([args.image_topic, args.points_topic]):
+    counters = {topics.image_topic: 0, topics.points_topic: 0}
+    for topic, _, msg in bag.messages([topics.image_topic, topics.points_topic]):
         index = counters[topic]
         counters[topic] += 1
-        if topic == args.image_topic and cloud_of[index] >= 0:
+        if topic == topics.image_topic and cloud_of[index] >= 0:
             waiting.append((index, msg))
-        elif topic == args.points_topic and users[index]:
+        elif topic == topics.points_topic and users[index]:
             clouds[index] = msg
         while waiting and cloud_of[waiting[0][0]] in clouds:
             image_index, image = waiting.popleft()
@@ -203,11 +225,11 @@ def paired_frames(bag: Recording, args, plan: Plan, skip=frozenset()):
                 del clouds[c]
 
 
-def decode_frame(args, plan: Plan, i: int, image_msg, cloud_msg, c: int):
+def decode_frame(topics: FrameTopics, plan: Plan, i: int, image_msg, cloud_msg, c: int):
     """A paired frame's RGB image, finite (N, 3) points and the names of its parts for error messages."""
     stamp = int(plan.images.stamps_ns[i])
-    where_image = f"--image-topic {args.image_topic} (image at {stamp} ns)"
-    where_cloud = f"--points-topic {args.points_topic} (cloud at {int(plan.clouds.stamps_ns[c])} ns)"
+    where_image = f"--image-topic {topics.image_topic} (image at {stamp} ns)"
+    where_cloud = f"--points-topic {topics.points_topic} (cloud at {int(plan.clouds.stamps_ns[c])} ns)"
     rgb = _decode_quietly(image_msg, where_image)
     xyz = points_from_cloud(cloud_msg, where_cloud)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
