@@ -192,7 +192,7 @@ def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
     file = write_model_file(path, model.config, model.state_dict())
-    logger.info("saved CRFDepth (%s mode) to %s", model.mode, file)
+    logger.info("saved CRFDepth (%s mode) to %s", model.settings.structure.mode, file)
     return file
 
 
@@ -235,7 +235,7 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     file = Path(path)
     config, state, kind = read_checkpoint(file, map_location)
     model = CRFDepth.from_stored(config, state, overrides=overrides, file=file, kind=kind)
-    logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.mode, file, kind)
+    logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.settings.structure.mode, file, kind)
     return model.to(torch.device(map_location)).eval()
 
 

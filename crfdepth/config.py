@@ -11,6 +11,13 @@ The weights file, the checkpoint and the trainer's YAML hold these groups
 left out of a group, keeps its default. Every field also has a flat name, the keyword argument of
 ``CRFDepth`` before the groups (``mode``, ``gate``, ``gate_window`` ...; :data:`FLAT`), which
 files written before the groups use and which ``CRFDepth(mode="pixel")`` still takes.
+
+Each group checks its fields as it is built, and :class:`CRFConfig` the rules across groups (the
+gate needs the mean aggregate): a :class:`~crfdepth.errors.InputError` naming the field by its flat
+name, the one users know (``Gate(window=4)``: ``gate_window: expected an odd int >= 3 (pixels), got 4``).
+The solver's ``method`` / ``rtol`` / ``max_iter`` and the std's ``terms`` are checked where they are
+read, by :func:`crfdepth.linalg.solver_settings` and :func:`crfdepth.uncertainty.predictive.check_std_terms`
+(modules above this one), when ``CRFDepth`` is built.
 """
 
 from __future__ import annotations
@@ -18,6 +25,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal, Mapping
+
+from crfdepth.checks import check_number
+from crfdepth.errors import InputError
 
 Mode = Literal["superpixel", "pixel"]
 MODES = ("superpixel", "pixel")
@@ -41,6 +51,17 @@ DEFAULT_IRLS_SCALE = 0.015
 so that a return that far behind its prediction keeps a quarter of its weight."""
 
 
+def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise InputError(f"{name}: expected one of {choices}, got {value!r}")
+
+
+def _check_positive(group: Any, names: dict[str, str]) -> None:
+    """Each field of ``group`` named by the keys of ``names`` a finite number > 0, errors naming the value."""
+    for flat, name in names.items():
+        check_number(flat, getattr(group, name), low=0.0)
+
+
 @dataclass(frozen=True)
 class Structure:
     """The graph and what it solves for (section 2, 3b, 6)."""
@@ -54,6 +75,12 @@ class Structure:
     variable: Variable = "depth"
     prior: Literal["nearest", "ip_basic"] = "nearest"
     head: bool = False
+
+    def __post_init__(self) -> None:
+        for name, choices in (("mode", MODES), ("variable", VARIABLES), ("prior", PRIORS)):
+            _check_choice(name, getattr(self, name), choices)
+        check_number("superpixels", self.superpixels, low=1, low_open=False, integer=True)
+        check_number("rounds", self.rounds, low=1, low_open=False, integer=True)
 
 
 @dataclass(frozen=True)
@@ -74,6 +101,18 @@ class Potentials:
     irls: int = 0
     irls_scale: float = DEFAULT_IRLS_SCALE
 
+    def __post_init__(self) -> None:
+        if isinstance(self.on, list):  # as YAML and JSON give it; stored as a tuple
+            object.__setattr__(self, "on", tuple(self.on))
+        if set(self.on) - set(POTENTIALS) or "colour" not in self.on:
+            raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
+                             f"got {tuple(self.on)!r}")
+        check_number("irls", self.irls, low=0, low_open=False, integer=True)
+        for name in ("alpha", "beta", "gamma", "delta"):
+            check_number(name, getattr(self, name), low=0.0, high=1.0)
+        _check_positive(self, {name: name for name in ("sigma_d", "sigma_n", "sigma_p", "confidence", "eps",
+                                                       "refine_prior", "irls_scale")})
+
 
 @dataclass(frozen=True)
 class Gate:
@@ -83,6 +122,12 @@ class Gate:
     window: int = DEFAULT_WINDOW
     threshold: float = DEFAULT_THRESHOLD
     softness: float = DEFAULT_SOFTNESS
+
+    def __post_init__(self) -> None:
+        window = self.window
+        if isinstance(window, bool) or not isinstance(window, int) or window < 3 or window % 2 == 0:
+            raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {window!r}")
+        _check_positive(self, {"gate_threshold": "threshold", "gate_softness": "softness"})
 
 
 @dataclass(frozen=True)
@@ -94,6 +139,11 @@ class Solver:
     max_iter: int | None = None
     memory_limit_gb: float | None = None
 
+    def __post_init__(self) -> None:
+        # method, rtol and max_iter are checked where the solves read them (crfdepth.linalg.solver_settings).
+        if self.memory_limit_gb is not None:
+            check_number("memory_limit_gb", self.memory_limit_gb, low=0.0)
+
 
 @dataclass(frozen=True)
 class Uncertainty:
@@ -103,6 +153,11 @@ class Uncertainty:
     scale: float = 1.0
     samples: int = 32
     terms: Mapping[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        # terms are checked where the predictive std reads them (crfdepth.uncertainty.predictive.check_std_terms).
+        _check_choice("uncertainty", self.kind, UNCERTAINTIES)
+        _check_positive(self, {"std_scale": "scale"})
 
 
 GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "gate": Gate, "solver": Solver,
@@ -145,6 +200,12 @@ class CRFConfig:
     solver: Solver = field(default_factory=Solver)
     uncertainty: Uncertainty = field(default_factory=Uncertainty)
 
+    def __post_init__(self) -> None:
+        """The checks across groups (each group checks its own fields as it is built)."""
+        if self.gate.enabled and self.structure.aggregate != "mean":
+            raise InputError(f"aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
+                             f"got {self.structure.aggregate!r}")
+
     @classmethod
     def build(cls, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> CRFConfig:
         """The configuration from a base (a :class:`CRFConfig`, a mapping of groups or of flat names,
@@ -154,12 +215,16 @@ class CRFConfig:
         Raises:
             TypeError: a name that is neither a group nor a flat name, or a field a group does not
                 have (as for any unknown keyword argument).
+            InputError: a value a group refuses (its ``__post_init__``), named by its flat name
+                (``gate_window: expected an odd int >= 3 (pixels), got 4``).
         """
         result = config if isinstance(config, CRFConfig) else cls()._with(config or {})
         return result._with(options)
 
     def _with(self, values: Mapping[str, Any]) -> CRFConfig:
-        groups = {name: getattr(self, name) for name in GROUPS}
+        """This configuration with ``values`` (groups, then flat names over them) applied: each group's
+        updates in one ``dataclasses.replace``, so that a group is only ever checked whole."""
+        updates: dict[str, dict[str, Any]] = {name: {} for name in GROUPS}
         flat = {}
         for key, value in values.items():
             if key in GROUPS and is_group(value):
@@ -167,17 +232,16 @@ class CRFConfig:
                 unknown = sorted(set(update) - {f.name for f in dataclasses.fields(GROUPS[key])})
                 if unknown:
                     raise TypeError(f"CRFDepth() got unexpected {key} field(s) {', '.join(map(repr, unknown))}")
-                groups[key] = dataclasses.replace(groups[key], **update)
+                updates[key].update(update)
             elif key in FLAT:
                 flat[key] = value
             else:
                 raise TypeError(f"CRFDepth() got an unexpected keyword argument {key!r}")
         for key, value in flat.items():
             group, name = FLAT[key]
-            groups[group] = dataclasses.replace(groups[group], **{name: value})
-        if isinstance(groups["potentials"].on, (list, tuple)):
-            groups["potentials"] = dataclasses.replace(groups["potentials"], on=tuple(groups["potentials"].on))
-        return CRFConfig(**groups)
+            updates[group][name] = value
+        return CRFConfig(**{name: dataclasses.replace(getattr(self, name), **update) if update else getattr(self, name)
+                            for name, update in updates.items()})
 
     def flat(self) -> dict[str, Any]:
         """The configuration by flat names (every one of :data:`FLAT`)."""

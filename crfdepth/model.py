@@ -21,12 +21,12 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crfdepth.checks import check_frames, check_number
-from crfdepth.config import MODES, POTENTIALS, PRIORS, UNCERTAINTIES, VARIABLES, CRFConfig
+from crfdepth.checks import check_frames
+from crfdepth.config import POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.intrinsics import check_batch_intrinsics
-from crfdepth.linalg import solver_settings
+from crfdepth.linalg import SolverSettings, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
 from crfdepth.output import CRFOutput
 from crfdepth.potentials.energy import PotentialWeights, energy
@@ -72,6 +72,10 @@ class CRFDepth(ConstrainedWeights):
             defaults below.
         **options: groups (``gate={"enabled": True}``) or flat names that replace what
             ``config`` sets; the flat names are listed below.
+
+    The configuration is kept once, as ``model.settings`` (a checked :class:`~crfdepth.config.CRFConfig`:
+    ``model.settings.structure.mode``, ``model.settings.gate.window`` ...); ``model.config`` is it as
+    plain data, and ``model.solve_settings`` the solver's part as :mod:`crfdepth.linalg` takes it.
 
     The flat names, each a field of one group (:data:`crfdepth.config.FLAT`):
 
@@ -130,54 +134,36 @@ class CRFDepth(ConstrainedWeights):
 
     def __init__(self, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> None:
         super().__init__()
-        settings = CRFConfig.build(config, **options)
-        # What checkpoints and weights files store to rebuild the model: the five groups.
-        self.settings, self.config = settings, settings.groups()
-        structure, terms, gate, solver, std = (settings.structure, settings.potentials, settings.gate,
-                                               settings.solver, settings.uncertainty)
-        for name, value, choices in (("mode", structure.mode, MODES), ("variable", structure.variable, VARIABLES),
-                                     ("prior", structure.prior, PRIORS), ("uncertainty", std.kind, UNCERTAINTIES)):
-            if value not in choices:
-                raise InputError(f"{name}: expected one of {choices}, got {value!r}")
-        check_number("superpixels", structure.superpixels, low=1, low_open=False, integer=True)
-        unknown = set(terms.on) - set(POTENTIALS)
-        if unknown or "colour" not in terms.on:
-            raise InputError(f"potentials: expected a subset of {POTENTIALS} containing 'colour', "
-                             f"got {tuple(terms.on)!r}")
-        if gate.enabled and structure.aggregate != "mean":
-            raise InputError(f"aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
-                             f"got {structure.aggregate!r}")
-        window = gate.window
-        if isinstance(window, bool) or not isinstance(window, int) or window < 3 or window % 2 == 0:
-            raise InputError(f"gate_window: expected an odd int >= 3 (pixels), got {window!r}")
-        check_number("rounds", structure.rounds, low=1, low_open=False, integer=True)
-        if solver.memory_limit_gb is not None:
-            check_number("memory_limit_gb", solver.memory_limit_gb, low=0.0)
-        check_number("irls", terms.irls, low=0, low_open=False, integer=True)
-        for name in ("alpha", "beta", "gamma", "delta"):
-            check_number(name, getattr(terms, name), low=0.0, high=1.0)
-        for name, value in (("sigma_d", terms.sigma_d), ("sigma_n", terms.sigma_n), ("sigma_p", terms.sigma_p),
-                            ("confidence", terms.confidence), ("eps", terms.eps), ("refine_prior", terms.refine_prior),
-                            ("std_scale", std.scale), ("gate_threshold", gate.threshold),
-                            ("gate_softness", gate.softness), ("irls_scale", terms.irls_scale)):
-            check_number(name, value, low=0.0)
-        self.mode, self.superpixels, self.scale_superpixels = structure.mode, structure.superpixels, \
-            structure.scale_superpixels
-        self.potentials = tuple(p for p in POTENTIALS if p in terms.on)
-        self.aggregate, self.refine, self.rounds = structure.aggregate, structure.refine, structure.rounds
-        self.variable, self.prior, self.std_samples = structure.variable, structure.prior, std.samples
-        self.gate, self.gate_window = gate.enabled, window
-        self.irls, self.uncertainty, self.memory_limit_gb = terms.irls, std.kind, solver.memory_limit_gb
+        self.settings = CRFConfig.build(config, **options)  # checked group by group as it is built
+        """The configuration, the one copy (:class:`~crfdepth.config.CRFConfig`); :attr:`config` is it as plain data."""
+        structure, terms, gate, std = (self.settings.structure, self.settings.potentials, self.settings.gate,
+                                       self.settings.uncertainty)
         std_terms = check_std_terms(std.terms)
         self.std_head = None if std.kind == "posterior" else PredictiveStd(std_terms)
         self.head = PotentialHead() if structure.head else None
-        self.solver = solver_settings(method=solver.method, rtol=solver.rtol, max_iter=solver.max_iter)
-        self._register_weights(dict(alpha=terms.alpha, beta=terms.beta, gamma=terms.gamma, delta=terms.delta,
-                                    sigma_d=terms.sigma_d, sigma_n=terms.sigma_n, sigma_p=terms.sigma_p,
-                                    confidence=terms.confidence, std_scale=std.scale,
-                                    refine_prior=terms.refine_prior, gate_threshold=gate.threshold,
-                                    gate_softness=gate.softness, irls_scale=terms.irls_scale))
+        self.solve_settings  # checks method, rtol and max_iter now, rather than at the first solve
+        weights = dict(alpha=terms.alpha, beta=terms.beta, gamma=terms.gamma, delta=terms.delta, sigma_d=terms.sigma_d,
+                       sigma_n=terms.sigma_n, sigma_p=terms.sigma_p, confidence=terms.confidence, std_scale=std.scale,
+                       refine_prior=terms.refine_prior, gate_threshold=gate.threshold, gate_softness=gate.softness,
+                       irls_scale=terms.irls_scale)
+        off = set() if gate.enabled else {"gate_threshold", "gate_softness"}  # the weights of parts that are off
+        if not terms.irls:
+            off.add("irls_scale")
+        self._register_weights({name: value for name, value in weights.items() if name not in off})
         self.register_buffer("eps", torch.tensor(float(terms.eps)))
+
+    @property
+    def config(self) -> dict[str, dict[str, Any]]:
+        """What checkpoints and weights files store to rebuild the model: :attr:`settings`' five groups as
+        plain data (:meth:`crfdepth.config.CRFConfig.groups`), read-only."""
+        return self.settings.groups()
+
+    @property
+    def solve_settings(self) -> SolverSettings:
+        """The checked settings of every linear solve (:func:`crfdepth.linalg.solver_settings`), from
+        ``settings.solver``."""
+        solver = self.settings.solver
+        return solver_settings(method=solver.method, rtol=solver.rtol, max_iter=solver.max_iter)
 
     @classmethod
     def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
@@ -225,8 +211,9 @@ class CRFDepth(ConstrainedWeights):
         off, ``eps' = eps * mean`` the prior's weight and ``mean`` that of the potentials that are on."""
         alpha = self.alpha
         beta = self.beta
-        gamma = self.gamma if "normal" in self.potentials else None
-        delta = self.delta if "distance" in self.potentials else None
+        on = self.settings.potentials.on
+        gamma = self.gamma if "normal" in on else None
+        delta = self.delta if "distance" in on else None
         active = [t for t in (alpha, beta, gamma, delta) if t is not None]
         mean = torch.stack(active).mean()
         return alpha, beta, gamma, delta, self.eps * mean, mean
@@ -239,9 +226,10 @@ class CRFDepth(ConstrainedWeights):
 
     def segments_for(self, height: int, width: int) -> int:
         """SLIC segments used for an image of this size."""
-        if not self.scale_superpixels:
-            return self.superpixels
-        return max(16, round(self.superpixels * height * width / REFERENCE_AREA))
+        structure = self.settings.structure
+        if not structure.scale_superpixels:
+            return structure.superpixels
+        return max(16, round(structure.superpixels * height * width / REFERENCE_AREA))
 
     # -- forward -------------------------------------------------------------------------
     progress: Callable[[str], None] | None = None
@@ -277,15 +265,16 @@ class CRFDepth(ConstrainedWeights):
         if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
             # Size and memory first, from the shape alone: the checks below allocate per pixel.
             check_frame_size("image", *sparse.shape[2:])
-            check_memory(self.mode, *sparse.shape[:1], *sparse.shape[2:], return_std, self.uncertainty, sparse.dtype,
-                         sparse.device, self.memory_limit_gb)
+            settings = self.settings
+            check_memory(settings.structure.mode, *sparse.shape[:1], *sparse.shape[2:], return_std,
+                         settings.uncertainty.kind, sparse.dtype, sparse.device, settings.solver.memory_limit_gb)
         batched = isinstance(K, torch.Tensor) and K.dim() == 3 and K.shape[0] > 1
         image, sparse, K = check_frames(image, sparse, K)
         check_batch_intrinsics(K, tuple(sparse.shape[2:]), batched)
         image = image.to(sparse.dtype)
         K = K.to(sparse.dtype)
         with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
-            return PIPELINES[self.mode](self, image, sparse, K, return_std)
+            return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

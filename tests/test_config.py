@@ -6,8 +6,24 @@ import json
 
 import pytest
 
-from crfdepth.config import FLAT, GROUPS, CRFConfig, Gate, flat_view, is_grouped
+from crfdepth.config import (
+    FLAT,
+    GROUPS,
+    CRFConfig,
+    Gate,
+    Potentials,
+    Solver,
+    Structure,
+    Uncertainty,
+    flat_view,
+    is_grouped,
+)
+from crfdepth.errors import InputError
 from crfdepth.model import CRFDepth
+
+OLD_ATTRIBUTES = ("mode", "superpixels", "scale_superpixels", "potentials", "aggregate", "refine", "rounds", "variable",
+                  "prior", "std_samples", "gate", "gate_window", "irls", "uncertainty", "memory_limit_gb", "solver")
+"""The flat attributes ``CRFDepth`` copied its configuration into before ``model.settings`` was the one copy."""
 
 
 def test_every_flat_name_has_one_field_and_every_field_one_flat_name():
@@ -22,8 +38,9 @@ def test_groups_and_flat_names_build_the_same_model():
     typed = CRFDepth(CRFConfig(gate=Gate(enabled=True, window=7)), mode="pixel", variable="log", alpha=0.3,
                      uncertainty="posterior")
     assert flat.config == grouped.config == typed.config
-    assert (flat.mode, flat.variable, flat.gate, flat.gate_window, flat.uncertainty) == ("pixel", "log", True, 7,
-                                                                                         "posterior")
+    s = flat.settings
+    assert (s.structure.mode, s.structure.variable, s.gate.enabled, s.gate.window, s.uncertainty.kind) == (
+        "pixel", "log", True, 7, "posterior")
     assert float(grouped.alpha) == pytest.approx(0.3)
 
 
@@ -79,7 +96,7 @@ def test_weights_files_are_written_in_groups_and_flat_ones_still_load(tmp_path):
     old["config"] = flat_view(stored)  # a file written before the groups
     (tmp_path / "old.json").write_text(json.dumps(old))
     a, b = load_model(new), load_model(tmp_path / "old.json")
-    assert a.config == b.config and a.mode == "pixel" and b.gate
+    assert a.config == b.config and a.settings.structure.mode == "pixel" and b.settings.gate.enabled
     assert float(a.alpha) == pytest.approx(0.3) and float(b.sigma_d) == pytest.approx(0.2)
 
 
@@ -89,4 +106,45 @@ def test_the_shipped_weights_file_predates_the_groups_and_loads():
     stored = json.loads(weights_path("kitti").read_text())["config"]
     assert not is_grouped(stored)
     model = CRFDepth.from_pretrained("kitti")
-    assert model.config["structure"]["mode"] == stored["mode"] and model.gate == stored["gate"]
+    assert model.config["structure"]["mode"] == stored["mode"] and model.settings.gate.enabled == stored["gate"]
+
+
+@pytest.mark.parametrize("build, name", [
+    (lambda: Structure(mode="grid"), "mode"), (lambda: Structure(variable="sqrt"), "variable"),
+    (lambda: Structure(prior="zero"), "prior"), (lambda: Structure(superpixels=0), "superpixels"),
+    (lambda: Structure(rounds=1.5), "rounds"), (lambda: Potentials(on=("normal",)), "potentials"),
+    (lambda: Potentials(alpha=1.5), "alpha"), (lambda: Potentials(irls=-1), "irls"),
+    (lambda: Potentials(sigma_p=0.0), "sigma_p"), (lambda: Potentials(eps=-1.0), "eps"),
+    (lambda: Gate(window=4), "gate_window"), (lambda: Gate(threshold=0.0), "gate_threshold"),
+    (lambda: Gate(softness=float("nan")), "gate_softness"), (lambda: Solver(memory_limit_gb=0), "memory_limit_gb"),
+    (lambda: Uncertainty(kind="sampled"), "uncertainty"), (lambda: Uncertainty(scale=-2.0), "std_scale"),
+])
+def test_each_group_refuses_a_bad_value_naming_its_flat_name(build, name):
+    with pytest.raises(InputError, match=rf"^{name}: expected"):
+        build()
+
+
+def test_a_group_is_refused_with_the_message_the_model_gave():
+    with pytest.raises(InputError, match=r"^gate_window: expected an odd int >= 3 \(pixels\), got 4$"):
+        Gate(window=4)
+    assert Potentials(on=["colour", "normal"]).on == ("colour", "normal")  # as YAML gives it
+
+
+def test_the_gate_needs_the_mean_across_groups():
+    with pytest.raises(InputError, match="aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True"):
+        CRFConfig(structure=Structure(aggregate="median"), gate=Gate(enabled=True))
+    with pytest.raises(InputError, match="^aggregate: "):
+        CRFConfig.build(structure={"aggregate": "median"}, gate=True)
+    # Checked once the whole configuration is updated: turning the gate on and the mean back in one call is fine.
+    config = CRFConfig.build(CRFConfig(structure=Structure(aggregate="median")), gate=True, aggregate="mean")
+    assert config.gate.enabled and config.structure.aggregate == "mean"
+
+
+def test_a_model_keeps_one_configuration_and_no_copies_of_it():
+    model = CRFDepth(mode="pixel", gate=True, potentials=["colour", "distance"], irls=1)
+    present = [name for name in OLD_ATTRIBUTES if hasattr(model, name)]
+    assert not present, present
+    assert isinstance(model.settings, CRFConfig) and model.config == model.settings.groups()
+    assert model.settings.potentials.on == ("colour", "distance") and model.solve_settings.rtol == 1e-5
+    with pytest.raises(AttributeError):
+        model.config = {}  # read-only: the groups are derived from model.settings

@@ -140,18 +140,6 @@ def test_gradcheck_through_the_whole_model():
 
 
 @pytest.mark.parametrize("mode", ["pixel", "superpixel"])
-def test_batch_equals_frames_alone(mode):
-    a, b = small_scene(24, 32, 0), small_scene(24, 32, 1)
-    model = CRFDepth(mode=mode, superpixels=60, scale_superpixels=False, rtol=1e-11).double()
-    both = model(torch.cat([a[0], b[0]]), torch.cat([a[1], b[1]]), torch.stack([a[2], b[2]]), return_std=True)
-    for k, (image, sparse, K, _) in enumerate((a, b)):
-        alone = model(image, sparse, K, return_std=True)
-        assert torch.allclose(both.depth[k], alone.depth[0], atol=1e-8)
-        if mode == "superpixel":  # exact variances on small graphs
-            assert torch.allclose(both.std[k], alone.std[0], atol=1e-8)
-
-
-@pytest.mark.parametrize("mode", ["pixel", "superpixel"])
 def test_common_factor_on_alpha_to_delta_leaves_depth_unchanged(mode):
     image, sparse, K, _ = small_scene(24, 32)
     model = CRFDepth(mode=mode, superpixels=60, scale_superpixels=False, rtol=1e-12).double()
@@ -163,17 +151,6 @@ def test_common_factor_on_alpha_to_delta_leaves_depth_unchanged(mode):
     after = model(image, sparse, K).depth
     assert model.alpha.item() == pytest.approx(0.15)
     assert torch.allclose(before, after, atol=1e-8)
-
-
-def test_potential_ablation_and_count_map():
-    image, sparse, K, _ = small_scene(24, 32)
-    model = CRFDepth(mode="superpixel", superpixels=60, scale_superpixels=False, potentials=("colour",),
-                     refine=False).double()
-    out = model(image, sparse, K)
-    assert out.terms.normal is None and out.terms.distance is None and len(out.info) == 1
-    assert set(torch.unique(out.count_uncertainty).tolist()) <= {0.0, 0.5, 1.0}
-    nodes_without = out.count_uncertainty[0, 0][sparse[0, 0] > 0]
-    assert bool((nodes_without < 1).all())  # a pixel with LiDAR is never in an empty node
 
 
 @pytest.mark.parametrize("mutate, match", [

@@ -28,7 +28,8 @@ def calibrate_std(model, frames: Iterable, *, apply: bool = True) -> dict:
     the scale (posterior).
     """
     frames = list(frames)
-    if model.uncertainty == "posterior":
+    kind = model.settings.uncertainty.kind
+    if kind == "posterior":
         before = float(model.std_scale.detach())
         after = calibrate_std_scale(model, frames, apply=apply)
         method = "closed-form Gaussian NLL optimum of the posterior std's scale (train.calibrate.calibrate_std_scale)"
@@ -38,7 +39,7 @@ def calibrate_std(model, frames: Iterable, *, apply: bool = True) -> dict:
         method = ("Laplace NLL of the predictive std's weights, then 68.3% coverage "
                   "(crfdepth.uncertainty.predictive.fit_std_terms via train.calibrate.fit_predictive_std)")
     used = sum(1 for s in frames if bool((s.target > 0).any()))
-    return {"uncertainty": model.uncertainty, "before": before, "after": after, "frames": used, "method": method}
+    return {"uncertainty": kind, "before": before, "after": after, "frames": used, "method": method}
 
 
 def fit_predictive_std(model, frames: Iterable, *, apply: bool = True) -> dict[str, float]:
@@ -51,8 +52,10 @@ def fit_predictive_std(model, frames: Iterable, *, apply: bool = True) -> dict[s
     Raises:
         InputError: no frame has a target pixel, or ``model`` does not compute the predictive std.
     """
-    if getattr(model, "uncertainty", None) != "predictive":
-        raise InputError(f"model: expected uncertainty='predictive', got {getattr(model, 'uncertainty', None)!r}")
+    settings = getattr(model, "settings", None)  # a CRFDepth's configuration (crfdepth.config.CRFConfig)
+    kind = getattr(getattr(settings, "uncertainty", None), "kind", None)
+    if kind != "predictive":
+        raise InputError(f"model: expected uncertainty='predictive', got {kind!r}")
     features, errors = [], []
     for out, target, valid in _outputs(model, frames):
         features.append(out.std_features.permute(0, 2, 3, 1)[valid[:, 0]])

@@ -1,11 +1,16 @@
 """The pixel-grid CRF (``mode="pixel"`` and the superpixel mode's refinement; docs/design.md
-sections 3 and 6), and the stages both pipelines share: the LiDAR evidence and the predictive std."""
+sections 3 and 6), and the stages both pipelines share: the LiDAR evidence and the predictive std.
+
+Every stage takes the model (:class:`crfdepth.model.CRFDepth`, named for type checkers only: inference
+sits below the model) and reads its configuration, ``model.settings`` (:class:`crfdepth.config.CRFConfig`),
+its current weights (``model.sigma_d``, ``model.scales()`` ...) and ``model.solve_settings``."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
-from crfdepth.inference.settings import ModelSettings
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
@@ -15,48 +20,54 @@ from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.uncertainty.predictive import std_features
 
+if TYPE_CHECKING:
+    from crfdepth.model import CRFDepth
 
-def evidence(model: ModelSettings, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+
+def evidence(model: CRFDepth, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
-    gate = (model.gate_threshold, model.gate_softness) if model.gate else None
-    return lidar_evidence(sparse, gate, model.gate_window, model.prior)
+    settings = model.settings
+    gate = (model.gate_threshold, model.gate_softness) if settings.gate.enabled else None
+    return lidar_evidence(sparse, gate, settings.gate.window, settings.structure.prior)
 
 
-def predictive_std(model: ModelSettings, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
+def predictive_std(model: CRFDepth, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
     """The predictive std (:mod:`crfdepth.uncertainty.predictive`) and its signals, from the conditional
     variance of the last solve in the unknown's units."""
-    variance = (std_in_metres(variance.sqrt(), depth, model.variable) / depth.detach()) ** 2  # in (log z)^2
+    variable = model.settings.structure.variable
+    variance = (std_in_metres(variance.sqrt(), depth, variable) / depth.detach()) ** 2  # in (log z)^2
     features = std_features(depth, sparse, kept, gate, variance)
     return model.std_head(features), features
 
 
-def pixel_solve(model: ModelSettings, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
+def pixel_solve(model: CRFDepth, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
                 kept=None) -> tuple[torch.Tensor, GridTerms]:
     """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
 
     Returns the (B, 1, H, W) depth and the last round's potentials.
     """
-    rounds, v = 1, model.variable
+    structure, on, irls = model.settings.structure, model.settings.potentials.on, model.settings.potentials.irls
+    rounds, v, solver = 1, structure.variable, model.solve_settings
     kept = sparse if kept is None else kept
     extra = dict(variable=v, gate=gate, factors=None if model.head is None else model.head(image, kept, prior))
     if geometry is None:
         t = grid_potentials(image, sparse, K, prior, eps, None, model.potential_weights(), **extra)
-        x, info = solve_system(grid_system(t), t.prior, model.solver)
+        x, info = solve_system(grid_system(t), t.prior, solver)
         infos.append(info)
-        if "normal" not in model.potentials and "distance" not in model.potentials:
+        if "normal" not in on and "distance" not in on:
             return to_depth(x, v)[:, None], t
-        geometry, rounds = to_depth(x, v)[:, None], model.rounds
+        geometry, rounds = to_depth(x, v)[:, None], structure.rounds
     for _ in range(rounds):
         t = grid_potentials(image, sparse, K, prior, eps, geometry, model.potential_weights(), **extra)
-        x, info = solve_system(grid_system(t), to_unknown(geometry[:, 0], v), model.solver)
+        x, info = solve_system(grid_system(t), to_unknown(geometry[:, 0], v), solver)
         infos.append(info)
         geometry = to_depth(x, v)[:, None]
-    if model.irls:
-        geometry, t = reweight(t, x, sparse, model.irls, model.irls_scale, v, model.solver, infos)
+    if irls:
+        geometry, t = reweight(t, x, sparse, irls, model.irls_scale, v, solver, infos)
     return geometry, t
 
 
-def pixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
+def pixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                   return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""
     bsz, _, h, w = sparse.shape
@@ -70,9 +81,10 @@ def pixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tenso
     if return_std:
         with stage("uncertainty"):
             system = grid_system(t)
-            if model.uncertainty == "posterior":
-                std = posterior_std(system, model.std_scale, samples=model.std_samples)[:, None]
-                std = std_in_metres(std, depth, model.variable)
+            settings = model.settings
+            if settings.uncertainty.kind == "posterior":
+                std = posterior_std(system, model.std_scale, samples=settings.uncertainty.samples)[:, None]
+                std = std_in_metres(std, depth, settings.structure.variable)
             else:
                 std, features = predictive_std(model, depth, sparse, kept, gate,
                                                system_conditional_variance(system)[:, None])

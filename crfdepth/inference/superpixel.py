@@ -4,9 +4,13 @@ Stages, as :class:`~crfdepth.output.Stages` times them: the LiDAR evidence and f
 the graph and its nodes, normals, the potentials, the solve (then, with the normal or
 3D-distance term on, rounds that refit them to the solution and solve again), painting
 node depths back to pixels, the optional pixel-level refinement, and the std.
+
+The stages read the model as :mod:`crfdepth.inference.pixel` says (``model.settings`` and the weights).
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import torch
 from kornia.geometry.camera import unproject_points
@@ -14,7 +18,6 @@ from kornia.geometry.camera import unproject_points
 from crfdepth.geometry.node_normals import graph_normals
 from crfdepth.inference.nodes import Nodes, gather_nodes, gather_normals
 from crfdepth.inference.pixel import evidence, pixel_solve, predictive_std
-from crfdepth.inference.settings import ModelSettings
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.energy import (
@@ -33,8 +36,11 @@ from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.count import node_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 
+if TYPE_CHECKING:
+    from crfdepth.model import CRFDepth
 
-def graph_terms(model: ModelSettings, nodes: Nodes, normals: tuple[torch.Tensor, torch.Tensor] | None,
+
+def graph_terms(model: CRFDepth, nodes: Nodes, normals: tuple[torch.Tensor, torch.Tensor] | None,
                 scales: tuple[torch.Tensor, ...]) -> EnergyTerms:
     """The first solve's terms: data, prior, colour and (where both nodes have LiDAR normals) normal;
     ``scales`` are :meth:`CRFDepth.scales <crfdepth.model.CRFDepth.scales>`."""
@@ -51,36 +57,37 @@ def graph_terms(model: ModelSettings, nodes: Nodes, normals: tuple[torch.Tensor,
                        torch.zeros_like(alpha), eps)
 
 
-def refit_geometry(model: ModelSettings, terms: EnergyTerms, x: torch.Tensor, nodes: Nodes, K: torch.Tensor,
+def refit_geometry(model: CRFDepth, terms: EnergyTerms, x: torch.Tensor, nodes: Nodes, K: torch.Tensor,
                    normals: tuple[torch.Tensor, torch.Tensor] | None, delta: torch.Tensor) -> None:
     """Refit the normal and 3D-distance terms to the solution ``x`` (in the unknown), in place:
     nodes without LiDAR normals take the normal fitted to their neighbours' 3D points."""
     src, dst = nodes.edge_index
-    points = unproject_points(nodes.centroid, to_depth(x, model.variable)[:, None], K[nodes.frame])
+    points = unproject_points(nodes.centroid, to_depth(x, model.settings.structure.variable)[:, None], K[nodes.frame])
     if normals is not None:
         node_normal, known = normals
         fitted = graph_normals(points, nodes.edge_index, x.shape[0])
         normal = torch.where(known[:, None], node_normal, fitted)
         terms.normal = normal_affinity(normal[src], normal[dst], model.sigma_n)
-    if "distance" in model.potentials:
+    if "distance" in model.settings.potentials.on:
         terms.distance = distance_affinity(points[src], points[dst], model.sigma_p)
         terms.delta = delta
 
 
-def superpixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
+def superpixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                        return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in superpixel mode, on checked inputs."""
     h, w = sparse.shape[2:]
+    structure, on, solver = model.settings.structure, model.settings.potentials.on, model.solve_settings
     stage = Stages(sparse.device, model.progress)
     with stage("fill"):
         gate, kept, fill = evidence(model, sparse)
     with stage("slic"):
         labels = slic_batch(image.detach(), model.segments_for(h, w))  # (B, H, W), the whole batch at once
     with stage("graph"):
-        graphs = build_checked_graphs(image.detach(), kept.detach()[:, 0], labels, model.aggregate)
-        nodes = gather_nodes(graphs, image, sparse, fill, gate, model.variable)
+        graphs = build_checked_graphs(image.detach(), kept.detach()[:, 0], labels, structure.aggregate)
+        nodes = gather_nodes(graphs, image, sparse, fill, gate, structure.variable)
     normals = None
-    if "normal" in model.potentials:
+    if "normal" in on:
         with stage("normals"):
             normals = gather_normals(graphs, kept, K, sparse.dtype)
     with stage("potentials"):
@@ -88,21 +95,21 @@ def superpixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.
         terms = graph_terms(model, nodes, normals, scales)
     infos: list[SolveInfo] = []
     with stage("solve"):
-        x, info = solve_system(graph_system(terms, nodes.ptr), nodes.prior, model.solver)
+        x, info = solve_system(graph_system(terms, nodes.ptr), nodes.prior, solver)
         infos.append(info)
-    if "normal" in model.potentials or "distance" in model.potentials:
-        for _ in range(model.rounds):
+    if "normal" in on or "distance" in on:
+        for _ in range(structure.rounds):
             with stage("potentials"):
                 refit_geometry(model, terms, x, nodes, K, normals, scales[3])
             with stage("solve"):
-                x, info = solve_system(graph_system(terms, nodes.ptr), x, model.solver)
+                x, info = solve_system(graph_system(terms, nodes.ptr), x, solver)
                 infos.append(info)
     with stage("painting"):
-        x = to_depth(x, model.variable)  # node depths in metres from here on
+        x = to_depth(x, structure.variable)  # node depths in metres from here on
         node_of_pixel = nodes.labels(graphs)
         depth = x[node_of_pixel][:, None]
         count_map = node_count_uncertainty(torch.cat([g.lidar_count for g in graphs]), sparse.dtype)[node_of_pixel][:, None]
-    if model.refine:
+    if structure.refine:
         with stage("refine"):
             depth, grid = pixel_solve(model, image, sparse, K, depth, model.refine_prior * scales[5], infos,
                                       geometry=depth, gate=gate, kept=kept)
@@ -110,12 +117,13 @@ def superpixel_forward(model: ModelSettings, image: torch.Tensor, sparse: torch.
     if return_std:
         with stage("uncertainty"):
             system = graph_system(terms, nodes.ptr)
-            if model.uncertainty == "posterior":
-                node_std = std_in_metres(posterior_std(system, model.std_scale, samples=model.std_samples), x,
-                                         model.variable)
+            std_settings = model.settings.uncertainty
+            if std_settings.kind == "posterior":
+                node_std = std_in_metres(posterior_std(system, model.std_scale, samples=std_settings.samples), x,
+                                         structure.variable)
                 std = node_std[node_of_pixel][:, None]
             else:
-                if model.refine:  # the last solve is the refinement's pixel grid
+                if structure.refine:  # the last solve is the refinement's pixel grid
                     variance = system_conditional_variance(grid_system(grid))[:, None]
                 else:
                     variance = system_conditional_variance(system)[node_of_pixel][:, None]

@@ -20,8 +20,6 @@ __all__ = ["ConstrainedWeights"]
 UNIT_INTERVAL = ("alpha", "beta", "gamma", "delta")
 POSITIVE = ("sigma_d", "sigma_n", "sigma_p", "confidence", "refine_prior", "std_scale", "gate_threshold",
             "gate_softness", "irls_scale")
-OPTIONAL = {"gate_threshold": "gate", "gate_softness": "gate", "irls_scale": "irls"}
-"""Weights that exist only when the model's attribute named by the value is true."""
 
 
 def _logit(p: float) -> float:
@@ -54,15 +52,13 @@ class ConstrainedWeights(nn.Module):
     (``alpha``, ..., ``irls_scale``: the properties :func:`_weight_properties` adds)."""
 
     def _register_weights(self, values: dict[str, float]) -> None:
-        """Create the free parameters of ``values`` (checked by the caller; the attributes of
-        :data:`OPTIONAL` say whether their weights exist)."""
+        """Create the free parameters of ``values``, weight name -> initial value (checked by the caller,
+        who leaves out the weights of parts that are off: those weights then do not exist)."""
         for name, value in values.items():
-            if name in OPTIONAL and not getattr(self, OPTIONAL[name]):
-                continue
             free = _logit(value) if name in UNIT_INTERVAL else math.log(value)
             self.register_parameter(_free_name(name), nn.Parameter(torch.tensor(free)))
 
     def weights(self) -> dict[str, float]:
         """The constrained parameter values, for logging and reports."""
-        names = [n for n in UNIT_INTERVAL + POSITIVE if n not in OPTIONAL or getattr(self, OPTIONAL[n])]
+        names = [n for n in UNIT_INTERVAL + POSITIVE if _free_name(n) in self._parameters]
         return {n: float(getattr(self, n).detach()) for n in names}

@@ -49,7 +49,7 @@ def built(monkeypatch) -> list[CRFDepth]:
 
 
 def _structure(model: CRFDepth) -> tuple:
-    return model.mode, model.variable, model.gate
+    return model.settings.structure.mode, model.settings.structure.variable, model.settings.gate.enabled
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def test_demo_default_is_the_kitti_structure(main, built, monkeypatch, tmp_path,
 def test_paper_weights_keep_their_own_structure(main, built, frame, tmp_path, capsys):
     assert main(_complete(frame, tmp_path / "d.png", "--weights", "paper")) == 0
     assert _first_line(capsys.readouterr().out) == PAPER_LINE
-    assert [(_structure(m), m.refine) for m in built] == [(("superpixel", "depth", False), True)]
+    assert [(_structure(m), m.settings.structure.refine) for m in built] == [(("superpixel", "depth", False), True)]
 
 
 # --------------------------------------------------------------------------- explicit options override
@@ -124,7 +124,8 @@ def test_mode_overrides_the_structure_and_says_so(main, built, frame, tmp_path, 
         "model: kitti weights, superpixel graph (300 segments), no refinement, log depth, occlusion gate "
         "(set by --mode superpixel --superpixels 300 --no-refine; the weights' own: pixel grid, log depth, "
         "occlusion gate)")
-    assert [(_structure(m), m.superpixels, m.refine) for m in built] == [(("superpixel", "log", True), 300, False)]
+    structures = [(_structure(m), m.settings.structure.superpixels, m.settings.structure.refine) for m in built]
+    assert structures == [(("superpixel", "log", True), 300, False)]
 
 
 def test_demo_mode_overrides_the_structure(main, built, monkeypatch, tmp_path, capsys):
@@ -216,7 +217,7 @@ def _help(main, capsys, command: str) -> str:
 @pytest.mark.parametrize("command", ["complete", "evaluate", "demo"])
 def test_help_names_the_real_default_structure(main, capsys, command):
     text = _help(main, capsys, command)
-    own = ", ".join(f"{name}: {load_pretrained(name).mode}" for name in WEIGHTS)
+    own = ", ".join(f"{name}: {load_pretrained(name).settings.structure.mode}" for name in WEIGHTS)
     assert own == "kitti: pixel, paper: superpixel"
     assert f"default: the weights' own structure ({own})" in text
     assert "else superpixel" not in text and "default: superpixel" not in text

@@ -286,7 +286,7 @@ def test_gradients_reach_every_learned_weight(structure):
     assert 0 < float(photometric.detach()) < 0.05
     photometric.backward(retain_graph=True)
     std_only = {"std_head.weights", "log_std_scale"}
-    unused = {"log_refine_prior"} if model.mode == "pixel" else set()
+    unused = {"log_refine_prior"} if model.settings.structure.mode == "pixel" else set()
     unused.add("log_std_scale")  # posterior std only
     grads = {}
     for name, p in model.named_parameters():

@@ -48,7 +48,7 @@ def test_export_writes_weights_and_provenance(tmp_path, capsys):
     assert about["config"] == "model:\n  loss: l1\n" and about["command"].startswith("python -m train fit")
     assert about["note"] == "val 1401.5 mm"
     loaded = load_model(out)
-    assert loaded.potentials == ("colour", "normal")
+    assert loaded.settings.potentials.on == ("colour", "normal")
     assert loaded.weights() == pytest.approx(model.weights(), rel=1e-5)
 
 

@@ -72,7 +72,7 @@ def test_save_then_load_gives_the_same_model(tmp_path, config):
 
     loaded = load_model(path)
     assert isinstance(loaded, CRFDepth) and not loaded.training
-    assert loaded.config == model.config and loaded.mode == model.mode
+    assert loaded.config == model.config and loaded.settings.structure.mode == model.settings.structure.mode
     _assert_same_parameters(loaded, model)
     with torch.no_grad():
         assert loaded.weights() == pytest.approx(model.weights(), rel=1e-6)
@@ -130,7 +130,7 @@ def test_lightning_checkpoint_loads_with_its_configuration(tmp_path):
     model = _trained(mode="pixel", potentials=("colour", "distance"), sigma_p=2.0)
     torch.save(_lightning(model.state_dict(), model.config), tmp_path / "last.ckpt")
     loaded = load_model(tmp_path / "last.ckpt", map_location="cpu")
-    assert loaded.mode == "pixel" and loaded.potentials == ("colour", "distance")
+    assert loaded.settings.structure.mode == "pixel" and loaded.settings.potentials.on == ("colour", "distance")
     assert loaded.config == model.config
     _assert_same_parameters(loaded, model)
     torch.testing.assert_close(_depth(loaded), _depth(model), rtol=0, atol=0)
@@ -141,7 +141,7 @@ def test_overrides_replace_the_stored_configuration(tmp_path):
     model = _trained(mode="pixel")
     torch.save(_lightning(model.state_dict(), model.config), tmp_path / "last.ckpt")
     loaded = load_model(tmp_path / "last.ckpt", overrides={"mode": "superpixel", "refine": False})
-    assert loaded.mode == "superpixel" and loaded.refine is False
+    assert loaded.settings.structure.mode == "superpixel" and loaded.settings.structure.refine is False
     assert loaded.config == CRFDepth(model.config, mode="superpixel", refine=False).config
     _assert_same_parameters(loaded, model)  # the learned weights, in another graph
 
@@ -272,7 +272,7 @@ def test_loads_a_lightning_checkpoint_without_lightning(tmp_path):
         "sys.modules['pytorch_lightning'] = None\n"
         "from crfdepth import load_model\n"
         f"model = load_model({str(tmp_path / 'last.ckpt')!r})\n"
-        "print(model.mode, float(model.alpha))\n"
+        "print(model.settings.structure.mode, float(model.alpha))\n"
     )
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})

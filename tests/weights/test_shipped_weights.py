@@ -41,7 +41,8 @@ def test_paper_weights_are_the_constructor_defaults():
 
 def test_from_pretrained_overrides_structure_and_keeps_weights():
     model = CRFDepth.from_pretrained("kitti", mode="pixel", potentials=("colour",))
-    assert model.mode == "pixel" and model.potentials == ("colour",) and not model.training
+    settings = model.settings
+    assert settings.structure.mode == "pixel" and settings.potentials.on == ("colour",) and not model.training
     assert _close(model.weights(), load_pretrained("kitti").weights())
 
 

@@ -19,7 +19,8 @@ KITTI_STRUCTURE = dict(mode="pixel", variable="log", gate=True)
 
 
 def _structure(model: CRFDepth) -> dict:
-    return dict(mode=model.mode, variable=model.variable, gate=model.gate)
+    return dict(mode=model.settings.structure.mode, variable=model.settings.structure.variable,
+                gate=model.settings.gate.enabled)
 
 
 def _bare_refusal(path) -> str:

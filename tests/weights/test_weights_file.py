@@ -30,9 +30,9 @@ def test_save_read_load_round_trip(tmp_path):
     config = data["config"]  # in groups
     assert config["structure"]["mode"] == "pixel" and config["potentials"]["on"] == ["colour", "normal"]
     loaded = load_model(path)
-    assert loaded.mode == "pixel" and loaded.potentials == ("colour", "normal")
+    assert loaded.settings.structure.mode == "pixel" and loaded.settings.potentials.on == ("colour", "normal")
     assert _close(loaded.weights(), model.weights())
-    assert load_model(path, overrides={"mode": "superpixel"}).mode == "superpixel"
+    assert load_model(path, overrides={"mode": "superpixel"}).settings.structure.mode == "superpixel"
     assert [p.name for p in tmp_path.iterdir()] == ["mine.json"]  # no temporary left
 
 
