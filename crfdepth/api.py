@@ -198,12 +198,10 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
     else:
         sparse_np = sparse_to_numpy(sparse, size, None if trust_units else calibration.K)
 
-    # The one conversion in: checked arrays -> the model's tensors (batch of one); the pipeline is called
-    # here rather than through model.forward, which would check the frame again.
-    image_t, sparse_t, K_t = _on_model(model, rgb.transpose(2, 0, 1)[None], sparse_np[None, None], calibration.K[None])
-    with _ModelStep(model, sparse_t, return_std) as step:
-        step.output = PIPELINES[model.mode](model, image_t, sparse_t, K_t, return_std)
-    depth, std = step.result()
+    # The checked arrays as a batch of one through the one door into the pipelines (not model.forward, which
+    # would check the frame again).
+    depth, std = _complete_on_model(model, rgb.transpose(2, 0, 1)[None], sparse_np[None, None], calibration.K[None],
+                                    return_std)
     if is_tensor:  # the one conversion out: the image's kind and device
         return depth[0].to(out_device), (std[0].to(out_device) if std is not None else None)
     return depth[0].cpu().numpy(), (std[0].cpu().numpy() if std is not None else None)
@@ -291,9 +289,19 @@ def complete_checked(model, image: torch.Tensor, sparse: torch.Tensor, K: torch.
     tensors are moved to its device and dtype. Returns (B, H, W) float32 depth and std (None without
     ``return_std``), metres, on the model's device."""
     check_model_memory(model, sparse.shape[0], *sparse.shape[2:], bool(return_std))
+    return _complete_on_model(model, image, sparse, K, return_std)
+
+
+def _complete_on_model(model, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The one door into the pipelines (``crfdepth.inference.PIPELINES``, docs/design.md section 8), shared by
+    :func:`complete_depth` and :func:`complete_checked`: a checked batch (``image`` (B, 3, H, W) in [0, 1],
+    ``sparse`` (B, 1, H, W) metres with 0 = no point, ``K`` (B, 3, 3) or (3, 3) pixels; numpy or tensors) converted
+    to the model's tensors once (:func:`_on_model`) and run by the model's pipeline in :class:`_ModelStep` (no
+    autograd, full precision, an allocator failure as a :class:`~crfdepth.memory.MemoryRefusal`). Returns (B, H, W)
+    float32 depth and std (None without ``return_std``), metres, on the model's device."""
     image, sparse, K = _on_model(model, image, sparse, K)
     with _ModelStep(model, sparse, return_std) as step:
-        step.output = PIPELINES[model.mode](model, image, sparse, K, return_std)
+        step.output = PIPELINES[model.settings.structure.mode](model, image, sparse, K, return_std)
     return step.result()
 
 
@@ -327,8 +335,9 @@ class _ModelStep:
         if exc is None or not isinstance(exc, (RuntimeError, MemoryError)) or not is_out_of_memory(exc):
             return False
         param = next(self.model.parameters())
-        estimate = estimate_bytes(self.model.mode, math.prod(self.size), self.return_std, self.model.uncertainty,
-                                  torch.finfo(param.dtype).bits // 8)
+        settings = self.model.settings
+        estimate = estimate_bytes(settings.structure.mode, math.prod(self.size), self.return_std,
+                                  settings.uncertainty.kind, torch.finfo(param.dtype).bits // 8)
         self.failure = out_of_memory(exc, self.size, param.device, estimate=estimate)
         return True
 

@@ -32,7 +32,7 @@ import torch
 from crfdepth.errors import InputError
 from crfdepth.uncertainty.posterior import MEMORY_BUDGET_BYTES
 
-__all__ = ["BYTES_PER_PIXEL", "OVERHEAD_BYTES", "MemoryRefusal", "available_memory", "check_frame_size", "cli_advice",
+__all__ = ["BYTES_PER_PIXEL", "OVERHEAD_BYTES", "MemoryRefusal", "available_memory", "check_frame_size",
            "check_image_file", "check_memory", "check_model_memory", "device_memory", "estimate_bytes", "is_out_of_memory",
            "out_of_memory"]
 
@@ -52,15 +52,6 @@ columns."""
 API_ADVICE = ("use a smaller image (or batch), a device with more memory (device='cuda'), or "
               "CRFDepth(memory_limit_gb=...) to set the limit yourself")
 """The likely fix of a memory refusal in the Python API (the CLI names its own options)."""
-
-
-def cli_advice(device: str, batch: int | None = None) -> str:
-    """The likely fix of a memory refusal in the CLI, whose ``--device`` is ``device``: of one frame, or
-    (``batch`` given) of a batch of the folder modes."""
-    other = "--device cuda" if device == "cpu" else "--device cpu"
-    if batch is None:
-        return f"use a smaller image or {other}"
-    return f"use smaller images{', --batch-size 1' if batch > 1 else ''} or {other}"
 
 
 class MemoryRefusal(InputError):
@@ -218,9 +209,9 @@ def check_model_memory(model, batch: int, height: int, width: int, return_std: b
                        advice: str = API_ADVICE) -> int:
     """:func:`check_memory` for a forward of ``model`` (a :class:`~crfdepth.model.CRFDepth`) on its device and
     dtype, under its ``memory_limit_gb``."""
-    param = next(model.parameters())
-    return check_memory(model.mode, batch, height, width, return_std, model.uncertainty, param.dtype, param.device,
-                        model.memory_limit_gb, what=what, advice=advice)
+    param, settings = next(model.parameters()), model.settings
+    return check_memory(settings.structure.mode, batch, height, width, return_std, settings.uncertainty.kind,
+                        param.dtype, param.device, settings.solver.memory_limit_gb, what=what, advice=advice)
 
 
 def check_image_file(path, what: str, *, device: str | torch.device, dtype: torch.dtype | str, return_std: bool,

@@ -12,13 +12,11 @@ import math
 
 import numpy as np
 
-from crfdepth.errors import InputError
+from crfdepth.runs.skip_bad import BAD_INPUT  # what crfdepth.cli.main reports as bad input (one line, exit status 2)
 
-__all__ = ["BAD_INPUT", "VisRange", "add_rerun_argument", "add_topic_arguments", "fraction", "int_at_least",
-           "positive_number", "vis_range_type"]
+__all__ = ["BAD_INPUT", "MAX_WORKERS", "STRATEGIES", "VisRange", "add_batch_arguments", "add_rerun_argument",
+           "add_topic_arguments", "fraction", "int_at_least", "positive_number", "vis_range_type"]
 
-# What ``crfdepth.cli.main`` reports as bad input (one line, exit status 2).
-BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
 
 
 def int_at_least(low: int, high: int | None = None, meaning: str | None = None):
@@ -111,3 +109,43 @@ def add_rerun_argument(parser: argparse.ArgumentParser, frames: str) -> None:
                              f"exist; the file appears when the run ends, and not at all when it fails. Without "
                              f"FILE: stream to the Rerun viewer listening on its default port (9876), spawning "
                              f"one if none runs")
+
+
+# More reading processes than this cannot keep up better with a solve that takes seconds per
+# frame; the cap turns a typo (--workers 400) into a usage error instead of 400 processes.
+MAX_WORKERS = 64
+# How --devices processes are started (crfdepth.runs.ranks.joined_group), named after Lightning's strategies.
+STRATEGIES = ("auto", "spawn", "ddp")
+
+
+def add_batch_arguments(group: argparse._ActionsContainer) -> None:
+    """``--batch-size B`` and ``--workers N`` (read by :func:`crfdepth.runs.batches.frame_batches`), and ``--devices N``, ``--num-nodes
+    M`` and ``--strategy`` (:mod:`crfdepth.runs.processes`, :mod:`crfdepth.runs.ranks`, :mod:`crfdepth.runs.launch`),
+    shared by ``complete --input-dir`` / ``--input-list`` and ``evaluate``."""
+    group.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
+                       help="frames per model call (default 1, the fastest on CPU as measured; batches are "
+                            "meant for --device cuda); consecutive frames of the same size go together, a size "
+                            "change starts a new batch. Each frame's solve stops when it has converged, so "
+                            "depths differ from batch 1 by the solver tolerance only (measured: at most 1/256 m, "
+                            "one unit of a depth PNG)")
+    group.add_argument("--workers", type=int_at_least(0, MAX_WORKERS), default=0, metavar="N",
+                       help=f"processes that read and check frames ahead of the model (DataLoader "
+                            f"num_workers, 0 to {MAX_WORKERS}; default 0: this process, enough for local KITTI "
+                            f"frames, which read in about 20 ms; more help when reading is slow, e.g. from "
+                            f"network storage)")
+    group.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
+                       help="N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes sharing the "
+                            "cores), the batches dealt to them in turn: the outputs are one process's (depth within "
+                            "one PNG code: the threads' summation order)")
+    group.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
+                       help="M machines of N --devices each: start the same command on every node with torchrun "
+                            "--nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks, plans and "
+                            "reports, every rank does its dealt batches (the output folder shared)")
+    group.add_argument("--strategy", choices=STRATEGIES, default="auto",
+                       help="how the --devices processes are started, named after Lightning's strategies: auto "
+                            "(default) = a rank of the launcher's group when started by torchrun or srun, else "
+                            "spawn for --devices N > 1; spawn = N local processes started by torch.multiprocessing "
+                            "(one machine, no launcher); ddp = one rank per device in a torch.distributed group "
+                            "(gloo): under torchrun it joins the launcher's group, and without one it starts the N "
+                            "ranks on this machine itself with torch's elastic launcher (the same command in each; "
+                            "--devices 1: one process)")

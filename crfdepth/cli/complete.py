@@ -22,7 +22,7 @@ A folder in the ``val_selection_cropped`` or ``test_depth_completion_anonymous``
     crfdepth complete --input-dir val_selection_cropped --out-dir pred/ [--out-std-dir std/] \\
         [--batch-size B] [--workers N]
 
-A KITTI raw drive folder the same way (:mod:`crfdepth.cli.complete_folder`): each scan projected whole
+A KITTI raw drive folder the same way (:mod:`crfdepth.runs.folder`): each scan projected whole
 into the ``--camera`` image (2 or 3, uncropped), as ``--points``/``--calib`` do for one frame, written as
 ``<frame number>.png``::
 
@@ -31,7 +31,7 @@ into the ``--camera`` image (2 or 3, uncropped), as ``--points``/``--calib`` do 
 Folder mode reads the frames with a ``torch.utils.data.DataLoader``: ``--workers N``
 processes (default 0: this process) read, decode and check frames ahead of the model, and
 up to ``--batch-size B`` (default 1) consecutive frames of the same size are completed by
-one model call (a size change starts a new batch; :func:`crfdepth.cli.batches.frame_batches`).
+one model call (a size change starts a new batch; :func:`crfdepth.runs.batches.frame_batches`).
 A batch's CG solves run together, each frozen once converged, so depths differ from batch 1
 by the solver tolerance only: at most one unit (1/256 m) of the depth PNG, measured on the
 two KITTI validation frames and on synthetic frames of two sizes (the std PNG: one unit
@@ -70,7 +70,7 @@ is told by that one line, without the decoders' own warnings on stderr
 (``--checkpoint`` loaded, ``--device`` checked). Only then are the ``--out-dir``,
 ``--out-std-dir`` and ``--vis`` folders created if missing (parents included; they must
 be writable). A frame's PNGs (depth, std, pictures) are written to temporary files and
-renamed into place together once all are written (:func:`crfdepth.cli.outputs.write_files`),
+renamed into place together once all are written (:func:`crfdepth.runs.outputs.write_files`),
 so a failed run leaves no partial file and no part of a frame; the error names the flag and
 the file asked for (``--out: cannot write d/depth.png: No space left on device``), never the
 temporary file. An error of the system on any file the user named (a name too long, a
@@ -103,7 +103,7 @@ nothing of the frame being written stays. A run stopped before its first frame w
 leaves nothing behind: no PNG, no run record, no ``skipped.csv``, and the folders it created
 are removed.
 The same command with ``--resume`` completes the others, and the folders end as one
-uninterrupted run's, byte for byte (:mod:`crfdepth.cli.resume`).
+uninterrupted run's, byte for byte (:mod:`crfdepth.runs.resume`).
 
 The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders are locked while the run writes
 (``.crfdepth.lock``: pid, host, start time, command; :func:`crfdepth.io.files.lock_folder`):
@@ -128,18 +128,20 @@ from __future__ import annotations
 
 import argparse
 
-from crfdepth.cli.arguments import VisRange, add_rerun_argument, vis_range_type
-from crfdepth.cli.batches import add_batch_arguments
+from crfdepth import api
+from crfdepth.cli.arguments import VisRange, add_batch_arguments, add_rerun_argument, vis_range_type
 from crfdepth.cli.complete_bag import BAG_ONLY, run_bag
 from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
-from crfdepth.cli.complete_folder import run_folder
+from crfdepth.cli.complete_folder import folder_run, run_folder
 from crfdepth.cli.complete_list import run_list
-from crfdepth.cli.complete_one import run_one
+from crfdepth.cli.complete_one import read_one, write_one
+from crfdepth.cli.completion import frame_errors
 from crfdepth.cli.model_options import add_model_arguments
-from crfdepth.cli.outputs import rerun_recording
-from crfdepth.cli.ranks import launcher_world_size
 from crfdepth.errors import InputError
 from crfdepth.plausibility import SPARSE_UNITS
+from crfdepth.runs.folder import complete_folder
+from crfdepth.runs.outputs import rerun_recording
+from crfdepth.runs.ranks import launcher_world_size
 
 # --------------------------------------------------------------------------- arguments
 
@@ -232,6 +234,9 @@ def run(args: argparse.Namespace) -> int:
 
     Bad input raises InputError / FileNotFoundError / PermissionError naming the file or
     option, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
+    A folder goes to :func:`crfdepth.runs.folder.complete_folder` and one frame to
+    :func:`crfdepth.api.complete_depth` from here, so that neither passes a call more on its way to the CG loop
+    than it needs (docs/design.md section 8).
     """
     many = args.bag is not None or args.input_dir is not None or args.input_list is not None
     given = [flag for flag, value in (("--input-list", args.input_list), ("--input-dir", args.input_dir),
@@ -264,7 +269,15 @@ def run(args: argparse.Namespace) -> int:
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]
     if stray and args.bag is None:
         raise InputError(f"{', '.join(stray)}: bag options need --bag")
-    with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
+    with rerun_recording(args.rerun) as args.recorder:  # checked now, written when the run ends
         if args.bag is not None:
             return run_bag(args)
-        return run_folder(args) if args.input_dir is not None else run_one(args)
+        if args.input_dir is not None:
+            return complete_folder(folder_run(args))
+        frame = read_one(args)
+        with frame_errors(args, frame.model, frame.rgb.shape[:2], frame.where, frame.units):
+            depth, std = api.complete_depth(frame.rgb, model=frame.model, device=args.device,
+                                            trust_transform=args.trust_transform,
+                                            return_std=frame.out_std is not None or args.vis is not None,
+                                            **frame.inputs)
+        return write_one(args, frame, depth, std)

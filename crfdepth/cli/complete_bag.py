@@ -43,7 +43,7 @@ Ctrl-C stops the run: the frames before it stay (each file is written atomically
 index lists exactly them, the message says how many, and no ``--out-bag`` is left.
 
 The output folders are locked for the run (``.crfdepth.lock``,
-:func:`crfdepth.cli.outputs.output_folders`): a second run into them is refused naming the
+:func:`crfdepth.runs.outputs.output_folders`): a second run into them is refused naming the
 first. An ``--out-dir`` holding the ``index.csv`` of an earlier run is refused unless
 ``--overwrite``, so that ``index.csv`` lists exactly the PNGs of one run.
 """
@@ -63,16 +63,17 @@ from tqdm import tqdm
 
 from crfdepth import api
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
-from crfdepth.cli.bag_frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
 from crfdepth.cli.completion import flag_names, frame_errors
 from crfdepth.cli.file_errors import FileError
 from crfdepth.cli.model_options import build_model
-from crfdepth.cli.outputs import check_output_folders, check_writable_dir, output_folders, write_files, write_frame
-from crfdepth.cli.skip_bad import skipped_frames, write_skipped
+from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
 from crfdepth.inputs import points_to_sparse
 from crfdepth.io.ros.bag import Recording, camera_info_topic
+from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
+from crfdepth.runs.outputs import check_writable_dir, write_files, write_frame
+from crfdepth.runs.skip_bad import skipped_frames, write_skipped
 
 __all__ = ["BAG_ONLY", "add_arguments", "run_bag"]
 

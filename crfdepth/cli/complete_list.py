@@ -15,10 +15,10 @@ share a name), by the folder or bag mode with the run's options, ``--resume``, `
 ``--num-nodes`` and ``--strategy`` included. One input is held at a time, so the memory is that of the
 largest input's run, not of the list. An input that fails stops the run, naming its line, unless
 ``--skip-bad``: then the others go on and the summary lists the failed lines. ``--resume`` continues a
-stopped list: each folder input resumes (:mod:`crfdepth.cli.resume`), and a recording is completed again
+stopped list: each folder input resumes (:mod:`crfdepth.runs.resume`), and a recording is completed again
 whole (its ``index.csv`` lists the frames of one run).
 
-As ranks of a group (``--num-nodes`` under torchrun, ``--strategy ddp``: :mod:`crfdepth.cli.ranks`) the
+As ranks of a group (``--num-nodes`` under torchrun, ``--strategy ddp``: :mod:`crfdepth.runs.ranks`) the
 group is joined once for the whole list. Rank 0 reads the list and shares it; each folder is then checked
 and planned by rank 0 and its batches dealt to the ranks, as ``--input-dir`` does; a recording is
 completed by rank 0 alone (its frames are read in order, from one file) while the other ranks wait. An
@@ -35,9 +35,9 @@ import os
 from pathlib import Path
 
 from crfdepth.cli.arguments import BAD_INPUT
-from crfdepth.cli.ranks import Ranks, run_in_group
 from crfdepth.data.kitti.drive import is_raw_drive, raw_drives, shown_drives
 from crfdepth.errors import InputError
+from crfdepth.runs.ranks import Ranks, Spread, run_in_group
 
 __all__ = ["read_input_list", "run_list"]
 
@@ -110,7 +110,9 @@ def run_list(args: argparse.Namespace, run_folder, run_bag) -> int:
                                       ("--out", args.out), ("--out-std", args.out_std)) if value is not None]
     if stray:
         raise InputError(f"{', '.join(stray)}: one-frame options cannot be combined with --input-list")
-    return run_in_group(args, functools.partial(_run_list, run_folder=run_folder, run_bag=run_bag))
+    argv = getattr(args, "argv", None)
+    spread = Spread(args.devices, args.num_nodes, args.strategy, args.device, tuple(argv) if argv is not None else None)
+    return run_in_group(spread, functools.partial(_run_list, args, run_folder=run_folder, run_bag=run_bag))
 
 
 def _run_list(args: argparse.Namespace, ranks: Ranks | None, run_folder, run_bag) -> int:

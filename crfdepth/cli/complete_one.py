@@ -1,5 +1,7 @@
 """``crfdepth complete`` for one frame: ``--image`` with ``--sparse`` + ``--intrinsics``, or with ``--points``
-+ ``--calib`` (see :mod:`crfdepth.cli.complete`)."""
++ ``--calib`` (see :mod:`crfdepth.cli.complete`): :func:`read_one` checks the outputs and reads the inputs,
+``crfdepth.cli.complete.run`` completes the frame with :func:`crfdepth.api.complete_depth` and :func:`write_one`
+writes it (docs/design.md section 8: the frame reaches the CG loop in 8 calls)."""
 
 from __future__ import annotations
 
@@ -8,26 +10,44 @@ import contextlib
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from crfdepth import api
-from crfdepth.cli.completion import frame_errors
+from crfdepth.cli.completion import cli_advice
 from crfdepth.cli.decoder_noise import quiet_decoders
 from crfdepth.cli.file_errors import flagged
 from crfdepth.cli.model_options import build_model
-from crfdepth.cli.outputs import check_output_folder, make_output_dir, same_file, write_frame
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb
 from crfdepth.io.pointcloud import read_points
-from crfdepth.memory import check_image_file, cli_advice
+from crfdepth.memory import check_image_file
+from crfdepth.model import CRFDepth
+from crfdepth.runs.outputs import check_output_folder, make_output_dir, same_file, write_frame
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["run_one"]
+__all__ = ["OneFrame", "read_one", "write_one"]
+
+
+@dataclass
+class OneFrame:
+    """One frame read and checked for :func:`crfdepth.api.complete_depth`: the (H, W, 3) uint8 RGB ``rgb``, the
+    keyword ``inputs`` (``sparse`` in metres and ``K``, or ``points`` and ``calibration``), the model, where each
+    argument came from (``where``: the API's names -> the user's flags), the ``--sparse-units`` it was read in
+    (None: points), the checked outputs, and the time the completion started (``start``, seconds)."""
+
+    rgb: np.ndarray
+    inputs: dict
+    model: CRFDepth
+    where: dict[str, str]
+    units: str | None
+    out: Path
+    out_std: Path | None
+    start: float = 0.0
 
 
 def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
@@ -49,8 +69,9 @@ def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
     return out, out_std
 
 
-def run_one(args: argparse.Namespace) -> int:
-    """One frame: ``--image`` with ``--sparse`` + ``--intrinsics``, or with ``--points`` + ``--calib``."""
+def read_one(args: argparse.Namespace) -> OneFrame:
+    """One frame's outputs checked and inputs read and checked: ``--image`` with ``--sparse`` + ``--intrinsics``,
+    or with ``--points`` + ``--calib``; then the model built."""
     points_mode = args.points is not None or args.calib is not None
     needed = ("--image", "--points", "--calib", "--out") if points_mode else ("--image", "--sparse", "--intrinsics",
                                                                               "--out")
@@ -105,10 +126,12 @@ def run_one(args: argparse.Namespace) -> int:
     if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
         logger.warning("--image %s is greyscale; the colour potential sees intensity only", args.image)
     model = build_model(args)
-    start = time.perf_counter()
-    with frame_errors(args, model, rgb.shape[:2], where, None if points_mode else units):
-        depth, std = api.complete_depth(rgb, model=model, device=args.device, trust_transform=args.trust_transform,
-                                        return_std=out_std is not None or args.vis is not None, **inputs)
+    return OneFrame(rgb, inputs, model, where, None if points_mode else units, out, out_std, time.perf_counter())
+
+
+def write_one(args: argparse.Namespace, frame: OneFrame, depth: np.ndarray, std: np.ndarray | None) -> int:
+    """The frame's files written (depth, std, pictures: all or none), logged with ``--rerun``; returns 0."""
+    rgb, out, out_std = frame.rgb, frame.out, frame.out_std
     vis_dir, created = None, False
     if args.vis is not None:  # created only once the frame is completed
         created = bool(args.vis) and not os.path.isdir(args.vis)
@@ -121,9 +144,9 @@ def run_one(args: argparse.Namespace) -> int:
                 vis_dir.rmdir()  # the --vis folder this run created, empty again
         raise
     if args.recorder is not None:  # --rerun
-        lidar = dict(points=points, calibration=calibration) if points_mode else dict(sparse=sparse, K=K)
+        lidar = {key: frame.inputs[key] for key in ("points", "calibration", "sparse", "K") if key in frame.inputs}
         args.recorder.complete_frame(rgb, depth, std, **lidar)
     if not args.quiet:
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
-              f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - start:.1f} s")
+              f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - frame.start:.1f} s")
     return 0

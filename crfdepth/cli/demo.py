@@ -54,7 +54,6 @@ from crfdepth.api import complete_depth
 from crfdepth.checkpoints import load_pretrained, own_structure
 from crfdepth.cli.arguments import VisRange, add_rerun_argument, int_at_least, vis_range_type
 from crfdepth.cli.model_options import model_line
-from crfdepth.cli.outputs import rerun_recording, write_rgb_png
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
@@ -62,6 +61,7 @@ from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
 from crfdepth.pictures.figures import depth_picture, std_picture
+from crfdepth.runs.outputs import rerun_recording, write_rgb_png
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
     what was written where.
     """
     out_dir = _check_out_dir(args.out_dir)
-    with rerun_recording(args) as recorder:  # checked now, written when the run ends
+    with rerun_recording(args.rerun) as recorder:  # checked now, written when the run ends
         return _demo(args, out_dir, recorder)
 
 

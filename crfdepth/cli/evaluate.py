@@ -19,7 +19,7 @@ prediction is evaluated before PNG quantisation (1/256 m).
 
 ``--workers N`` DataLoader processes (default 0: this one; every layout's dataset pickles)
 read and check the frames; up to ``--batch-size B`` (default 1) consecutive frames of one
-size share a model call (:func:`crfdepth.cli.batches.frame_batches`). Per-frame metrics
+size share a model call (:func:`crfdepth.runs.batches.frame_batches`). Per-frame metrics
 differ from batch 1 by the solver tolerance only (measured: within 1.1e-6 relative,
 delta1 equal). A frame that cannot be read or checked stops the run with its own one-line
 message, the same for any ``--workers``.
@@ -56,7 +56,7 @@ of ground-truth pixels; with ``--std`` then one line per uncertainty metric) and
 Every check that needs no computation comes first (options, data folder and layout,
 output folder, checkpoint), so bad input exits with status 2 and a one-line message
 before anything is written. The output folder is locked for the run (``.crfdepth.lock``,
-:func:`crfdepth.cli.outputs.output_folders`): a second run into it is refused naming the
+:func:`crfdepth.runs.outputs.output_folders`): a second run into it is refused naming the
 first. The CSV and JSON are written atomically at the end, so a run
 that fails midway leaves neither (PNGs written before the failure stay). Frames with
 ground truth but no ground-truth pixel (possible after a crop) are skipped with a
@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -81,23 +82,17 @@ import torch
 from torch.utils.data import Subset
 
 from crfdepth.checkpoints import describe
-from crfdepth.cli.arguments import fraction, int_at_least
-from crfdepth.cli.batches import add_batch_arguments
-from crfdepth.cli.evaluate_frames import (
-    evaluate_frames,
-    evaluate_in_processes,
-    evaluate_share,
-    frame_chunks,
-    merge_shares,
-)
-from crfdepth.cli.evaluate_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
-from crfdepth.cli.model_options import add_model_arguments, build_model
-from crfdepth.cli.outputs import output_folders, write_files
-from crfdepth.cli.processes import deal, run_share
-from crfdepth.cli.ranks import Ranks, run_in_group
+from crfdepth.cli.arguments import add_batch_arguments, fraction, int_at_least
+from crfdepth.cli.completion import cli_advice
+from crfdepth.cli.model_options import add_model_arguments, build_model, model_maker
+from crfdepth.cli.progress import FrameBars
 from crfdepth.data.factory import LAYOUTS, build_dataset
 from crfdepth.errors import InputError
 from crfdepth.metrics import UNITS
+from crfdepth.runs.evaluation import EvaluationRun, evaluate_dataset
+from crfdepth.runs.evaluation_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
+from crfdepth.runs.outputs import output_folders, write_files
+from crfdepth.runs.ranks import Ranks, Spread, run_in_group
 from crfdepth.weights import DEFAULT_WEIGHTS
 
 logger = logging.getLogger(__name__)
@@ -233,28 +228,24 @@ def run(args: argparse.Namespace) -> int:
     or file, which ``crfdepth.cli.main`` turns into exit status 2 and a one-line message.
     As ranks of a group (``--num-nodes`` under torchrun, ``--strategy ddp``), rank 0 opens, checks and locks,
     the ranks evaluate the runs of frames dealt to them, and rank 0 merges their rows and writes the report
-    (:mod:`crfdepth.cli.ranks`).
+    (:mod:`crfdepth.runs.ranks`, :func:`crfdepth.runs.evaluation.evaluate_dataset`).
     """
-    return run_in_group(args, _run)
+    argv = getattr(args, "argv", None)
+    spread = Spread(args.devices, args.num_nodes, args.strategy, args.device, tuple(argv) if argv is not None else None)
+    return run_in_group(spread, functools.partial(_run, args, spread))
 
 
-def _run(args: argparse.Namespace, ranks: Ranks | None) -> int:
+def _run(args: argparse.Namespace, spread: Spread, ranks: Ranks | None) -> int:
     built: dict = {}
+    run = EvaluationRun(make_model=model_maker(args), batch_size=args.batch_size, workers=args.workers, std=args.std,
+                        quiet=args.quiet, spread=spread, memory_advice=functools.partial(cli_advice, args.device),
+                        progress=FrameBars())
     with contextlib.ExitStack() as stack:
         prepared = _prepare(args, stack, built) if ranks is None else \
             ranks.share(lambda: _prepare(args, stack, built))
         options, dataset, root, out_dir, png_dir = prepared
         start = time.perf_counter()
-        if ranks is not None:
-            chunks = frame_chunks(len(dataset), args.batch_size)
-            shares = deal(chunks, ranks.world)
-            share = (dataset, shares[ranks.rank] if ranks.rank < len(shares) else [], png_dir)
-            rows, skipped = merge_shares(chunks, ranks.gather(run_share(f"rank {ranks.rank + 1}/{ranks.world}", args,
-                                                                         evaluate_share, share, built.get("model"))))
-        elif args.devices > 1:
-            rows, skipped = evaluate_in_processes(dataset, args, png_dir)
-        else:
-            rows, skipped = evaluate_frames(built["model"], dataset, args, png_dir)
+        rows, skipped = evaluate_dataset(built.get("model"), dataset, run, png_dir, ranks)
         if ranks is None or ranks.is_main:
             return _write_report(args, options, dataset, root, built["model"], out_dir, png_dir, rows, skipped,
                                  time.perf_counter() - start)

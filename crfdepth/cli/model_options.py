@@ -9,7 +9,10 @@ command prints about the model it runs (``demo`` prints it too).
 from __future__ import annotations
 
 import argparse
+import copy
+import functools
 import logging
+from collections.abc import Callable
 
 import torch
 
@@ -22,7 +25,7 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["add_model_arguments", "build_model", "model_line"]
+__all__ = ["add_model_arguments", "build_model", "model_line", "model_maker"]
 
 
 def _potentials(text: str) -> tuple[str, ...]:
@@ -141,10 +144,22 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
         name = args.weights or DEFAULT_WEIGHTS
         model = load_pretrained(name, **overrides)
         line = model_line(model, f"{name} weights", overrides, own_structure(name) if overrides else None)
-    if model.mode == "pixel" and (args.superpixels is not None or args.no_refine):
+    if model.settings.structure.mode == "pixel" and (args.superpixels is not None or args.no_refine):
         logger.warning("--superpixels and --no-refine only apply to --mode superpixel; ignored")
     dtype = torch.float64 if args.dtype == "float64" else torch.float32
     model = model.to(device=args.device, dtype=dtype).eval()
     if not getattr(args, "quiet", False):
         print(line)
     return model
+
+
+def model_maker(args: argparse.Namespace) -> Callable[[bool], CRFDepth]:
+    """:func:`build_model` of ``args`` as the library's runs take it: ``make(quiet)`` (quiet: no model line, as in
+    the ``--devices`` processes and the other ranks, which build their own), picklable."""
+    return functools.partial(_build_model, args)
+
+
+def _build_model(args: argparse.Namespace, quiet: bool) -> CRFDepth:
+    told = copy.copy(args)
+    told.quiet = quiet
+    return build_model(told)

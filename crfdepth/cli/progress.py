@@ -9,6 +9,8 @@ rewritten in place and ended when the frame is done; with ``--verbose`` and no t
 (a log file) each stage is a line of its own. Nothing is written with ``--quiet``, in the
 bag mode (which has its own per-frame progress bar), or when stderr is neither a terminal
 nor asked for with ``--verbose``. A frame below the threshold pays one ``if`` per stage.
+
+:class:`FrameBars` is the progress bar of a run over many frames (:mod:`crfdepth.runs.progress`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,9 @@ import sys
 import time
 from typing import TextIO
 
-__all__ = ["FrameProgress", "REPEAT_AFTER_S", "SECONDS_PER_PIXEL", "SHOW_AFTER_S", "STAGE_NAMES"]
+from tqdm import tqdm
+
+__all__ = ["FrameBars", "FrameProgress", "REPEAT_AFTER_S", "SECONDS_PER_PIXEL", "SHOW_AFTER_S", "STAGE_NAMES"]
 
 SHOW_AFTER_S = 2.0
 """Seconds (expected or elapsed) from which a frame's stages are shown."""
@@ -87,3 +91,12 @@ class FrameProgress:
             if self.terminal:
                 self.stream.write("\n")
                 self.stream.flush()
+
+
+class FrameBars:
+    """The progress of a run over many frames (``check``, ``complete``, ``evaluate``): a tqdm bar of frames on
+    stderr when it is a terminal (the run asks none with ``--quiet``); picklable, as ``--devices`` processes
+    receive it with the run."""
+
+    def __call__(self, desc: str, total: int) -> tqdm:
+        return tqdm(total=total, unit="frame", desc=desc, disable=not sys.stderr.isatty())

@@ -1,5 +1,5 @@
 """Batched folder inference: ``--batch-size`` and ``--workers`` of ``crfdepth complete
---input-dir`` and ``crfdepth evaluate`` (crfdepth.cli.batches.frame_batches and complete_batch_with_cli_advice).
+--input-dir`` and ``crfdepth evaluate`` (crfdepth.runs.batches.frame_batches and complete_batch).
 
 The frames are built-in synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) of two sizes, written to ``tmp_path`` in the ``val_selection_cropped`` layout so
@@ -22,10 +22,6 @@ import torch
 from torch.utils.data import Dataset, Subset
 
 from crfdepth.api import complete_depth
-from crfdepth.cli import complete_folder
-from crfdepth.cli.batches import _CheckedFrames, frame_batches
-from crfdepth.cli.completion import check_sample
-from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.data.sample import Sample
@@ -33,6 +29,9 @@ from crfdepth.data.synthetic import make_scene, selection_stem, write_selection_
 from crfdepth.errors import InputError
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import METRICS
+from crfdepth.runs import folder_frames as complete_folder
+from crfdepth.runs.batches import _CheckedFrames, check_sample, frame_batches
+from crfdepth.runs.resume import RUN_RECORD
 from tests.cli.frames import run
 
 # Frame sizes (H, W) in folder order: batches of 3 are [A A A] [A] [B B] (cap, then size change).

@@ -1,6 +1,7 @@
 """One frame from ``crfdepth complete`` to the conjugate-gradient loop (docs/design.md section 8): at most 8
 calls deep, converted to the model's tensors once on the way in and to arrays once on the way out, and each
-input checked once. Measured by profiling a real run on a small synthetic frame."""
+input checked once; a folder (``--input-dir``) at most 10 calls deep. Measured by profiling real runs on small
+synthetic frames."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from tests.cli.frames import png, stem, write_folder
 
 # Where a frame crosses between arrays and tensors: the CLI, the API and the modules they read and check with
 # (the model's own stages may view a tensor's memory as an array, e.g. the CG loop's BLAS calls, without a copy).
-BOUNDARY = ("crfdepth/cli/", "crfdepth/io/", "crfdepth/api.py", "crfdepth/inputs.py", "crfdepth/checks.py",
+BOUNDARY = ("crfdepth/cli/", "crfdepth/runs/", "crfdepth/io/", "crfdepth/api.py", "crfdepth/inputs.py", "crfdepth/checks.py",
             "crfdepth/plausibility.py", "crfdepth/model.py")
 CHECKS = ("check_intrinsics", "check_sparse_plausible", "check_frames", "image_to_numpy", "sparse_to_numpy",
           "check_frame_size", "check_model_memory")
@@ -65,7 +66,8 @@ def one_frame(tmp_path_factory):
 
 def test_complete_reaches_the_cg_loop_in_at_most_8_calls(one_frame):
     path, _, _ = one_frame
-    # run, run_one, complete_depth, pixel_forward, pixel_solve, solve_system, _krylov_solve, conjugate_gradient
+    # run, complete_depth, _complete_on_model, pixel_forward, pixel_solve, solve_system, _krylov_solve,
+    # conjugate_gradient
     assert path[-1] == "conjugate_gradient" and "complete_depth" in path, path
     assert len(path) <= 8, path
 
@@ -81,3 +83,37 @@ def test_each_input_is_checked_once(one_frame):
     assert {name: calls[name] for name in CHECKS} == {
         "check_intrinsics": 1, "check_sparse_plausible": 1, "check_frames": 0, "image_to_numpy": 1,
         "sparse_to_numpy": 1, "check_frame_size": 1, "check_model_memory": 1}
+
+
+@pytest.fixture(scope="module")
+def folder_run(tmp_path_factory):
+    root = write_folder(tmp_path_factory.mktemp("folder") / "val_selection_cropped", 2)
+    return _profile(["complete", "--input-dir", str(root), "--out-dir", str(root.parent / "out"), "--quiet"])
+
+
+def test_a_folder_run_reaches_the_cg_loop_in_at_most_10_calls(folder_run):
+    path, _, _ = folder_run
+    # run, complete_folder, complete_frames, complete_batch, _complete_on_model, pixel_forward, pixel_solve,
+    # solve_system, _krylov_solve, conjugate_gradient
+    assert path[-1] == "conjugate_gradient" and "_complete_on_model" in path, path
+    assert len(path) <= 10, path
+
+
+def test_a_folder_run_converts_each_batch_once_on_the_way_out(folder_run):
+    _, _, conversions = folder_run
+    # in: the data set's tensors go to the model as they are (no from_numpy at the API); the checks read them as
+    # arrays (a view) each time a frame is read; out: the depth of each batch (of one frame) once. run_record
+    # hashes the weights, not a frame.
+    frames = {key: n for key, n in conversions.items() if key[0] != "run_record"}
+    assert frames == {("image_to_numpy", "numpy"): 4, ("sparse_to_numpy", "numpy"): 4,
+                      ("_write_batch", "numpy"): 2}, conversions
+
+
+def test_a_folder_run_checks_each_frame_once_per_read_and_the_api_none_again(folder_run):
+    _, calls, _ = folder_run
+    # each of the 2 frames is read and checked twice: by the check pass (before anything is written) and again as
+    # the completion pass reads it (the file may have changed since); the API checks nothing again and its memory
+    # check runs once per batch
+    assert {name: calls[name] for name in CHECKS} == {
+        "check_intrinsics": 4, "check_sparse_plausible": 4, "check_frames": 0, "image_to_numpy": 4,
+        "sparse_to_numpy": 4, "check_frame_size": 4, "check_model_memory": 2}

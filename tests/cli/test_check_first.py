@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from crfdepth import api
-from crfdepth.cli import complete_folder, complete_one
-from crfdepth.cli.resume import RUN_RECORD
-from crfdepth.cli.skip_bad import LISTED_BAD
+from crfdepth.cli import complete_one, model_options
+from crfdepth.runs.resume import RUN_RECORD
+from crfdepth.runs.skip_bad import LISTED_BAD
 from tests.cli.frames import FAST, files, png, run, stem, write_folder
 
 
@@ -31,7 +31,7 @@ def no_model(monkeypatch):
 
     monkeypatch.setattr(complete_one, "build_model", refuse)
     monkeypatch.setattr(api, "complete_depth", refuse)
-    monkeypatch.setattr(complete_folder, "build_model", refuse)
+    monkeypatch.setattr(model_options, "build_model", refuse)
 
 
 def test_a_bad_frame_in_the_middle_writes_nothing(tmp_path):
@@ -62,7 +62,7 @@ def test_every_bad_frame_is_listed(tmp_path):
 
 
 def test_at_most_listed_bad_frames_are_listed(tmp_path, monkeypatch):
-    monkeypatch.setattr("crfdepth.cli.skip_bad.LISTED_BAD", 2)
+    monkeypatch.setattr("crfdepth.runs.skip_bad.LISTED_BAD", 2)
     data = write_folder(tmp_path / "val_selection_cropped", 4, bad={i: "zero sparse" for i in range(4)})
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", tmp_path / "out", *FAST])
     lines = err.splitlines()

@@ -21,11 +21,11 @@ import torch
 
 from crfdepth import cli
 from crfdepth.checkpoints import save_model
-from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import read_depth_png, write_depth_png
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
+from crfdepth.runs.resume import RUN_RECORD
 from crfdepth.weights import weights_path
 
 STEM = "2011_09_26_drive_0001_sync_{kind}_0000000005_image_0{cam}"

@@ -10,10 +10,10 @@ import os
 import numpy as np
 import pytest
 
-from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.data.kitti import KittiDrive
 from crfdepth.data.synthetic import make_sequence
 from crfdepth.io.kitti import read_depth_png
+from crfdepth.runs.resume import RUN_RECORD
 from tests.cli.frames import FAST, SIZE, files, png, run, write_folder
 from tests.cli.test_resume import _same_tree, _stop_after
 from tests.sequence_drive import stem, write_drive

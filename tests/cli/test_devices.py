@@ -11,8 +11,8 @@ import os
 
 import pytest
 
-from crfdepth.cli import complete_folder
 from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
+from crfdepth.runs import folder as complete_folder
 from tests.cli.frames import FAST, files, png, run, same_pngs, same_report, stem, write_folder
 
 COUNT = 5

@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from crfdepth.cli.resume import RUN_RECORD
+from crfdepth.runs.resume import RUN_RECORD
 from tests.cli.frames import FAST, files, png, run, same_pngs, write_folder
 from tests.cli.launching import two_ranks
 

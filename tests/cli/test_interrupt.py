@@ -9,8 +9,10 @@ import csv
 import pytest
 
 from crfdepth import api
-from crfdepth.cli import complete_bag, complete_folder, outputs
-from crfdepth.cli.resume import RUN_RECORD
+from crfdepth.cli import complete_bag
+from crfdepth.runs import folder_frames as complete_folder
+from crfdepth.runs import outputs
+from crfdepth.runs.resume import RUN_RECORD
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 
@@ -31,7 +33,7 @@ def _interrupt_after(monkeypatch, module, name: str, calls: int) -> None:
 def test_folder_run_reports_the_frames_written(tmp_path, monkeypatch, batch_size):
     data = write_folder(tmp_path / "val_selection_cropped", 5)
     out = tmp_path / "out"
-    _interrupt_after(monkeypatch, complete_folder, "complete_batch_with_cli_advice", 2)  # in the 3rd model call
+    _interrupt_after(monkeypatch, complete_folder, "complete_batch", 2)  # in the 3rd model call
     code, stdout, err = run(["complete", "--input-dir", data, "--out-dir", out, "--batch-size", batch_size, *FAST])
     written = 2 * batch_size
     assert code == 130 and stdout == ""
@@ -54,7 +56,7 @@ def test_folder_run_interrupted_before_its_first_frame_leaves_no_folder(tmp_path
     data = write_folder(tmp_path / "val_selection_cropped", 2)
     out = tmp_path / "new" / "out"
     (tmp_path / "new").mkdir()
-    _interrupt_after(monkeypatch, complete_folder, "complete_batch_with_cli_advice", 0)
+    _interrupt_after(monkeypatch, complete_folder, "complete_batch", 0)
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", out, "--vis", *FAST])
     assert code == 130 and err == (f"crfdepth complete: interrupted after 0 of 2 frame(s) written to {out}; "
                                    f"--resume completes the others\n")

@@ -11,9 +11,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from crfdepth.cli import launch, ranks
 from crfdepth.cli.evaluate import JSON_NAME
 from crfdepth.errors import InputError
+from crfdepth.runs import launch, ranks
 from tests.cli.frames import FAST, run, same_pngs, same_report, write_folder
 from tests.cli.launching import alone
 

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.cli import outputs
 from crfdepth.cli.decoder_noise import quiet_decoders
 from crfdepth.cli.file_errors import FileError
-from crfdepth.cli.resume import RUN_RECORD
-from crfdepth.cli.skip_bad import FAILED_CSV
 from crfdepth.io.files import LOCK_NAME
+from crfdepth.runs import outputs
+from crfdepth.runs.resume import RUN_RECORD
+from crfdepth.runs.skip_bad import FAILED_CSV
 from tests.cli.frames import FAST, files, png, run, same_pngs, stem, write_folder
 from tests.cli.test_complete import _synthetic_frame
 
@@ -147,10 +147,10 @@ def test_a_batch_that_fails_on_its_second_frame_keeps_and_counts_the_first(folde
 
 
 def test_a_non_finite_first_frame_leaves_nothing(folder, tmp_path, monkeypatch):
-    from crfdepth.cli import complete_folder
+    from crfdepth.runs import folder_frames as complete_folder
 
-    real = complete_folder.complete_batch_with_cli_advice
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice",
+    real = complete_folder.complete_batch
+    monkeypatch.setattr(complete_folder, "complete_batch",
                         lambda model, batch, with_std: (lambda d, s: (d * float("nan"), s))(*real(model, batch,
                                                                                                   with_std)))
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])

@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from crfdepth import cli
-from crfdepth.cli import complete, complete_one, outputs
+from crfdepth.cli import complete, complete_one
 from crfdepth.cli.file_errors import FileError, error_message, flagged
 from crfdepth.errors import InputError
 from crfdepth.io import files as io_files
 from crfdepth.io.kitti import read_depth_png
+from crfdepth.runs import outputs
 from tests.cli.frames import FAST, files, run, write_folder
 from tests.cli.test_complete import _synthetic_frame
 
@@ -237,7 +238,7 @@ def _raising(exc: BaseException):
     (lambda t: OSError(errno.EIO, os.strerror(errno.EIO)), "Input/output error"),
 ])
 def test_an_os_error_no_command_told_names_the_flag(frame, tmp_path, monkeypatch, make, expected):
-    monkeypatch.setattr(complete, "run_one", _raising(make(tmp_path)))
+    monkeypatch.setattr(complete, "read_one", _raising(make(tmp_path)))
     code, _, err = run(_one(frame, tmp_path / "depth.png"))
     assert code == 2 and err == f"{PREFIX}{expected.format(t=tmp_path)}\n"
 

@@ -1,5 +1,5 @@
 """Output folders are locked by the run that writes them (crfdepth.io.files.lock_folder,
-crfdepth.cli.outputs.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
+crfdepth.runs.outputs.output_folders): a second ``complete`` / ``evaluate`` run into a folder that
 another run is writing is refused naming that run; a lock left by a run that is gone is taken
 over; the lock is removed when the run ends, whatever the reason.
 
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import pytest
 
-from crfdepth.cli import complete_folder
-from crfdepth.cli.resume import RUN_RECORD
-from crfdepth.cli.skip_bad import FAILED_CSV
 from crfdepth.io.files import LOCK_NAME, FolderLockedError, lock_folder
+from crfdepth.runs import folder_frames
+from crfdepth.runs.resume import RUN_RECORD
+from crfdepth.runs.skip_bad import FAILED_CSV
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 
@@ -58,7 +58,7 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["/usr/bin/crfdepth", "complete", "--input-dir", "A", "--out-dir", "B"])
     inner = {}
-    real = complete_folder.complete_batch_with_cli_advice
+    real = folder_frames.complete_batch
 
     def first_run_computing(model, batch, with_std):
         if not inner:  # once, while run 1 holds its folders
@@ -67,7 +67,7 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
             inner["files"] = files(out)
         return real(model, batch, with_std)
 
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", first_run_computing)
+    monkeypatch.setattr(folder_frames, "complete_batch", first_run_computing)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", out, *FAST])
     assert code == 0, err
     second_code, second_out, second_err = inner["result"]
@@ -146,7 +146,7 @@ def test_lock_folder_is_exclusive_and_released(tmp_path):
 
 def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path, monkeypatch):
     """A failure while writing (here a non-finite model output in frame 2) releases the lock."""
-    real = complete_folder.complete_batch_with_cli_advice
+    real = folder_frames.complete_batch
     calls = []
 
     def nan_second(model, batch, with_std):
@@ -154,7 +154,7 @@ def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path
         depth, std = real(model, batch, with_std)
         return (depth * float("nan"), std) if len(calls) == 2 else (depth, std)
 
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", nan_second)
+    monkeypatch.setattr(folder_frames, "complete_batch", nan_second)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])
     assert code == 2 and "non-finite" in err and "1 of 3 frame(s) written" in err and "--resume completes" in err
     # no lock left; the failed frame listed, and the record of the unfinished run for --resume
@@ -175,17 +175,17 @@ def test_evaluate_out_dir_is_locked(folder, tmp_path, sleeper):
 
 
 def test_evaluate_holds_and_releases_its_lock(folder, tmp_path, monkeypatch):
-    from crfdepth.cli import evaluate_frames
+    from crfdepth.runs import evaluation as evaluate_frames
 
     out = tmp_path / "evaluation"
     seen = []
-    real = evaluate_frames.complete_batch_with_cli_advice
+    real = evaluate_frames.complete_batch
 
     def looking(model, batch, with_std):
         seen.append((out / LOCK_NAME).is_file())
         return real(model, batch, with_std)
 
-    monkeypatch.setattr(evaluate_frames, "complete_batch_with_cli_advice", looking)
+    monkeypatch.setattr(evaluate_frames, "complete_batch", looking)
     code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", out,
                         "--potentials", "colour", "--quiet"])
     assert code == 0, err

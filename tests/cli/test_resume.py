@@ -12,9 +12,10 @@ import os
 
 import pytest
 
-from crfdepth.cli import complete_folder
-from crfdepth.cli.resume import RUN_RECORD
 from crfdepth.errors import InputError
+from crfdepth.runs import folder as complete_folder
+from crfdepth.runs import folder_frames
+from crfdepth.runs.resume import RUN_RECORD
 from tests.cli.frames import FAST, files, png, run, write_folder
 
 COUNT = 5
@@ -32,7 +33,7 @@ def _argv(data, out, *extra, quiet: bool = True) -> list:
 
 def _stop_after(monkeypatch, batches: int) -> list:
     """The model step raises KeyboardInterrupt on call ``batches + 1``; returns the list of the batches' names."""
-    real, seen = complete_folder.complete_batch_with_cli_advice, []
+    real, seen = folder_frames.complete_batch, []
 
     def step(model, batch, return_std):
         if len(seen) == batches:
@@ -40,7 +41,7 @@ def _stop_after(monkeypatch, batches: int) -> list:
         seen.append(list(batch.names))
         return real(model, batch, return_std)
 
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", step)
+    monkeypatch.setattr(folder_frames, "complete_batch", step)
     return seen
 
 
@@ -66,8 +67,8 @@ def test_stopped_and_resumed_equals_uninterrupted_file_for_file(folder, tmp_path
     monkeypatch.undo()
     done_first = set(seen[0])
     seen = []
-    real = complete_folder.complete_batch_with_cli_advice
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice",
+    real = folder_frames.complete_batch
+    monkeypatch.setattr(folder_frames, "complete_batch",
                         lambda model, batch, std: seen.append(list(batch.names)) or real(model, batch, std))
     code, _, _ = run(_argv(folder, parts, "--batch-size", batch_size, "--resume"))
     assert code == 0
@@ -83,8 +84,8 @@ def test_a_batch_cut_short_is_done_again_whole(folder, tmp_path, monkeypatch):
     assert run(_argv(folder, out, "--batch-size", "2"))[0] == 0
     (out / "s" / png(3)).unlink()  # frame 3 lost its std PNG: frames 2-3 (one batch) are unfinished
     seen = []
-    real = complete_folder.complete_batch_with_cli_advice
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice",
+    real = folder_frames.complete_batch
+    monkeypatch.setattr(folder_frames, "complete_batch",
                         lambda model, batch, std: seen.append(len(batch)) or real(model, batch, std))
     code, stdout, _ = run(_argv(folder, out, "--batch-size", "2", "--resume", quiet=False))
     assert code == 0 and seen == [2] and (out / "s" / png(3)).is_file()
@@ -125,7 +126,7 @@ def test_resume_refuses_the_finished_run_of_another_model_or_options(folder, tmp
     out = tmp_path / "o"
     assert run(_argv(folder, out))[0] == 0
     before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", None)  # must not be called
+    monkeypatch.setattr(folder_frames, "complete_batch", None)  # must not be called
     code, stdout, err = run(other(folder, out))
     assert code == 2 and stdout == ""
     assert err.splitlines()[0].startswith(f"crfdepth complete: error: --resume: {out / 'd'} holds the finished run of "
@@ -141,7 +142,7 @@ def test_a_finished_folder_is_left_as_it_is(folder, tmp_path, monkeypatch):
     record = json.loads((out / "d" / RUN_RECORD).read_text())
     assert record["finished"] is True and record["batch_size"] == 1 and len(record["weights_sha256"]) == 64
     before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", None)  # must not be called
+    monkeypatch.setattr(folder_frames, "complete_batch", None)  # must not be called
     code, stdout, _ = run(_argv(folder, out, "--resume", quiet=False))
     assert code == 0 and f"{COUNT} of {COUNT} frame(s) were finished by an earlier run" in stdout
     assert {sub: _snapshot(out / sub) for sub in ("d", "s", "v")} == before
@@ -169,7 +170,7 @@ def test_a_run_stopped_before_its_first_frame_puts_the_finished_record_back(fold
     assert run(_argv(folder, out))[0] == 0
     before = (out / "d" / RUN_RECORD).read_bytes()
 
-    def stopped(args, shares, work):
+    def stopped(*args, **kwargs):
         assert (out / "d" / RUN_RECORD).read_bytes() != before  # this run's record, written before its processes
         raise KeyboardInterrupt
 
@@ -189,14 +190,14 @@ def test_resume_applies_to_a_folder_only(tmp_path):
 
 
 def test_a_frame_that_fails_is_listed_and_the_others_completed(folder, tmp_path, monkeypatch):
-    real = complete_folder.complete_batch_with_cli_advice
+    real = folder_frames.complete_batch
 
     def step(model, batch, return_std):
         if png(2)[:-4] in batch.names:
             raise InputError("the model returned 3 non-finite depth value(s)")
         return real(model, batch, return_std)
 
-    monkeypatch.setattr(complete_folder, "complete_batch_with_cli_advice", step)
+    monkeypatch.setattr(folder_frames, "complete_batch", step)
     out = tmp_path / "o"
     code, stdout, _ = run(_argv(folder, out, "--skip-bad", quiet=False))
     assert code == 0 and "1 frame(s) failed (--skip-bad)" in stdout

@@ -1,4 +1,4 @@
-"""``complete --input-dir --resume``: what an earlier run into the same folders already finished, and the
+"""Resuming a run over a folder (``complete --input-dir --resume``): what an earlier run into the same folders already finished, and the
 batches of a run planned so that a resumed run writes the same files as an uninterrupted one.
 
 - :func:`finished_frames`: the frames whose every output (depth PNG, std PNG, pictures, as this run
@@ -12,7 +12,7 @@ batches of a run planned so that a resumed run writes the same files as an unint
   before it, stopped or finished, is refused, naming what differs; a folder without the record was
   written by hand (or by a version before the record), and its outputs are taken as they are.
 - :func:`batch_plan`: the batches of the uninterrupted run (consecutive frames of one size, up to
-  ``--batch-size``: :func:`crfdepth.cli.batches.frame_batches`' rule, the size read from each PNG's
+  ``--batch-size``: :func:`crfdepth.runs.batches.frame_batches`' rule, the size read from each PNG's
   header). A resumed run redoes every batch that holds an unfinished frame, whole, so each frame is
   solved in the batch it would have had: CG iterations of a batch run together, and a frame's depth
   depends on its batch within the solver tolerance (docs/design.md section 10).
@@ -20,16 +20,15 @@ batches of a run planned so that a resumed run writes the same files as an unint
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from pathlib import Path
 
 import torch
 
-from crfdepth.cli.outputs import write_files
 from crfdepth.errors import InputError
 from crfdepth.io.image_size import read_image_size
+from crfdepth.runs.outputs import write_files
 
 __all__ = ["RUN_RECORD", "batch_plan", "check_resumable", "earlier_run_record", "finish_run_record", "finished_frames",
            "restore_run_record", "run_record", "write_run_record"]
@@ -40,7 +39,7 @@ FINISHED = "finished"  # the record's mark of a run that wrote every frame
 
 def frame_outputs(name: str, out_dir: Path, std_dir: Path | None, vis_dir: Path | None, with_std: bool
                   ) -> list[Path]:
-    """The files a run writes for frame ``name`` (:func:`crfdepth.cli.outputs.write_frame`)."""
+    """The files a run writes for frame ``name`` (:func:`crfdepth.runs.outputs.write_frame`)."""
     paths = [out_dir / f"{name}.png"]
     if std_dir is not None:
         paths.append(std_dir / f"{name}.png")
@@ -58,18 +57,20 @@ def finished_frames(names: list[str], out_dir: Path, std_dir: Path | None, vis_d
             if all(p.is_file() for p in frame_outputs(name, out_dir, std_dir, vis_dir, with_std))}
 
 
-def run_record(args: argparse.Namespace, model, with_std: bool) -> dict:
+def run_record(model, with_std: bool, *, device: str, batch_size: int, vis: bool,
+               vis_range: tuple[float, float] | None) -> dict:
     """What decides the bytes of a run's files: the model (configuration and SHA-256 of its weights), the
-    dtype and device type it runs in, the batch size, and the outputs asked for."""
+    dtype and ``device`` type it runs in, the ``batch_size``, and the outputs asked for (the std, pictures
+    (``vis``) and their fixed depth range in metres, ``vis_range``)."""
     digest = hashlib.sha256()
     for key, tensor in sorted(model.state_dict().items()):
         digest.update(key.encode())
         digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
     param = next(model.parameters())
     return {"model": json.loads(json.dumps(model.config)), "weights_sha256": digest.hexdigest(),
-            "dtype": str(param.dtype).removeprefix("torch."), "device": torch.device(args.device).type,
-            "batch_size": args.batch_size, "std": with_std, "vis": args.vis is not None,
-            "vis_range": list(args.vis_range) if args.vis_range is not None else None}
+            "dtype": str(param.dtype).removeprefix("torch."), "device": torch.device(device).type,
+            "batch_size": batch_size, "std": with_std, "vis": vis,
+            "vis_range": list(vis_range) if vis_range is not None else None}
 
 
 def check_resumable(out_dir: Path, record: dict) -> None:

@@ -1,10 +1,10 @@
 """``--devices N`` of ``complete --input-dir`` (and of each folder of ``--input-list``) and ``evaluate`` with
 ``--strategy spawn``, or ``auto`` without a launcher: the planned batches of a run done by N processes on
 this machine, one per device (CUDA GPUs, or CPU processes sharing the cores). Ranks of a group instead
-(``--strategy ddp``, ``--num-nodes``): :mod:`crfdepth.cli.ranks`.
+(``--strategy ddp``, ``--num-nodes``): :mod:`crfdepth.runs.ranks`.
 
 The launching process does everything that decides what is written (the checks of every frame,
-``--skip-bad``, ``--resume``, the batch plan: :mod:`crfdepth.cli.complete_folder`) and holds the output
+``--skip-bad``, ``--resume``, the batch plan: :mod:`crfdepth.runs.folder`) and holds the output
 folders' locks; it then deals the planned batches to the processes in turn (batch ``j`` to process
 ``j mod N``), so each frame is solved in the batch it has in a one-process run and no frame is done
 twice or left out. Each process (``torch.multiprocessing``, started by spawn) builds the model on its
@@ -15,8 +15,7 @@ failed frames are listed (``failed.csv``) and ``--resume`` completes the rest.
 
 from __future__ import annotations
 
-import argparse
-import copy
+import dataclasses
 import os
 import queue as queue_module
 from collections.abc import Callable
@@ -24,9 +23,8 @@ from collections.abc import Callable
 import torch
 import torch.multiprocessing as mp
 
-from crfdepth.cli.arguments import BAD_INPUT
-from crfdepth.cli.model_options import build_model
 from crfdepth.errors import InputError
+from crfdepth.runs.skip_bad import BAD_INPUT
 
 __all__ = ["check_devices", "deal", "in_processes", "run_share"]
 
@@ -45,24 +43,27 @@ def check_devices(devices: int, device: str) -> None:
                              f"this machine has {cores}; give at most {cores}")
 
 
-def in_processes(args: argparse.Namespace, shares: list, work: Callable) -> list[tuple[dict, tuple[str, bool] | None]]:
-    """``work(args, model, share, partial)`` for each of ``shares`` in a process of its own (``--device cuda``: on
-    GPU ``rank``; cpu: the threads divided among the processes), the model built there from ``args``. ``work`` is
-    a module-level function (the processes import it) that fills the dict ``partial`` as it goes, so that what
-    a process did before it stopped is known. Returns, in share order, ``(partial, stop)``: ``stop`` is None, or
-    the one-line message of the error that stopped the process and whether it was an interrupt."""
+def in_processes(options, shares: list, work: Callable, *, devices: int, device: str
+                 ) -> list[tuple[dict, tuple[str, bool] | None]]:
+    """``work(options, model, share, partial)`` for each of ``shares`` in a process of its own (``device`` "cuda": on
+    GPU ``rank``; cpu: the threads divided among the processes), the model built there by ``options.make_model``.
+    ``options`` is a picklable dataclass with the fields ``quiet`` and ``make_model`` (a module-level callable of
+    ``quiet``); ``work`` is a module-level function (the processes import it) that fills the dict ``partial`` as it
+    goes, so that what a process did before it stopped is known; ``devices`` names the run's ``--devices`` in
+    messages. Returns, in share order, ``(partial, stop)``: ``stop`` is None, or the one-line message of the error
+    that stopped the process and whether it was an interrupt."""
     count = len(shares)
     context = mp.get_context("spawn")
     results = context.SimpleQueue()
-    threads = max(1, torch.get_num_threads() // count) if args.device != "cuda" else torch.get_num_threads()
+    threads = max(1, torch.get_num_threads() // count) if device != "cuda" else torch.get_num_threads()
     try:
         mp.start_processes(_run_share, nprocs=count, join=True, start_method="spawn",
-                           args=(count, args, shares, work, threads, results))
+                           args=(count, options, shares, work, threads, device, results))
     except mp.ProcessRaisedException as exc:  # an error the process could not report (a bug): its last line
-        raise RuntimeError(f"a process of --devices {args.devices} failed: {str(exc).strip().splitlines()[-1]}") \
+        raise RuntimeError(f"a process of --devices {devices} failed: {str(exc).strip().splitlines()[-1]}") \
             from None
     except mp.ProcessExitedException as exc:  # killed (out of memory, a signal) before it could report
-        raise InputError(f"--devices {args.devices}: a process ended without reporting ({exc}); what the others "
+        raise InputError(f"--devices {devices}: a process ended without reporting ({exc}); what the others "
                          f"wrote stays") from None
     reported = dict(results.get() for _ in range(count))
     return [reported[rank] for rank in range(count)]
@@ -74,17 +75,15 @@ def deal(batches: list[list[int]], devices: int) -> list[list[list[int]]]:
     return [batches[rank::count] for rank in range(count)]
 
 
-def run_share(who: str, args: argparse.Namespace, work: Callable, share, model=None
-              ) -> tuple[dict, tuple[str, bool] | None]:
-    """``work(args, model, share, partial)`` for one process or rank (``who``, for messages), quietly (one model
-    line and one summary, from the launching process or rank 0), the model built here unless given. Returns
-    ``(partial, stop)``: what ``work`` recorded, and None or the one-line error that stopped it and whether it
-    was an interrupt."""
-    quiet = copy.copy(args)
-    quiet.quiet = True
+def run_share(who: str, options, work: Callable, share, model=None) -> tuple[dict, tuple[str, bool] | None]:
+    """``work(options, model, share, partial)`` for one process or rank (``who``, for messages), quietly (one model
+    line and one summary, from the launching process or rank 0), the model built here
+    (``options.make_model(True)``) unless given. Returns ``(partial, stop)``: what ``work`` recorded, and None or
+    the one-line error that stopped it and whether it was an interrupt."""
+    quiet = dataclasses.replace(options, quiet=True)
     partial: dict = {}
     try:
-        work(quiet, model if model is not None else build_model(quiet), share, partial)
+        work(quiet, model if model is not None else options.make_model(True), share, partial)
     except (*BAD_INPUT, OSError) as exc:  # OSError: an output that cannot be written (FileError names its flag)
         return partial, (f"{who}: {exc}", False)
     except KeyboardInterrupt as exc:
@@ -92,13 +91,13 @@ def run_share(who: str, args: argparse.Namespace, work: Callable, share, model=N
     return partial, None
 
 
-def _run_share(rank: int, count: int, args: argparse.Namespace, shares: list, work: Callable, threads: int,
+def _run_share(rank: int, count: int, options, shares: list, work: Callable, threads: int, device: str,
                results) -> None:
     """One process of :func:`in_processes`: puts ``(rank, (partial, stop))`` on ``results``."""
     torch.set_num_threads(threads)
-    if args.device == "cuda":
+    if device == "cuda":
         torch.cuda.set_device(rank)
-    done = run_share(f"process {rank + 1}/{count}", args, work, shares[rank])
+    done = run_share(f"process {rank + 1}/{count}", options, work, shares[rank])
     try:
         results.put((rank, done))
     except (OSError, queue_module.Full):  # the launching process is gone

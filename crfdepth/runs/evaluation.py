@@ -1,44 +1,65 @@
-"""``crfdepth evaluate``'s pass over the frames: each batch completed, scored against its ground truth
-(per-frame metrics, with ``--std`` the uncertainty metrics), and with ``--save-png`` written
-(see :mod:`crfdepth.cli.evaluate`)."""
+"""Evaluating a model over a data set (``crfdepth evaluate``): each batch completed, scored against its ground
+truth (per-frame KITTI metrics, docs/design.md section 7; with ``std`` the uncertainty metrics, section 5), and
+with a PNG folder written; alone, in ``--devices`` processes or as ranks of a group (:mod:`crfdepth.runs.ranks`).
+The run is a typed :class:`EvaluationRun`; ``crfdepth.cli.evaluate`` builds it from its flags."""
 
 from __future__ import annotations
 
 import itertools
 import logging
-import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from torch.utils.data import Subset
-from tqdm import tqdm
 
-from crfdepth.cli.arguments import BAD_INPUT
-from crfdepth.cli.batches import frame_batches
-from crfdepth.cli.completion import complete_batch_with_cli_advice
-from crfdepth.cli.outputs import write_depth_png
-from crfdepth.cli.processes import deal, in_processes
 from crfdepth.errors import InputError
+from crfdepth.memory import MemoryRefusal
 from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
+from crfdepth.runs.batches import complete_batch, frame_batches
+from crfdepth.runs.outputs import write_depth_png
+from crfdepth.runs.processes import deal, in_processes, run_share
+from crfdepth.runs.progress import bar
+from crfdepth.runs.ranks import Spread
+from crfdepth.runs.skip_bad import BAD_INPUT
 
 logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
 
-__all__ = ["evaluate_frames", "evaluate_in_processes", "evaluate_share", "frame_chunks", "merge_shares"]
+__all__ = ["EvaluationRun", "evaluate_dataset", "evaluate_frames", "evaluate_in_processes", "evaluate_share", "frame_chunks",
+           "merge_shares"]
+
+
+@dataclass(frozen=True)
+class EvaluationRun:
+    """How a data set is evaluated (picklable: ``--devices`` processes receive it): ``batch_size`` frames per model
+    call, ``workers`` DataLoader processes reading ahead, ``std``: the uncertainty metrics too; ``quiet``: no
+    progress; ``spread``, ``make_model``, ``memory_advice`` and ``progress`` as for
+    :class:`crfdepth.runs.folder.FolderRun`."""
+
+    make_model: Callable
+    batch_size: int = 1
+    workers: int = 0
+    std: bool = False
+    quiet: bool = False
+    spread: Spread = field(default_factory=Spread)
+    memory_advice: Callable[[int], str] | None = None
+    progress: Callable | None = None
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
 
 
-def evaluate_frames(model, dataset, args, png_dir: Path | None, starts: set[int] | None = None
+def evaluate_frames(model, dataset, run: EvaluationRun, png_dir: Path | None, starts: set[int] | None = None
                     ) -> tuple[list[dict[str, Any]], list[str]]:
-    """Per-frame metrics rows (in dataset order) and the names of skipped frames; ``starts``: frames that start
-    a batch besides size changes and ``--batch-size`` (:func:`~crfdepth.cli.batches.frame_batches`)."""
-    batches = frame_batches(dataset, args.batch_size, args.workers, starts=starts)
+    """Per-frame metrics rows (in dataset order) and the names of skipped frames (no ground-truth pixel); with
+    ``png_dir``, each depth written there as ``<name>.png``; ``starts``: frames that start a batch besides size
+    changes and ``--batch-size`` (:func:`~crfdepth.runs.batches.frame_batches`)."""
+    batches = frame_batches(dataset, run.batch_size, run.workers, starts=starts)
     rows: list[dict[str, Any]] = []
     skipped: list[str] = []
-    progress = tqdm(total=len(dataset), unit="frame", desc="evaluate",
-                    disable=args.quiet or not sys.stderr.isatty())
+    progress = bar(run, "evaluate", len(dataset))
     done = 0
     try:
         with torch.no_grad():
@@ -48,7 +69,7 @@ def evaluate_frames(model, dataset, args, png_dir: Path | None, starts: set[int]
                     missing = [n for n, t in zip(batch.names, batch.has_target.tolist()) if not t]
                     raise InputError(f"{where}: no ground truth for {', '.join(missing)}, so nothing to "
                                      f"evaluate; for benchmark submissions use 'crfdepth complete --input-dir'")
-                depth, std = _predict(model, batch, where, args.std)
+                depth, std = _predict(model, batch, where, run)
                 batch = batch.to(device=depth.device, dtype=depth.dtype)
                 counts = (batch.target > 0).flatten(1).sum(1)
                 keep = counts > 0
@@ -79,14 +100,32 @@ def evaluate_frames(model, dataset, args, png_dir: Path | None, starts: set[int]
     return rows, skipped
 
 
-def evaluate_in_processes(dataset, args, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
-    """:func:`evaluate_frames` with ``--devices`` processes (:func:`crfdepth.cli.processes.in_processes`): runs of
+def evaluate_in_processes(dataset, run: EvaluationRun, png_dir: Path | None) -> tuple[list[dict[str, Any]], list[str]]:
+    """:func:`evaluate_frames` with ``--devices`` processes (:func:`crfdepth.runs.processes.in_processes`): runs of
     ``--batch-size`` consecutive frames dealt to them in turn, each evaluated as one batch (or split where the
     size changes), the rows and skipped frames merged back into input order. Every metric is per frame and
     the report's means are taken over the merged rows, so the CSV and JSON are those of one process."""
-    chunks = frame_chunks(len(dataset), args.batch_size)
-    shares = [(dataset, batches, png_dir) for batches in deal(chunks, args.devices)]
-    return merge_shares(chunks, in_processes(args, shares, evaluate_share))
+    chunks = frame_chunks(len(dataset), run.batch_size)
+    shares = [(dataset, batches, png_dir) for batches in deal(chunks, run.spread.devices)]
+    return merge_shares(chunks, in_processes(run, shares, evaluate_share, devices=run.spread.devices,
+                                             device=run.spread.device))
+
+
+def evaluate_dataset(model, dataset, run: EvaluationRun, png_dir: Path | None, ranks=None
+                     ) -> tuple[list[dict[str, Any]], list[str]]:
+    """:func:`evaluate_frames` of ``dataset`` as ``run.spread`` says: here with ``model``, in ``--devices``
+    processes (:func:`evaluate_in_processes`), or (``ranks``: the group this process has joined,
+    :class:`~crfdepth.runs.ranks.Ranks`) the runs of frames dealt to the ranks in turn, gathered on every rank.
+    Returns the rows (in dataset order) and the skipped frames."""
+    if ranks is not None:
+        chunks = frame_chunks(len(dataset), run.batch_size)
+        shares = deal(chunks, ranks.world)
+        share = (dataset, shares[ranks.rank] if ranks.rank < len(shares) else [], png_dir)
+        return merge_shares(chunks, ranks.gather(run_share(f"rank {ranks.rank + 1}/{ranks.world}", run,
+                                                           evaluate_share, share, model)))
+    if run.spread.devices > 1:
+        return evaluate_in_processes(dataset, run, png_dir)
+    return evaluate_frames(model, dataset, run, png_dir)
 
 
 def frame_chunks(count: int, batch_size: int) -> list[list[int]]:
@@ -108,7 +147,7 @@ def merge_shares(chunks: list[list[int]], done: list[tuple[dict, tuple[str, bool
     return [{k: v for k, v in row.items() if k != "index"} for row in rows], [name for _, name in skipped]
 
 
-def evaluate_share(args, model, share: tuple, partial: dict) -> None:
+def evaluate_share(run: EvaluationRun, model, share: tuple, partial: dict) -> None:
     """One process's part of :func:`evaluate_in_processes`: its batches of ``dataset`` evaluated; ``partial``
     gets the ``rows`` and ``skipped`` frames, each with its index in ``dataset``."""
     dataset, batches, png_dir = share
@@ -117,18 +156,23 @@ def evaluate_share(args, model, share: tuple, partial: dict) -> None:
         return
     indices = [i for batch in batches for i in batch]
     starts = set(itertools.accumulate(len(batch) for batch in batches[:-1]))
-    rows, skipped = evaluate_frames(model, Subset(dataset, indices), args, png_dir, starts)
+    rows, skipped = evaluate_frames(model, Subset(dataset, indices), run, png_dir, starts)
     index_of = {name: i for i, name in zip(indices, _names(Subset(dataset, indices)) or [])}
     partial["rows"] = [{**row, "index": index_of[row["name"]]} for row in rows]
     partial["skipped"] = [(index_of[name], name) for name in skipped]
 
 
-def _predict(model, batch, where: str, return_std: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """(B, 1, H, W) depth of a batch and, with ``return_std``, its (B, 1, H, W) std in metres
+def _predict(model, batch, where: str, run: EvaluationRun) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(B, 1, H, W) depth of a batch and, with ``run.std``, its (B, 1, H, W) std in metres
     (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.cli.completion.complete_batch_with_cli_advice`, the batched ``complete_depth``)."""
+    (:func:`crfdepth.runs.batches.complete_batch`, the batched ``complete_depth``, on frames the workers checked);
+    a memory refusal advises ``run.memory_advice``."""
+    return_std = run.std
     try:
-        depth, std = complete_batch_with_cli_advice(model, batch, return_std)
+        try:
+            depth, std = complete_batch(model, batch, return_std)
+        except MemoryRefusal as exc:
+            raise exc.retold("image", run.memory_advice(len(batch))) if run.memory_advice else exc from None
     except InputError as exc:
         raise InputError(f"{where}: {exc}") from None
     if return_std and std is None:
@@ -152,7 +196,7 @@ def _frame_uncertainty(depth: torch.Tensor, std: torch.Tensor, target: torch.Ten
 
 
 def _batches(batches, dataset):
-    """The batches of :func:`~crfdepth.cli.batches.frame_batches`; a frame that fails to read
+    """The batches of :func:`~crfdepth.runs.batches.frame_batches`; a frame that fails to read
     or check (in a worker or here) is named in its one-line error."""
     total, names, done = len(dataset), _names(dataset), 0
     while True:

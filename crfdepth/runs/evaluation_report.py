@@ -1,5 +1,5 @@
-"""``crfdepth evaluate``'s report: the summary of the per-frame metrics, the table on stdout and the
-per-frame CSV (see :mod:`crfdepth.cli.evaluate`)."""
+"""The report of an evaluation (``crfdepth evaluate``, :mod:`crfdepth.runs.evaluation`): the summary of the
+per-frame metrics (docs/design.md section 7), the table of their means and the per-frame CSV."""
 
 from __future__ import annotations
 

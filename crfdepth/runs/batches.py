@@ -1,64 +1,56 @@
 """Frames read and checked by DataLoader workers, then batched by size (``complete --input-dir``, ``evaluate``).
 
-:func:`add_batch_arguments` registers ``--batch-size`` and ``--workers``; :func:`bad_frames`
+:func:`check_sample` refuses a frame as :func:`crfdepth.api.complete_depth` would; :func:`bad_frames`
 is the check pass that keeps nothing; :func:`frame_batches` yields the
-:class:`~crfdepth.data.sample.Batch` es that one model call each completes
-(:func:`crfdepth.cli.completion.complete_batch_with_cli_advice`).
+:class:`~crfdepth.data.sample.Batch` es that one model call each completes (:func:`complete_batch`).
 """
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import torch
 from torch.utils.data import DataLoader, Dataset
 
-from crfdepth.cli.arguments import BAD_INPUT, int_at_least
-from crfdepth.cli.completion import check_sample
-from crfdepth.cli.decoder_noise import quiet_decoders
+from crfdepth import api
+from crfdepth.api import _complete_on_model  # the one door into the pipelines (docs/design.md section 8)
 from crfdepth.data.sample import Batch, Sample, collate_samples
+from crfdepth.errors import InputError
+from crfdepth.io.decoder_noise import quiet_decoders
+from crfdepth.memory import check_model_memory
+from crfdepth.runs.skip_bad import BAD_INPUT
 
-__all__ = ["MAX_WORKERS", "STRATEGIES", "add_batch_arguments", "bad_frames", "frame_batches"]
-
-# More reading processes than this cannot keep up better with a solve that takes seconds per
-# frame; the cap turns a typo (--workers 400) into a usage error instead of 400 processes.
-MAX_WORKERS = 64
-# How --devices processes are started (crfdepth.cli.ranks.run_in_group), named after Lightning's strategies.
-STRATEGIES = ("auto", "spawn", "ddp")
+__all__ = ["bad_frames", "check_sample", "complete_batch", "flag_names", "frame_batches"]
 
 
-def add_batch_arguments(group: argparse._ActionsContainer) -> None:
-    """``--batch-size B`` and ``--workers N`` (read by :func:`frame_batches`), and ``--devices N``, ``--num-nodes
-    M`` and ``--strategy`` (:mod:`crfdepth.cli.processes`, :mod:`crfdepth.cli.ranks`, :mod:`crfdepth.cli.launch`),
-    shared by ``complete --input-dir`` / ``--input-list`` and ``evaluate``."""
-    group.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
-                       help="frames per model call (default 1, the fastest on CPU as measured; batches are "
-                            "meant for --device cuda); consecutive frames of the same size go together, a size "
-                            "change starts a new batch. Each frame's solve stops when it has converged, so "
-                            "depths differ from batch 1 by the solver tolerance only (measured: at most 1/256 m, "
-                            "one unit of a depth PNG)")
-    group.add_argument("--workers", type=int_at_least(0, MAX_WORKERS), default=0, metavar="N",
-                       help=f"processes that read and check frames ahead of the model (DataLoader "
-                            f"num_workers, 0 to {MAX_WORKERS}; default 0: this process, enough for local KITTI "
-                            f"frames, which read in about 20 ms; more help when reading is slow, e.g. from "
-                            f"network storage)")
-    group.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
-                       help="N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes sharing the "
-                            "cores), the batches dealt to them in turn: the outputs are one process's (depth within "
-                            "one PNG code: the threads' summation order)")
-    group.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
-                       help="M machines of N --devices each: start the same command on every node with torchrun "
-                            "--nnodes M --nproc-per-node N (or srun under torchrun); rank 0 checks, plans and "
-                            "reports, every rank does its dealt batches (the output folder shared)")
-    group.add_argument("--strategy", choices=STRATEGIES, default="auto",
-                       help="how the --devices processes are started, named after Lightning's strategies: auto "
-                            "(default) = a rank of the launcher's group when started by torchrun or srun, else "
-                            "spawn for --devices N > 1; spawn = N local processes started by torch.multiprocessing "
-                            "(one machine, no launcher); ddp = one rank per device in a torch.distributed group "
-                            "(gloo): under torchrun it joins the launcher's group, and without one it starts the N "
-                            "ranks on this machine itself with torch's elastic launcher (the same command in each; "
-                            "--devices 1: one process)")
+def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
+    """The API's message with its argument name (``K``, ``sparse`` ...) replaced by the user's name for it
+    (``flags``: a flag, or a frame and its file); ``flags["*"]``, when given, leads a message about the inputs
+    together (e.g. no point lands in the image)."""
+    text = str(exc)
+    head, sep, rest = text.partition(":")
+    if sep and head.strip() in flags:
+        return InputError(f"{flags[head.strip()]}:{rest}")
+    if "*" in flags:  # a message about the inputs together (e.g. no point lands in the image)
+        return InputError(f"{flags['*']}: {text}")
+    return exc
+
+
+def check_sample(sample: Sample) -> None:
+    """Refuse a frame that :func:`crfdepth.api.complete_depth` would refuse, with its checks and
+    messages (:func:`crfdepth.api.check_frame`; names ``image``, ``sparse``, ``K``)."""
+    api.check_frame(sample.image, sample.sparse, sample.K)
+
+
+def complete_batch(model, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`crfdepth.api.complete_checked` of a batch of frames checked by :func:`check_sample` (so not checked
+    again), on the model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. Refused
+    up front when it would not fit in the memory (:class:`~crfdepth.memory.MemoryRefusal`, the API's advice; the
+    runs retell it with their caller's). It enters the pipelines through the API's one door itself, a call
+    fewer on the way to the CG loop than through ``complete_checked``."""
+    check_model_memory(model, len(batch), *batch.sparse.shape[2:], bool(return_std))
+    return _complete_on_model(model, batch.image, batch.sparse, batch.K, return_std)
 
 
 @dataclass(frozen=True)
@@ -134,8 +126,8 @@ def frame_batches(dataset: Dataset, batch_size: int, workers: int,
     iteration: the frames before it are yielded first, then its exception is raised with
     the type and message it had where it was read, so the error reads the same for any
     ``workers`` and ``batch_size``. ``starts``: indices of frames that start a batch besides
-    (a resumed run's plan, :func:`crfdepth.cli.resume.batch_plan`). Results do not depend on how the frames are batched
-    beyond :func:`~crfdepth.cli.completion.complete_batch_with_cli_advice`'s solver tolerance.
+    (a resumed run's plan, :func:`crfdepth.runs.resume.batch_plan`). Results do not depend on how the frames are batched
+    beyond :func:`complete_batch`'s solver tolerance.
     """
     loader = DataLoader(_CheckedFrames(dataset, check), batch_size=None, shuffle=False, num_workers=workers,
                         collate_fn=_as_is)
