@@ -2,7 +2,7 @@
 
 :func:`check_sample` refuses a frame as :func:`crfdepth.api.complete_depth` would; :func:`bad_frames`
 is the check pass that keeps nothing; :func:`frame_batches` yields the
-:class:`~crfdepth.data.sample.Batch` es that one model call each completes (:func:`complete_batch`).
+:class:`~crfdepth.data.sample.Batch` es that one model call each completes (:func:`crfdepth.api.complete_checked`).
 """
 
 from __future__ import annotations
@@ -10,18 +10,15 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-import torch
 from torch.utils.data import DataLoader, Dataset
 
 from crfdepth import api
-from crfdepth.api import _complete_on_model  # the one door into the pipelines (docs/design.md section 8)
 from crfdepth.data.sample import Batch, Sample, collate_samples
 from crfdepth.errors import InputError
 from crfdepth.io.decoder_noise import quiet_decoders
-from crfdepth.memory import check_model_memory
 from crfdepth.runs.skip_bad import BAD_INPUT
 
-__all__ = ["bad_frames", "check_sample", "complete_batch", "flag_names", "frame_batches"]
+__all__ = ["bad_frames", "check_sample", "flag_names", "frame_batches"]
 
 
 def flag_names(exc: InputError, flags: dict[str, str]) -> InputError:
@@ -41,16 +38,6 @@ def check_sample(sample: Sample) -> None:
     """Refuse a frame that :func:`crfdepth.api.complete_depth` would refuse, with its checks and
     messages (:func:`crfdepth.api.check_frame`; names ``image``, ``sparse``, ``K``)."""
     api.check_frame(sample.image, sample.sparse, sample.K)
-
-
-def complete_batch(model, batch: Batch, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`crfdepth.api.complete_checked` of a batch of frames checked by :func:`check_sample` (so not checked
-    again), on the model's device: (B, H, W) float32 depth and std (None without ``return_std``), metres. Refused
-    up front when it would not fit in the memory (:class:`~crfdepth.memory.MemoryRefusal`, the API's advice; the
-    runs retell it with their caller's). It enters the pipelines through the API's one door itself, a call
-    fewer on the way to the CG loop than through ``complete_checked``."""
-    check_model_memory(model, len(batch), *batch.sparse.shape[2:], bool(return_std))
-    return _complete_on_model(model, batch.image, batch.sparse, batch.K, return_std)
 
 
 @dataclass(frozen=True)
@@ -127,7 +114,7 @@ def frame_batches(dataset: Dataset, batch_size: int, workers: int,
     the type and message it had where it was read, so the error reads the same for any
     ``workers`` and ``batch_size``. ``starts``: indices of frames that start a batch besides
     (a resumed run's plan, :func:`crfdepth.runs.resume.batch_plan`). Results do not depend on how the frames are batched
-    beyond :func:`complete_batch`'s solver tolerance.
+    beyond the solver's tolerance.
     """
     loader = DataLoader(_CheckedFrames(dataset, check), batch_size=None, shuffle=False, num_workers=workers,
                         collate_fn=_as_is)

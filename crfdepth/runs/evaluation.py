@@ -16,10 +16,11 @@ import numpy as np
 import torch
 from torch.utils.data import Subset
 
+from crfdepth.api import complete_checked
 from crfdepth.errors import InputError
 from crfdepth.memory import MemoryRefusal
 from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
-from crfdepth.runs.batches import complete_batch, frame_batches
+from crfdepth.runs.batches import frame_batches
 from crfdepth.runs.outputs import write_depth_png
 from crfdepth.runs.processes import deal, in_processes, run_share
 from crfdepth.runs.progress import bar
@@ -165,12 +166,12 @@ def evaluate_share(run: EvaluationRun, model, share: tuple, partial: dict) -> No
 def _predict(model, batch, where: str, run: EvaluationRun) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, 1, H, W) depth of a batch and, with ``run.std``, its (B, 1, H, W) std in metres
     (else None), in the model's dtype: one model call for the batch
-    (:func:`crfdepth.runs.batches.complete_batch`, the batched ``complete_depth``, on frames the workers checked);
+    (:func:`crfdepth.api.complete_checked`, the batched ``complete_depth``, on frames the workers checked);
     a memory refusal advises ``run.memory_advice``."""
     return_std = run.std
     try:
         try:
-            depth, std = complete_batch(model, batch, return_std)
+            depth, std = complete_checked(model, batch.image, batch.sparse, batch.K, return_std=return_std)
         except MemoryRefusal as exc:
             raise exc.retold("image", run.memory_advice(len(batch))) if run.memory_advice else exc from None
     except InputError as exc:

@@ -11,7 +11,7 @@ resume's batch plan reads a frame's size from its image (a drive's scan is a ``.
 
 :func:`complete_folder` takes the run as a typed :class:`FolderRun` (the command line builds it from its flags, whose
 names the messages keep) and reports the outcome to ``FolderRun.report`` (a :class:`FolderResult`). Its frames go
-from the DataLoader workers' checks straight to the API's model step (:func:`crfdepth.runs.batches.complete_batch`,
+from the DataLoader workers' checks straight to the API's model step (:func:`crfdepth.api.complete_checked`,
 docs/design.md section 8).
 """
 

@@ -15,11 +15,12 @@ from pathlib import Path
 
 from torch.utils.data import Subset
 
+from crfdepth.api import complete_checked
 from crfdepth.data.kitti import KittiDrive
 from crfdepth.errors import InputError
 from crfdepth.io.file_errors import FileError
 from crfdepth.memory import MemoryRefusal
-from crfdepth.runs.batches import bad_frames, check_sample, complete_batch, flag_names, frame_batches
+from crfdepth.runs.batches import bad_frames, check_sample, flag_names, frame_batches
 from crfdepth.runs.outputs import write_frame
 from crfdepth.runs.progress import bar
 from crfdepth.runs.skip_bad import BAD_INPUT
@@ -126,7 +127,7 @@ def complete_frames(run, model, dataset, plan: list[list[int]], folders: tuple, 
                          f"({', '.join(batch.names)})")
             try:
                 try:  # the frames were checked as they were read (check), so the API checks nothing again
-                    depth, std = complete_batch(model, batch, with_std)
+                    depth, std = complete_checked(model, batch.image, batch.sparse, batch.K, return_std=with_std)
                 except MemoryRefusal as exc:
                     raise exc.retold("image", run.memory_advice(len(batch))) if run.memory_advice else exc from None
                 _write_batch(run, batch, depth, std, folders, first_write if not counts["written"] else None,

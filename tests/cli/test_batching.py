@@ -1,5 +1,5 @@
 """Batched folder inference: ``--batch-size`` and ``--workers`` of ``crfdepth complete
---input-dir`` and ``crfdepth evaluate`` (crfdepth.runs.batches.frame_batches and complete_batch).
+--input-dir`` and ``crfdepth evaluate`` (crfdepth.runs.batches.frame_batches and crfdepth.api.complete_checked).
 
 The frames are built-in synthetic street scenes (:func:`crfdepth.data.synthetic.make_scene`,
 16 beams) of two sizes, written to ``tmp_path`` in the ``val_selection_cropped`` layout so

@@ -93,7 +93,7 @@ def folder_run(tmp_path_factory):
 
 def test_a_folder_run_reaches_the_cg_loop_in_at_most_10_calls(folder_run):
     path, _, _ = folder_run
-    # run, complete_folder, complete_frames, complete_batch, _complete_on_model, pixel_forward, pixel_solve,
+    # run, complete_folder, complete_frames, complete_checked, _complete_on_model, pixel_forward, pixel_solve,
     # solve_system, _krylov_solve, conjugate_gradient
     assert path[-1] == "conjugate_gradient" and "_complete_on_model" in path, path
     assert len(path) <= 10, path

@@ -25,14 +25,13 @@ import pytest
 import torch
 
 from crfdepth import cli
-from crfdepth.api import complete_depth
+from crfdepth.api import complete_checked, complete_depth
 from crfdepth.checkpoints import save_model
 from crfdepth.data.factory import build_dataset
 from crfdepth.data.kitti import KittiValSelection
 from crfdepth.io.kitti import read_depth_png
 from crfdepth.metrics import METRICS, UNCERTAINTY_METRICS, UNITS, average_metrics, depth_metrics, uncertainty_metrics
 from crfdepth.model import CRFDepth
-from crfdepth.runs.batches import complete_batch
 from crfdepth.runs.resume import RUN_RECORD
 
 COMMANDS = ("crfdepth.cli.complete", "crfdepth.cli.evaluate")
@@ -279,11 +278,11 @@ def test_std_metrics_match_a_direct_computation(std_run):
 
 
 def test_std_without_a_std_from_the_model_exits_2_and_writes_nothing(tmp_path, monkeypatch):
-    def no_std(model, batch, return_std):
-        depth, _ = complete_batch(model, batch, False)
+    def no_std(model, image, sparse, K, *, return_std):
+        depth, _ = complete_checked(model, image, sparse, K, return_std=False)
         return depth, None
 
-    monkeypatch.setattr("crfdepth.runs.evaluation.complete_batch", no_std)
+    monkeypatch.setattr("crfdepth.runs.evaluation.complete_checked", no_std)
     code, stdout, stderr = _run(["evaluate", "--layout", "synthetic", "--limit", 1, "--std", *FAST_STD_MODEL,
                                  "--out-dir", tmp_path / "out"])
     assert code == 2 and stdout.startswith("model: kitti weights, superpixel graph (800 segments)")

@@ -33,7 +33,7 @@ def _interrupt_after(monkeypatch, module, name: str, calls: int) -> None:
 def test_folder_run_reports_the_frames_written(tmp_path, monkeypatch, batch_size):
     data = write_folder(tmp_path / "val_selection_cropped", 5)
     out = tmp_path / "out"
-    _interrupt_after(monkeypatch, complete_folder, "complete_batch", 2)  # in the 3rd model call
+    _interrupt_after(monkeypatch, complete_folder, "complete_checked", 2)  # in the 3rd model call
     code, stdout, err = run(["complete", "--input-dir", data, "--out-dir", out, "--batch-size", batch_size, *FAST])
     written = 2 * batch_size
     assert code == 130 and stdout == ""
@@ -56,7 +56,7 @@ def test_folder_run_interrupted_before_its_first_frame_leaves_no_folder(tmp_path
     data = write_folder(tmp_path / "val_selection_cropped", 2)
     out = tmp_path / "new" / "out"
     (tmp_path / "new").mkdir()
-    _interrupt_after(monkeypatch, complete_folder, "complete_batch", 0)
+    _interrupt_after(monkeypatch, complete_folder, "complete_checked", 0)
     code, _, err = run(["complete", "--input-dir", data, "--out-dir", out, "--vis", *FAST])
     assert code == 130 and err == (f"crfdepth complete: interrupted after 0 of 2 frame(s) written to {out}; "
                                    f"--resume completes the others\n")

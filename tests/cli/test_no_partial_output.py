@@ -149,10 +149,9 @@ def test_a_batch_that_fails_on_its_second_frame_keeps_and_counts_the_first(folde
 def test_a_non_finite_first_frame_leaves_nothing(folder, tmp_path, monkeypatch):
     from crfdepth.runs import folder_frames as complete_folder
 
-    real = complete_folder.complete_batch
-    monkeypatch.setattr(complete_folder, "complete_batch",
-                        lambda model, batch, with_std: (lambda d, s: (d * float("nan"), s))(*real(model, batch,
-                                                                                                  with_std)))
+    real = complete_folder.complete_checked
+    monkeypatch.setattr(complete_folder, "complete_checked",
+                        lambda *args, **kwargs: (lambda d, s: (d * float("nan"), s))(*real(*args, **kwargs)))
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])
     assert code == 2
     assert err.startswith(f"{PREFIX}--out-dir {tmp_path / 'out' / png(0)}: the model returned ")

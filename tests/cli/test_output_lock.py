@@ -58,16 +58,16 @@ def test_second_run_into_the_same_out_dir_is_refused_naming_the_first(folder, tm
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["/usr/bin/crfdepth", "complete", "--input-dir", "A", "--out-dir", "B"])
     inner = {}
-    real = folder_frames.complete_batch
+    real = folder_frames.complete_checked
 
-    def first_run_computing(model, batch, with_std):
+    def first_run_computing(*args, **kwargs):
         if not inner:  # once, while run 1 holds its folders
             inner["lock"] = json.loads((out / LOCK_NAME).read_text())
             inner["result"] = run(["complete", "--input-dir", folder, "--out-dir", out, *FAST])
             inner["files"] = files(out)
-        return real(model, batch, with_std)
+        return real(*args, **kwargs)
 
-    monkeypatch.setattr(folder_frames, "complete_batch", first_run_computing)
+    monkeypatch.setattr(folder_frames, "complete_checked", first_run_computing)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", out, *FAST])
     assert code == 0, err
     second_code, second_out, second_err = inner["result"]
@@ -146,15 +146,15 @@ def test_lock_folder_is_exclusive_and_released(tmp_path):
 
 def test_lock_released_and_new_folder_removed_after_a_bad_frame(folder, tmp_path, monkeypatch):
     """A failure while writing (here a non-finite model output in frame 2) releases the lock."""
-    real = folder_frames.complete_batch
+    real = folder_frames.complete_checked
     calls = []
 
-    def nan_second(model, batch, with_std):
+    def nan_second(*args, **kwargs):
         calls.append(1)
-        depth, std = real(model, batch, with_std)
+        depth, std = real(*args, **kwargs)
         return (depth * float("nan"), std) if len(calls) == 2 else (depth, std)
 
-    monkeypatch.setattr(folder_frames, "complete_batch", nan_second)
+    monkeypatch.setattr(folder_frames, "complete_checked", nan_second)
     code, _, err = run(["complete", "--input-dir", folder, "--out-dir", tmp_path / "out", *FAST])
     assert code == 2 and "non-finite" in err and "1 of 3 frame(s) written" in err and "--resume completes" in err
     # no lock left; the failed frame listed, and the record of the unfinished run for --resume
@@ -179,13 +179,13 @@ def test_evaluate_holds_and_releases_its_lock(folder, tmp_path, monkeypatch):
 
     out = tmp_path / "evaluation"
     seen = []
-    real = evaluate_frames.complete_batch
+    real = evaluate_frames.complete_checked
 
-    def looking(model, batch, with_std):
+    def looking(*args, **kwargs):
         seen.append((out / LOCK_NAME).is_file())
-        return real(model, batch, with_std)
+        return real(*args, **kwargs)
 
-    monkeypatch.setattr(evaluate_frames, "complete_batch", looking)
+    monkeypatch.setattr(evaluate_frames, "complete_checked", looking)
     code, _, err = run(["evaluate", "--layout", "val_selection", "--data", folder, "--out-dir", out,
                         "--potentials", "colour", "--quiet"])
     assert code == 0, err

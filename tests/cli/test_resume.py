@@ -33,15 +33,22 @@ def _argv(data, out, *extra, quiet: bool = True) -> list:
 
 def _stop_after(monkeypatch, batches: int) -> list:
     """The model step raises KeyboardInterrupt on call ``batches + 1``; returns the list of the batches' names."""
-    real, seen = folder_frames.complete_batch, []
+    return _batches_seen(monkeypatch, stop_after=batches)
 
-    def step(model, batch, return_std):
-        if len(seen) == batches:
-            raise KeyboardInterrupt
-        seen.append(list(batch.names))
-        return real(model, batch, return_std)
 
-    monkeypatch.setattr(folder_frames, "complete_batch", step)
+def _batches_seen(monkeypatch, stop_after: int | None = None) -> list:
+    """The names of each batch the folder run takes to the model, in order; with ``stop_after``, KeyboardInterrupt
+    as batch ``stop_after + 1`` would go to the model."""
+    real, seen = folder_frames.frame_batches, []
+
+    def batches(*args, **kwargs):
+        for batch in real(*args, **kwargs):
+            if len(seen) == stop_after:
+                raise KeyboardInterrupt
+            seen.append(list(batch.names))
+            yield batch
+
+    monkeypatch.setattr(folder_frames, "frame_batches", batches)
     return seen
 
 
@@ -66,10 +73,7 @@ def test_stopped_and_resumed_equals_uninterrupted_file_for_file(folder, tmp_path
     assert code == 130 and f"after {batch_size} of {COUNT} frame(s) written" in err
     monkeypatch.undo()
     done_first = set(seen[0])
-    seen = []
-    real = folder_frames.complete_batch
-    monkeypatch.setattr(folder_frames, "complete_batch",
-                        lambda model, batch, std: seen.append(list(batch.names)) or real(model, batch, std))
+    seen = _batches_seen(monkeypatch)
     code, _, _ = run(_argv(folder, parts, "--batch-size", batch_size, "--resume"))
     assert code == 0
     assert not done_first & {name for names in seen for name in names}  # the finished frames are not done again
@@ -83,12 +87,9 @@ def test_a_batch_cut_short_is_done_again_whole(folder, tmp_path, monkeypatch):
     out = tmp_path / "o"
     assert run(_argv(folder, out, "--batch-size", "2"))[0] == 0
     (out / "s" / png(3)).unlink()  # frame 3 lost its std PNG: frames 2-3 (one batch) are unfinished
-    seen = []
-    real = folder_frames.complete_batch
-    monkeypatch.setattr(folder_frames, "complete_batch",
-                        lambda model, batch, std: seen.append(len(batch)) or real(model, batch, std))
+    seen = _batches_seen(monkeypatch)
     code, stdout, _ = run(_argv(folder, out, "--batch-size", "2", "--resume", quiet=False))
-    assert code == 0 and seen == [2] and (out / "s" / png(3)).is_file()
+    assert code == 0 and [len(names) for names in seen] == [2] and (out / "s" / png(3)).is_file()
     assert f"{COUNT - 1} of {COUNT} frame(s) were finished by an earlier run (--resume); 1 of them done again" in stdout
 
 
@@ -126,7 +127,7 @@ def test_resume_refuses_the_finished_run_of_another_model_or_options(folder, tmp
     out = tmp_path / "o"
     assert run(_argv(folder, out))[0] == 0
     before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
-    monkeypatch.setattr(folder_frames, "complete_batch", None)  # must not be called
+    monkeypatch.setattr(folder_frames, "complete_checked", None)  # must not be called
     code, stdout, err = run(other(folder, out))
     assert code == 2 and stdout == ""
     assert err.splitlines()[0].startswith(f"crfdepth complete: error: --resume: {out / 'd'} holds the finished run of "
@@ -142,7 +143,7 @@ def test_a_finished_folder_is_left_as_it_is(folder, tmp_path, monkeypatch):
     record = json.loads((out / "d" / RUN_RECORD).read_text())
     assert record["finished"] is True and record["batch_size"] == 1 and len(record["weights_sha256"]) == 64
     before = {sub: _snapshot(out / sub) for sub in ("d", "s", "v")}
-    monkeypatch.setattr(folder_frames, "complete_batch", None)  # must not be called
+    monkeypatch.setattr(folder_frames, "complete_checked", None)  # must not be called
     code, stdout, _ = run(_argv(folder, out, "--resume", quiet=False))
     assert code == 0 and f"{COUNT} of {COUNT} frame(s) were finished by an earlier run" in stdout
     assert {sub: _snapshot(out / sub) for sub in ("d", "s", "v")} == before
@@ -190,14 +191,15 @@ def test_resume_applies_to_a_folder_only(tmp_path):
 
 
 def test_a_frame_that_fails_is_listed_and_the_others_completed(folder, tmp_path, monkeypatch):
-    real = folder_frames.complete_batch
+    real, calls = folder_frames.complete_checked, []
 
-    def step(model, batch, return_std):
-        if png(2)[:-4] in batch.names:
+    def step(*args, **kwargs):  # one frame a call, in order: the third is frame 2
+        calls.append(1)
+        if len(calls) == 3:
             raise InputError("the model returned 3 non-finite depth value(s)")
-        return real(model, batch, return_std)
+        return real(*args, **kwargs)
 
-    monkeypatch.setattr(folder_frames, "complete_batch", step)
+    monkeypatch.setattr(folder_frames, "complete_checked", step)
     out = tmp_path / "o"
     code, stdout, _ = run(_argv(folder, out, "--skip-bad", quiet=False))
     assert code == 0 and "1 frame(s) failed (--skip-bad)" in stdout
