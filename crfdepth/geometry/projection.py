@@ -15,14 +15,11 @@ complement is the held-out set.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from crfdepth.errors import InputError
-
-if TYPE_CHECKING:  # geometry sits below io (docs/design.md section 8): the calibrations are read by type name
-    from crfdepth.io.calibration import Calibration, RigCalibration
 
 __all__ = [
     "count_in_image",
@@ -101,7 +98,7 @@ def project_to_depth(points_cam: np.ndarray, P: np.ndarray, image_size: tuple[in
     return depth.reshape(height, width)
 
 
-def project_velodyne(points: np.ndarray, calib: Calibration,
+def project_velodyne(points: np.ndarray, calib: Any,
                      image_size: tuple[int, int] | None = None) -> np.ndarray:
     """Sparse depth map of a Velodyne scan in one camera (docs/design.md section 1).
 
@@ -132,7 +129,7 @@ def project_velodyne(points: np.ndarray, calib: Calibration,
     return project_to_depth(points_cam, calib.P_rect, image_size)
 
 
-def project_points(points: np.ndarray, calibration: RigCalibration | Calibration,
+def project_points(points: np.ndarray, calibration: Any,
                    image_size: tuple[int, int]) -> np.ndarray:
     """Z-buffer projection of LiDAR points with either calibration type.
 

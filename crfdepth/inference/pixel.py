@@ -1,13 +1,11 @@
 """The pixel-grid CRF (``mode="pixel"`` and the superpixel mode's refinement; docs/design.md
 sections 3 and 6), and the stages both pipelines share: the LiDAR evidence and the predictive std.
 
-Every stage takes the model (:class:`crfdepth.model.CRFDepth`, named for type checkers only: inference
-sits below the model) and reads its configuration, ``model.settings`` (:class:`crfdepth.config.CRFConfig`),
+Every stage takes the model (a :class:`crfdepth.model.CRFDepth`, typed as the ``nn.Module`` it is: inference
+sits below the model and imports nothing of it) and reads its configuration, ``model.settings`` (:class:`crfdepth.config.CRFConfig`),
 its current weights (``model.sigma_d``, ``model.scales()`` ...) and ``model.solve_settings``."""
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -20,18 +18,15 @@ from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.uncertainty.predictive import std_features
 
-if TYPE_CHECKING:
-    from crfdepth.model import CRFDepth
 
-
-def evidence(model: CRFDepth, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+def evidence(model: torch.nn.Module, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
     settings = model.settings
     gate = (model.gate_threshold, model.gate_softness) if settings.gate.enabled else None
     return lidar_evidence(sparse, gate, settings.gate.window, settings.structure.prior)
 
 
-def predictive_std(model: CRFDepth, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
+def predictive_std(model: torch.nn.Module, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
     """The predictive std (:mod:`crfdepth.uncertainty.predictive`) and its signals, from the conditional
     variance of the last solve in the unknown's units."""
     variable = model.settings.structure.variable
@@ -40,7 +35,7 @@ def predictive_std(model: CRFDepth, depth, sparse, kept, gate, variance) -> tupl
     return model.std_head(features), features
 
 
-def pixel_solve(model: CRFDepth, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
+def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
                 kept=None) -> tuple[torch.Tensor, GridTerms]:
     """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
 
@@ -67,7 +62,7 @@ def pixel_solve(model: CRFDepth, image, sparse, K, prior, eps, infos: list[Solve
     return geometry, t
 
 
-def pixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
+def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                   return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""
     bsz, _, h, w = sparse.shape

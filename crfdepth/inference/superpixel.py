@@ -10,8 +10,6 @@ The stages read the model as :mod:`crfdepth.inference.pixel` says (``model.setti
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from kornia.geometry.camera import unproject_points
 
@@ -36,11 +34,8 @@ from crfdepth.superpixels.segments import slic_batch
 from crfdepth.uncertainty.count import node_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 
-if TYPE_CHECKING:
-    from crfdepth.model import CRFDepth
 
-
-def graph_terms(model: CRFDepth, nodes: Nodes, normals: tuple[torch.Tensor, torch.Tensor] | None,
+def graph_terms(model: torch.nn.Module, nodes: Nodes, normals: tuple[torch.Tensor, torch.Tensor] | None,
                 scales: tuple[torch.Tensor, ...]) -> EnergyTerms:
     """The first solve's terms: data, prior, colour and (where both nodes have LiDAR normals) normal;
     ``scales`` are :meth:`CRFDepth.scales <crfdepth.model.CRFDepth.scales>`."""
@@ -57,7 +52,7 @@ def graph_terms(model: CRFDepth, nodes: Nodes, normals: tuple[torch.Tensor, torc
                        torch.zeros_like(alpha), eps)
 
 
-def refit_geometry(model: CRFDepth, terms: EnergyTerms, x: torch.Tensor, nodes: Nodes, K: torch.Tensor,
+def refit_geometry(model: torch.nn.Module, terms: EnergyTerms, x: torch.Tensor, nodes: Nodes, K: torch.Tensor,
                    normals: tuple[torch.Tensor, torch.Tensor] | None, delta: torch.Tensor) -> None:
     """Refit the normal and 3D-distance terms to the solution ``x`` (in the unknown), in place:
     nodes without LiDAR normals take the normal fitted to their neighbours' 3D points."""
@@ -73,7 +68,7 @@ def refit_geometry(model: CRFDepth, terms: EnergyTerms, x: torch.Tensor, nodes: 
         terms.delta = delta
 
 
-def superpixel_forward(model: CRFDepth, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
+def superpixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                        return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in superpixel mode, on checked inputs."""
     h, w = sparse.shape[2:]
