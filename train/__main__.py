@@ -19,8 +19,12 @@ Bad input never ends in a traceback or the parser's 90-line usage: it is one lin
 :mod:`train.messages`), and exit status 2. What can be checked before Lightning starts is checked
 then, so that a refused run leaves no log folder behind:
 
-- the parser's errors: an unknown key (``--model.crf.gate.windw`` is the model's: ``crf.gate``), a value
-  of the wrong type, a missing ``--config`` file;
+- the parser's errors: an unknown key (``--model.crf.gate.windw``: the model's ``crf`` is typed,
+  :class:`crfdepth.config.CRFConfig`, so the parser knows every field of its five groups), a value of the
+  wrong type, a missing ``--config`` file;
+- the values the CRF's groups refuse (``--model.crf.gate.window 4``, :func:`train.options.check_crf`). The CRF's
+  flat names of older commands, config files and checkpoints (``--model.crf "{mode: pixel}"``) are moved into
+  their groups before the parser reads them (:func:`train.options.grouped_args`);
 - the ``trainer:`` values Lightning would refuse (``--trainer.max_epochs -3``,
   :func:`train.messages.check_trainer_values`) and an accelerator the machine does not have
   (``configs/ddp.yaml`` without a CUDA GPU, more GPUs than it has: :func:`train.options.check_accelerator`);
@@ -38,7 +42,6 @@ then, so that a refused run leaves no log folder behind:
 from __future__ import annotations
 
 import inspect
-import json
 import logging
 import os
 import sys
@@ -63,7 +66,7 @@ from train.messages import (
     trainer_message,
 )
 from train.module import CRFDepthModule
-from train.options import OptionError, check_accelerator, check_model_options, merge_nested_crf, plain, take_nested_crf
+from train.options import OptionError, check_accelerator, check_crf, check_model_options, grouped_args, grouped_crf
 
 
 class EpochCheckpoint(ModelCheckpoint):
@@ -139,16 +142,9 @@ class CRFDepthCLI(LightningCLI):
         })
 
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
-        nested: list[tuple[list[str], str]] = []
-        if args is None or isinstance(args, (list, tuple)):
-            args, nested = take_nested_crf(list(sys.argv[1:] if args is None else args))
+        if args is None or isinstance(args, (list, tuple)):  # the CRF's flat names by groups, for the typed parser
+            args = grouped_args(list(sys.argv[1:] if args is None else args))
         try:
-            if nested:  # the configuration without them, then the whole merged crf given last
-                first = parser.parse_args([a for a in args if not str(a).startswith("--print_config")])
-                subcommand = first.get("subcommand")
-                model = (first[subcommand] if subcommand else first).get("model")
-                crf = merge_nested_crf(plain(model.get("crf")) if model is not None else {}, nested)
-                args = [*args, "--model.crf", json.dumps(crf)]
             if isinstance(args, list):
                 self.config = parser.parse_args(args)  # Lightning's, without its warning about args and sys.argv
             else:
@@ -161,6 +157,8 @@ class CRFDepthCLI(LightningCLI):
         check_accelerator(config.get("trainer") or {})
         check_trainer_values(config.get("trainer") or {})
         check_checkpoint_values(config.get("checkpoint") or {})
+        if config.get("model") is not None:
+            check_crf(config["model"].get("crf"))
         if "weights_only" in config:
             if config["weights_only"] is False:
                 raise InputError("--weights_only: expected true (checkpoints are read with torch.load(weights_only=True) "
@@ -187,6 +185,8 @@ class CRFDepthCLI(LightningCLI):
         fitting = subcommand == "fit"
         checkpoint = read_trainer_checkpoint(path, name="--ckpt_path", lightning=True, resume=fitting)
         stored = {k: v for k, v in checkpoint["hyper_parameters"].items() if k != "_instantiator"}
+        if "crf" in stored:  # flat names in a checkpoint written before the groups
+            stored["crf"] = grouped_crf(stored["crf"])
         if fitting:
             check_model_options(self.config[subcommand].get("model"), stored)
         known = set(inspect.signature(CRFDepthModule.__init__).parameters) - {"self"}

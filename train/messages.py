@@ -92,10 +92,22 @@ def _option(key: str, from_file: bool = False) -> str:
     return key if from_file else f"--{key}"
 
 
+def _close_sibling(key: str, options: list[str]) -> list[str]:
+    """The option under the same parent as ``key`` whose last name is closest to ``key``'s (``model.crf.mde`` ->
+    ``model.crf.structure.mode``, ``model.crf.gate.windw`` -> ``model.crf.gate.window``); [] when none is close."""
+    parent, _, leaf = key.rpartition(".")
+    if not parent:
+        return []
+    under = [o for o in options if o.startswith(parent + ".")]
+    close = difflib.get_close_matches(leaf, [o.rpartition(".")[2] for o in under], n=1, cutoff=0.6)
+    return [next(o for o in under if o.rpartition(".")[2] == close[0])] if close else []
+
+
 def unknown_option(name: str, known: Iterable[str], subcommand: str | None = None) -> str:
     """``name: expected an option of python -m train <subcommand>, got an unknown one (did you mean ...?)``."""
     flag = name.startswith("--")
-    close = difflib.get_close_matches(name.lstrip("-"), [k.lstrip("-") for k in known], n=1, cutoff=0.6)
+    key, options = name.lstrip("-"), [k.lstrip("-") for k in known]
+    close = _close_sibling(key, options) or difflib.get_close_matches(key, options, n=1, cutoff=0.6)
     hint = f" (did you mean {'--' if flag else ''}{close[0]}?)" if close else ""
     where = f"python -m train {subcommand}" if subcommand else "python -m train"
     return f"{name}: expected an option of {where} (--help lists them), got an unknown one{hint}"

@@ -39,7 +39,7 @@ import lightning.pytorch as pl
 import torch
 import torch.nn.functional as F
 
-from crfdepth.config import FLAT, GROUPS, is_group
+from crfdepth.config import FLAT, GROUPS, CRFConfig, is_group
 from crfdepth.data.sample import Batch
 from crfdepth.errors import InputError
 from crfdepth.metrics import METRICS, format_metrics
@@ -59,26 +59,32 @@ PARAMETERS = {
 }
 
 
+#: The default of ``CRFDepthModule(crf=...)``: all defaults (frozen, so one instance serves every module).
+DEFAULT_CRF = CRFConfig()
+
+
 def _did_you_mean(name: str, known) -> str:
     close = difflib.get_close_matches(name, list(known), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-def build_model(crf: Mapping[str, Any] | None) -> CRFDepth:
+def build_model(crf: CRFConfig | Mapping[str, Any] | None) -> CRFDepth:
     """``CRFDepth(crf)`` with every fault of ``crf`` one :class:`~crfdepth.errors.InputError` naming the key
     as the config gives it: ``crf.gate: expected fields among enabled, window, ..., got 'windw' (did you
-    mean 'window'?)``, ``crf.structure.mode: expected one of ...`` (``crf.mode`` when given flat)."""
-    if crf is not None and not isinstance(crf, Mapping):
+    mean 'window'?)``, ``crf.structure.mode: expected one of ...`` (``crf.mode`` when given flat). ``crf``: a
+    :class:`~crfdepth.config.CRFConfig`, a mapping of groups or flat names, or None (the defaults)."""
+    if crf is not None and not isinstance(crf, (CRFConfig, Mapping)):
         raise InputError(f"crf: expected a mapping of CRFDepth options (groups such as {{structure: {{mode: pixel}}}} "
                          f"or flat names such as {{mode: pixel}}), got {type(crf).__name__} {crf!r}")
-    for key, value in (crf or {}).items():
-        if key in GROUPS and is_group(value):
+    given = crf if isinstance(crf, Mapping) else {}
+    for key, value in given.items():
+        if key in GROUPS and isinstance(value, Mapping):
             fields = [f.name for f in dataclasses.fields(GROUPS[key])]
             unknown = [str(k) for k in value if k not in fields]
             if unknown:
                 raise InputError(f"crf.{key}: expected fields among {', '.join(fields)}, got {unknown[0]!r}"
                                  f"{_did_you_mean(unknown[0], fields)}")
-        elif key not in FLAT:
+        elif key not in FLAT and not (key in GROUPS and is_group(value)):
             raise InputError(f"crf: expected the groups {', '.join(GROUPS)} or flat CRFDepth options, got {key!r}"
                              f"{_did_you_mean(str(key), [*GROUPS, *FLAT])}")
     try:
@@ -87,7 +93,7 @@ def build_model(crf: Mapping[str, Any] | None) -> CRFDepth:
         name, _, rest = str(exc).partition(": ")
         if name in FLAT and rest:
             group, field = FLAT[name]
-            where = f"crf.{name}" if name in (crf or {}) and not is_group(crf[name]) else f"crf.{group}.{field}"
+            where = f"crf.{name}" if name in given and not is_group(given[name]) else f"crf.{group}.{field}"
             raise InputError(f"{where}: {rest}") from None
         raise InputError(f"crf: {exc}") from None
     except (TypeError, ValueError) as exc:  # a value of the wrong kind deep inside
@@ -166,9 +172,11 @@ class CRFDepthModule(pl.LightningModule):
     recipe fits them after training: ``python -m train.export --calibrate-std``).
 
     Args:
-        crf: the model's configuration: groups (``{structure: {mode: pixel}, gate: {enabled:
-            true}}``, :mod:`crfdepth.config`) or flat ``CRFDepth`` arguments (``{mode: pixel}``);
-            None = all defaults. Stored complete, in groups, in the hyperparameters.
+        crf: the model's configuration, a :class:`~crfdepth.config.CRFConfig` (its five groups; the
+            default: all defaults). Typed so that LightningCLI reads it by groups and checks each field
+            (``model: {crf: {structure: {mode: pixel}, gate: {enabled: true}}}``, ``--model.crf.gate.window 7``;
+            :mod:`train.options`). From Python a mapping of groups or of flat ``CRFDepth`` arguments
+            (``{"mode": "pixel"}``) or None is taken too. Stored complete, in groups, in the hyperparameters.
         loss: "l2", "l1" or "huber" (:func:`depth_loss`).
         huber_delta: metres of error where "huber" turns from squared to linear (> 0).
         exclude_inputs: leave out of the depth loss and the NLL the target pixels where the
@@ -203,7 +211,7 @@ class CRFDepthModule(pl.LightningModule):
 
     def __init__(
         self,
-        crf: dict[str, Any] | None = None,
+        crf: CRFConfig = DEFAULT_CRF,
         loss: Literal["l2", "l1", "huber"] = "l2",
         nll_weight: float = 0.0,
         lr: float = 0.05,
@@ -242,16 +250,16 @@ class CRFDepthModule(pl.LightningModule):
         self.photometric_weight = float(photometric_weight)
         self.lr = float(lr)
         self.head_lr = float(head_lr)
-        frozen = set(freeze or ())
-        if self.nll_weight == 0 or self.model.uncertainty == "predictive":
+        frozen, settings = set(freeze or ()), self.model.settings
+        if self.nll_weight == 0 or settings.uncertainty.kind == "predictive":
             frozen.add("std_scale")  # the posterior std's scale: trained by the NLL term of a posterior model
         if self.model.std_head is not None and self.nll_weight == 0:
             self.model.std_head.requires_grad_(False)  # the predictive std's weights: by the NLL term, or after
-        if "normal" not in self.model.potentials:
+        if "normal" not in settings.potentials.on:
             frozen.update(("gamma", "sigma_n"))
-        if "distance" not in self.model.potentials:
+        if "distance" not in settings.potentials.on:
             frozen.update(("delta", "sigma_p"))
-        if self.model.mode == "pixel" or not self.model.refine:
+        if settings.structure.mode == "pixel" or not settings.structure.refine:
             frozen.add("refine_prior")
         for name in frozen:
             if hasattr(self.model, PARAMETERS[name]):  # the gate's exist only with gate=True

@@ -1,10 +1,18 @@
 """The trainer's options checked before Lightning starts (:mod:`train.__main__`): the accelerator the machine
-has, the nested ``--model.crf.<group>.<field>`` flags read as YAML, and a resumed fit's model options against
-its checkpoint's. Each refusal is one line naming the option (``train: error: ...``, exit status 2).
+has, the CRF's configuration, and a resumed fit's model options against its checkpoint's. Each refusal is one
+line naming the option (``train: error: ...``, exit status 2).
+
+``model.crf`` is typed (:class:`crfdepth.config.CRFConfig`), so the parser itself reads it by groups:
+``--model.crf.gate.window 7`` sets that one field with its type, an unknown field or a value of the wrong
+type is the parser's error. The flat names of commands, config files and checkpoints written before the groups
+(``--model.crf "{mode: pixel}"``) are moved into their groups before the parser sees them (:func:`grouped_args`,
+:func:`grouped_crf`), and the values the groups refuse are named after parsing (:func:`check_crf`).
 """
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -12,11 +20,11 @@ import torch
 import yaml
 from jsonargparse import Namespace
 
-from crfdepth.config import CRFConfig, plain_data
+from crfdepth.config import FLAT, GROUPS, CRFConfig, is_group, plain_data
 from crfdepth.errors import InputError
 from train.module import build_model
 
-__all__ = ["OptionError", "check_accelerator", "check_model_options", "merge_nested_crf", "plain", "take_nested_crf"]
+__all__ = ["OptionError", "check_accelerator", "check_crf", "check_model_options", "grouped_args", "grouped_crf", "plain"]
 
 
 class OptionError(InputError):
@@ -88,54 +96,118 @@ def plain(value: Any) -> Any:
     return plain_data(value) if isinstance(value, (Mapping, list, tuple)) else value
 
 
-_NESTED_CRF = "--model.crf."
+_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 
-def take_nested_crf(args: list[str]) -> tuple[list[str], list[tuple[list[str], str]]]:
-    """``args`` without the ``--model.crf.<group>.<field> VALUE`` options, and those options as
-    ``(["<group>", "<field>"], "VALUE")``. The parser would take their values as strings
-    (``--model.crf.gate.enabled no`` would switch the gate on) and replace the whole group with the one
-    field (``--model.crf.gate.window 7`` would drop ``gate.enabled: true`` of the config);
-    :func:`merge_nested_crf` reads them as YAML and sets the one field."""
-    rest, nested, i = [], [], 0
+def grouped_crf(crf: Any) -> Any:
+    """``crf`` with its flat names (``{mode: pixel, gate: true}``; :data:`crfdepth.config.FLAT`, the keys of files
+    and checkpoints written before the groups) moved into their groups (``{structure: {mode: pixel}, gate:
+    {enabled: true}}``), applied over the groups as :meth:`crfdepth.config.CRFConfig.build` applies them. No
+    default is filled in, no value checked: the parser does that. Anything else (not a mapping, a key that is
+    neither a group nor a flat name) is left as it is, for the parser to name."""
+    if not isinstance(crf, Mapping) or not any(key in FLAT and not (key in GROUPS and is_group(value))
+                                               for key, value in crf.items()):
+        return crf
+    result: dict[str, Any] = {}
+    flat: dict[str, Any] = {}
+    for key, value in crf.items():
+        if key in FLAT and not (key in GROUPS and is_group(value)):
+            flat[key] = value
+        else:
+            result[key] = dict(value) if key in GROUPS and isinstance(value, Mapping) else value
+    for key, value in flat.items():
+        group, name = FLAT[key]
+        inner = result.setdefault(group, {})
+        if isinstance(inner, dict):
+            inner[name] = value
+        else:  # a group given as something else ("structure: pixel"): the parser names it
+            result[key] = value
+    return result
+
+
+def _grouped_config(config: Any) -> Any:
+    """A configuration (a ``--config`` file's, ``--model``'s) with ``model.crf`` (``<subcommand>.model.crf``
+    in a file given before the subcommand) by groups (:func:`grouped_crf`); the same object when it has none
+    by flat names."""
+    if not isinstance(config, Mapping):
+        return config
+    if "model" in config and isinstance(config["model"], Mapping) and "crf" in config["model"]:
+        crf = grouped_crf(config["model"]["crf"])
+        if crf is not config["model"]["crf"]:
+            return {**config, "model": {**config["model"], "crf": crf}}
+    for sub in _SUBCOMMANDS:
+        if sub in config:
+            inner = _grouped_config(config[sub])
+            if inner is not config[sub]:
+                return {**config, sub: inner}
+    return config
+
+
+def _read(text: str, path: bool) -> Any:
+    """The YAML of ``text`` (of the file it names, with ``path`` and such a file); None when it is not YAML."""
+    try:
+        if path and os.path.isfile(text):
+            with open(text, encoding="utf-8") as handle:
+                text = handle.read()
+        return yaml.safe_load(text)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None  # the parser reports it
+
+
+def _grouped_value(flag: str, text: Any) -> Any:
+    """The value of ``flag`` (YAML text or a file's path) with the CRF's flat names by groups: JSON for
+    ``--model.crf`` and ``--model``, YAML text for ``--config`` (a file with flat names is given as its converted
+    text); ``text`` itself when there is nothing to convert."""
+    if not isinstance(text, str):
+        return text
+    value = _read(text, path=True)  # each takes a file's path too
+    if flag == "--model.crf":
+        grouped = grouped_crf(value)
+    elif flag == "--model":
+        grouped = _grouped_config({"model": value})["model"] if isinstance(value, Mapping) else value
+    else:
+        grouped = _grouped_config(value)
+    if grouped is value:
+        return text
+    return yaml.safe_dump(grouped, sort_keys=False) if flag == "--config" else json.dumps(grouped)
+
+
+_CONVERTED = ("--config", "--model", "--model.crf")
+
+
+def grouped_args(args: list[str]) -> list[str]:
+    """``args`` with the CRF's configuration by groups wherever it is given by flat names
+    (``--model.crf "{mode: pixel}"`` -> ``--model.crf '{"structure": {"mode": "pixel"}}'``, a ``--config`` file's
+    ``model.crf``, ``--model "{crf: ...}"``): the parser checks the groups (``crf: CRFConfig``), and the commands
+    and config files written before them keep working."""
+    result, i = [], 0
     while i < len(args):
         word = args[i]
-        if isinstance(word, str) and word.startswith(_NESTED_CRF) and len(word) > len(_NESTED_CRF):
-            key, sep, value = word.partition("=")
-            if not sep:
-                if i + 1 >= len(args):
-                    raise OptionError(f"{key}: expected a value, got none")
-                value, i = args[i + 1], i + 1
-            nested.append((key[len(_NESTED_CRF):].split("."), value))
+        name, sep, value = word.partition("=") if isinstance(word, str) else (word, "", "")
+        if name in _CONVERTED and sep:
+            result.append(f"{name}={_grouped_value(name, value)}")
+        elif name in _CONVERTED and i + 1 < len(args):
+            result += [word, _grouped_value(name, args[i + 1])]
+            i += 1
         else:
-            rest.append(word)
+            result.append(word)
         i += 1
-    return rest, nested
+    return result
 
 
-def merge_nested_crf(crf: dict[str, Any], nested: list[tuple[list[str], str]]) -> dict[str, Any]:
-    """``crf`` with each nested option of :func:`take_nested_crf` set, in order, its value read as YAML
-    (``7`` an integer, ``true`` / ``no`` a boolean, ``[colour, normal]`` a list). They apply after the
-    config files and ``--model.crf``."""
-    crf = dict(crf or {})
-    for path, text in nested:
-        name = "--model.crf." + ".".join(path)
-        try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise OptionError(f"{name}: expected a YAML value, got {text!r} ({' '.join(str(exc).split())})") from None
-        where = crf
-        for key in path[:-1]:
-            inner = where.get(key)
-            if not isinstance(inner, dict):
-                if inner is not None:  # a flat option (gate: true) given a field: the group from it
-                    raise OptionError(f"{name}: expected {'.'.join(path[:-1])} to be a group of fields, got "
-                                      f"{inner!r} from the config; give the group as a mapping")
-                inner = {}
-            where[key] = inner = dict(inner)
-            where = inner
-        where[path[-1]] = value
-    return crf
+def check_crf(crf: Any) -> None:
+    """Refuse a parsed ``model.crf`` (its five groups) whose values the model refuses: the parser checks each
+    field's type and choices, the groups and ``CRFDepth`` check ranges and rules across fields (an odd gate
+    window, the gate with the mean aggregate) as they are built. Checked here, before Lightning starts.
+
+    Raises:
+        InputError: ``--model.crf.<group>.<field>: expected ..., got ...`` (``--model.crf.gate.window:
+            expected an odd int >= 3 (pixels), got 4``).
+    """
+    try:
+        build_model(plain(crf))
+    except InputError as exc:  # "crf.gate.window: ..."
+        raise InputError(f"--model.{exc}") from None
 
 
 def _flat_items(value: Any, prefix: str) -> dict[str, Any]:

@@ -86,12 +86,24 @@ def trained(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("args, first_line", [
     (["--model.crf.gate.windw", "3"],
-     "--model.crf.gate: expected fields among enabled, window, threshold, softness, got 'windw' "
-     "(did you mean 'window'?)"),
+     "--model.crf.gate.windw: expected an option of python -m train fit (--help lists them), got an unknown one "
+     "(did you mean --model.crf.gate.window?)"),
+    (["--model.crf", "{gate: {windw: 3}}"],
+     "model.crf.gate.windw: expected an option of python -m train fit (--help lists them), got an unknown one "
+     "(did you mean model.crf.gate.window?)"),
     (["--model.crf", "{mde: pixel}"],
-     "--model.crf: expected the groups structure, potentials, gate, solver, uncertainty or flat CRFDepth options, "
-     "got 'mde' (did you mean 'mode'?)"),
-    (["--model.crf.structure.mode", "pxl"], "--model.crf.structure.mode: expected one of ('superpixel', 'pixel'), got 'pxl'"),
+     "model.crf.mde: expected an option of python -m train fit (--help lists them), got an unknown one "
+     "(did you mean model.crf.structure.mode?)"),
+    (["--model.crf.structure.mode", "pxl"], "--model.crf.structure.mode: expected one of 'superpixel', 'pixel', got 'pxl'"),
+    (["--model.crf.gate.window", "abc"], "--model.crf.gate.window: expected an integer, got 'abc'"),
+    (["--model.crf.gate.window", "4"], "--model.crf.gate.window: expected an odd int >= 3 (pixels), got 4"),
+    (["--model.crf.potentials.on", "[normal]"],
+     "--model.crf.potentials.on: expected a subset of ('colour', 'normal', 'distance') containing 'colour', "
+     "got ('normal',)"),
+    (["--model.crf", "{gate: true, aggregate: median}"],  # flat names, checked as their groups
+     "--model.crf.structure.aggregate: the occlusion gate weights a mean, expected 'mean' with gate=True, "
+     "got 'median'"),
+    (["--model.crf.solver.rtol", "-1"], "--model.crf.solver.rtol: expected a number in (0, 1), got -1.0"),
     (["--model.lr", "abc"], "--model.lr: expected a number, got 'abc'"),
     (["--model.loss", "l3"], "--model.loss: expected one of 'l2', 'l1', 'huber', got 'l3'"),
     (["--data.batch_size", "two"], "--data.batch_size: expected an integer, got 'two'"),
@@ -224,8 +236,9 @@ def test_export_refuses_a_bad_checkpoint_in_one_line(workdir, capsys, trained):
 
 
 @pytest.mark.parametrize("args, first_line", [
-    (["--model.crf.gate.windw", "3"], "train: error: --model.crf.gate: expected fields among enabled, window, "
-                                      "threshold, softness, got 'windw' (did you mean 'window'?)"),
+    (["--model.crf.gate.windw", "3"], "train: error: --model.crf.gate.windw: expected an option of python -m train "
+                                      "fit (--help lists them), got an unknown one (did you mean --model.crf.gate.window?)"),
+    (["--model.crf.gate.window", "4"], "train: error: --model.crf.gate.window: expected an odd int >= 3 (pixels), got 4"),
     (["--ckpt_path", "unsafe.ckpt"], f"train: error: --ckpt_path: {EXPECTED}, got unsafe.ckpt, which "
                                      "torch.load(weights_only=True) refuses"),
 ])
@@ -259,25 +272,81 @@ def test_a_run_logs_no_weights_only_default(workdir, caplog, trained):
     assert "weights_only" not in caplog.text
 
 
-def test_a_nested_model_key_sets_one_field_with_its_type(capsys, monkeypatch):
-    """``--model.crf.<group>.<field> VALUE`` sets that field alone, its value read as YAML: the parser by
-    itself would replace the group with the one field (the config's ``gate.enabled: true`` lost) and keep
-    the value a string (``no`` switching the gate on)."""
+def _printed_crf(main, args: list[str], capsys) -> dict:
+    """``model.crf`` of ``--print_config``."""
     import yaml
 
+    with pytest.raises(SystemExit) as exit_info:
+        main([*args, "--print_config"])
+    assert exit_info.value.code in (0, None)
+    return yaml.safe_load(capsys.readouterr().out)["model"]["crf"]
+
+
+def test_a_nested_model_key_sets_one_field_with_its_type(capsys, monkeypatch):
+    """``model.crf`` is typed (``CRFConfig``): ``--model.crf.<group>.<field> VALUE`` sets that field alone, with its
+    type (``no`` a boolean, ``[colour, normal]`` a list), the config's other fields kept; ``--print_config`` shows
+    all five groups, every field with its value."""
+    from crfdepth.config import GROUPS, CRFConfig
     from train.__main__ import main
 
     monkeypatch.setattr(sys, "argv", ["python -m train"])
-    with pytest.raises(SystemExit) as exit_info:
-        main(["fit", "--config", str(CONFIGS / "kitti_weights.yaml"), "--model.crf.gate.window", "7",
-              "--model.crf.structure.rounds=2", "--model.crf.potentials.on", "[colour, normal]", "--print_config"])
-    assert exit_info.value.code in (0, None)
-    crf = yaml.safe_load(capsys.readouterr().out)["model"]["crf"]
-    assert crf == {"structure": {"mode": "pixel", "variable": "log", "rounds": 2}, "gate": {"enabled": True, "window": 7},
-                   "potentials": {"on": ["colour", "normal"]}}
-    with pytest.raises(SystemExit):
-        main(["fit", "--config", str(CONFIGS / "kitti_weights.yaml"), "--model.crf.gate.enabled", "no", "--print_config"])
-    assert yaml.safe_load(capsys.readouterr().out)["model"]["crf"]["gate"] == {"enabled": False}
+    crf = _printed_crf(main, ["fit", "--config", str(CONFIGS / "kitti_weights.yaml"), "--model.crf.gate.window", "7",
+                              "--model.crf.structure.rounds=2", "--model.crf.potentials.on", "[colour, normal]"], capsys)
+    assert list(crf) == list(GROUPS)
+    expected = CRFConfig.build({"structure": {"mode": "pixel", "variable": "log", "rounds": 2},
+                                "gate": {"enabled": True, "window": 7}, "potentials": {"on": ["colour", "normal"]}})
+    assert CRFConfig.build(crf) == expected
+    assert crf["gate"] == expected.groups()["gate"]  # every field, with its value
+    off = _printed_crf(main, ["fit", "--config", str(CONFIGS / "kitti_weights.yaml"), "--model.crf.gate.enabled", "no"],
+                       capsys)
+    assert off["gate"]["enabled"] is False and off["structure"]["variable"] == "log"
+
+
+def test_flat_crf_names_still_work(workdir, capsys, monkeypatch):
+    """The flat names of commands and config files written before the groups (``{mode: pixel, gate: true}``) are
+    moved into their groups before the parser reads them: the same configuration as the groups give."""
+    from crfdepth.config import CRFConfig
+    from train.__main__ import main
+
+    wanted = CRFConfig.build(mode="pixel", gate=True, gate_window=7)
+    flat = workdir / "flat.yaml"
+    flat.write_text("model:\n  crf: {mode: pixel, gate: true, gate_window: 7}\n")
+    for args in (["--model.crf", "{mode: pixel, gate: true, gate_window: 7}"],
+                 ["--model.crf={mode: pixel, gate: true, gate_window: 7}"],
+                 ["--model", "{crf: {mode: pixel, gate: true, gate_window: 7}}"],
+                 ["--config", str(flat)],
+                 ["--model.crf", "{structure: {mode: pixel}, gate: true}", "--model.crf.gate.window", "7"]):
+        assert CRFConfig.build(_printed_crf(main, ["fit", *BASE, *args], capsys)) == wanted, args
+
+
+def test_flat_names_move_into_their_groups_as_given():
+    """Flat names go into their groups over the group's fields; no default filled in, an unknown key left for
+    the parser to name; a configuration by groups is returned as it is."""
+    from train.options import grouped_crf
+
+    flat = {"mode": "pixel", "gate": True, "potentials": ["colour"], "structure": {"rounds": 2, "mode": "superpixel"},
+            "mde": 1}
+    assert grouped_crf(flat) == {"structure": {"rounds": 2, "mode": "pixel"}, "gate": {"enabled": True},
+                                 "potentials": {"on": ["colour"]}, "mde": 1}
+    grouped = {"gate": {"enabled": True}, "structure": {"mode": "pixel"}}
+    assert grouped_crf(grouped) is grouped
+
+
+def test_a_checkpoint_with_flat_crf_names_is_read(workdir, monkeypatch, trained):
+    """A checkpoint written before the groups (``hyper_parameters["crf"]`` by flat names) validates, its
+    configuration read as the groups it means."""
+    from crfdepth.config import CRFConfig
+    from train.__main__ import CRFDepthCLI, main
+
+    checkpoint = torch.load(trained, weights_only=True)
+    stored = CRFConfig.build(checkpoint["hyper_parameters"]["crf"], superpixels=1234, rtol=1e-4)
+    checkpoint["hyper_parameters"]["crf"] = {k: list(v) if isinstance(v, tuple) else v for k, v in stored.flat().items()}
+    torch.save(checkpoint, workdir / "flat.ckpt")
+    seen = {}
+    monkeypatch.setattr(CRFDepthCLI, "before_validate", lambda cli: seen.update(settings=cli.model.model.settings))
+    assert main(["validate", *BASE, "--ckpt_path", str(workdir / "flat.ckpt"), "--trainer.limit_val_batches", "1",
+                 "--trainer.enable_progress_bar", "false"]) == 0
+    assert seen["settings"] == stored
 
 
 @pytest.mark.kitti

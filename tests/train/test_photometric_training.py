@@ -158,7 +158,9 @@ def test_the_sequence_config_parses(configs, capsys, monkeypatch):
         main(["fit", "--config", str(configs / "kitti_sequence.yaml"), "--print_config"])
     assert exit_info.value.code in (0, None)
     printed = yaml.safe_load(capsys.readouterr().out)
-    assert printed["model"]["crf"] == {"structure": {"mode": "pixel", "variable": "log"}, "gate": {"enabled": True}}
+    crf = printed["model"]["crf"]  # all five groups (the model's crf is a typed CRFConfig), the config's values in them
+    assert list(crf) == ["structure", "potentials", "gate", "solver", "uncertainty"]
+    assert (crf["structure"]["mode"], crf["structure"]["variable"], crf["gate"]["enabled"]) == ("pixel", "log", True)
     assert printed["model"]["photometric_weight"] == 0.0 and printed["model"]["loss"] == "l1"
     data = printed["data"]
     assert data["layout"] == "sequence" and data["train_options"]["frames"] == [0, 46]
