@@ -1,4 +1,4 @@
-"""The one exception type crfdepth raises for bad input."""
+"""The one exception type crfdepth raises for bad input, and what counts as bad input."""
 
 
 class InputError(ValueError):
@@ -16,3 +16,9 @@ class ConvergenceError(RuntimeError):
 
 class ConvergenceWarning(UserWarning):
     """An iterative solve stopped before reaching its tolerance."""
+
+
+BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
+"""Bad input: what a run over many frames tells as a bad frame (``--skip-bad`` leaves it out, ``crfdepth targets``
+tells it with how far the run got) and ``crfdepth.cli.main`` as one line with exit status 2. Not
+:class:`~crfdepth.io.file_errors.FileError` (an output that cannot be written): that stops every run."""

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from crfdepth.runs.skip_bad import BAD_INPUT  # what crfdepth.cli.main reports as bad input (one line, exit status 2)
+from crfdepth.errors import BAD_INPUT  # what crfdepth.cli.main reports as bad input (one line, exit status 2)
 
 __all__ = ["BAD_INPUT", "MAX_WORKERS", "STRATEGIES", "VisRange", "add_batch_arguments", "add_rerun_argument",
            "add_topic_arguments", "fraction", "int_at_least", "positive_number", "vis_range_type"]

@@ -14,9 +14,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from crfdepth import api
 from crfdepth.data.sample import Batch, Sample, collate_samples
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.io.decoder_noise import quiet_decoders
-from crfdepth.runs.skip_bad import BAD_INPUT
 
 __all__ = ["bad_frames", "check_sample", "flag_names", "frame_batches"]
 

@@ -17,7 +17,7 @@ import torch
 from torch.utils.data import Subset
 
 from crfdepth.api import complete_checked
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.memory import MemoryRefusal
 from crfdepth.metrics import METRICS, depth_metrics, uncertainty_metrics
 from crfdepth.runs.batches import frame_batches
@@ -25,7 +25,6 @@ from crfdepth.runs.outputs import write_depth_png
 from crfdepth.runs.processes import deal, in_processes, run_share
 from crfdepth.runs.progress import bar
 from crfdepth.runs.ranks import Spread
-from crfdepth.runs.skip_bad import BAD_INPUT
 
 logger = logging.getLogger("crfdepth.cli.evaluate")  # the command's logger
 

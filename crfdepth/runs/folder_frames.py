@@ -17,13 +17,12 @@ from torch.utils.data import Subset
 
 from crfdepth.api import complete_checked
 from crfdepth.data.kitti import KittiDrive
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.io.file_errors import FileError
 from crfdepth.memory import MemoryRefusal
 from crfdepth.runs.batches import bad_frames, check_sample, flag_names, frame_batches
 from crfdepth.runs.outputs import write_frame
 from crfdepth.runs.progress import bar
-from crfdepth.runs.skip_bad import BAD_INPUT
 
 __all__ = ["FOLDER_FLAGS", "complete_frames", "complete_share", "find_bad_frames"]
 

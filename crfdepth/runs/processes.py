@@ -23,8 +23,7 @@ from collections.abc import Callable
 import torch
 import torch.multiprocessing as mp
 
-from crfdepth.errors import InputError
-from crfdepth.runs.skip_bad import BAD_INPUT
+from crfdepth.errors import BAD_INPUT, InputError
 
 __all__ = ["check_devices", "deal", "in_processes", "run_share"]
 

@@ -37,10 +37,9 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.runs.launch import launch_ranks
 from crfdepth.runs.processes import check_devices
-from crfdepth.runs.skip_bad import BAD_INPUT
 
 __all__ = ["Ranks", "Spread", "joined_group", "launcher_world_size", "launches_ranks", "ranks_from_environment",
            "run_in_group"]

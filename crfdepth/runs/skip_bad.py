@@ -11,11 +11,8 @@ from pathlib import Path
 from crfdepth.errors import InputError
 from crfdepth.runs.outputs import write_files
 
-__all__ = ["BAD_INPUT", "FAILED_CSV", "LISTED_BAD", "SKIPPED_CSV", "skipped_frames", "write_failed", "write_skipped"]
+__all__ = ["FAILED_CSV", "LISTED_BAD", "SKIPPED_CSV", "skipped_frames", "write_failed", "write_skipped"]
 
-# Bad input: what a run over many frames tells as a bad frame (``--skip-bad`` leaves it out) and ``crfdepth.cli.main``
-# as one line with exit status 2. Not FileError (an output that cannot be written): that stops every run.
-BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
 SKIPPED_CSV = "skipped.csv"  # --skip-bad: the frames left out and why (folder and bag modes)
 FAILED_CSV = "failed.csv"  # folder mode: the frames that passed the checks but failed when completed
 # How many bad frames the error of a run without --skip-bad lists (the first line names the first one).

@@ -39,11 +39,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.io.calibration import RigCalibration
 from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording
 from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S, FrameTopics, Plan, decode_frame, paired_frames, plan_frames
-from crfdepth.sequences.drive_targets import BAD_INPUT, DriveTargets, select_frames, write_drive_targets
+from crfdepth.sequences.drive_targets import DriveTargets, select_frames, write_drive_targets
 from crfdepth.sequences.pose_source import bag_pose_plan, matrix_text
 from crfdepth.sequences.targets import Targets
 

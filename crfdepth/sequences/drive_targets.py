@@ -41,7 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
 from crfdepth.io.calibration import load_any_calibration
 from crfdepth.io.decoder_noise import quiet_decoders
 from crfdepth.io.file_errors import flagged
@@ -51,10 +51,8 @@ from crfdepth.sequences.pose_source import drive_poses
 from crfdepth.sequences.stereo import baseline_from_projections, remove_stereo_contradicted
 from crfdepth.sequences.targets import MOVED, OCCLUDED, OUTSIDE, Targets, camera_view_targets
 
-__all__ = ["BAD_INPUT", "INDEX_COLUMNS", "DriveTargets", "select_frames", "write_drive_targets"]
+__all__ = ["INDEX_COLUMNS", "DriveTargets", "select_frames", "write_drive_targets"]
 
-BAD_INPUT = (InputError, FileNotFoundError, PermissionError, IsADirectoryError)
-"""The errors of bad input (a file the run reads, changed or gone): told with how far a run got."""
 
 # Columns of OUT/<drive>/index_image_0X.csv, one row per frame written.
 INDEX_COLUMNS = (

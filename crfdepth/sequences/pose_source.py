@@ -87,10 +87,7 @@ def drive_poses(poses: str, drive: Path, frames: list[int], used: list[int], sca
     else:
         if calib.kitti is None:  # pragma: no cover - the day folder is always a KITTI calibration
             raise InputError(f"--poses {mode}: expected a KITTI calibration to read camera-0 poses with")
-        try:
-            found = read_kitti_poses(mode, calib.kitti.velo_to_rect_cam())
-        except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
-            raise type(exc)(f"--poses {mode}: {str(exc).removeprefix('poses: ')}") from None
+        found = _read_poses_file(mode, "auto, odometry, oxts", calib.kitti.velo_to_rect_cam())
         if len(found) != len(frames):
             raise InputError(f"--poses {mode}: expected {len(frames)} poses (one per frame of the drive, in frame "
                              f"order), got {len(found)}")
@@ -138,12 +135,21 @@ def _tf_poses(poses: str, bag: Recording, plan: Plan, clouds: list[int], rate: f
     return found, f"/tf odometry {root} -> {lidar}"
 
 
-def _poses_file_lines(poses: str, count: int, positions: list[int]) -> list[str]:
-    """A poses file's lines for the frames used (one line per paired frame of the bag)."""
+def _read_poses_file(poses: str, keywords: str, T_cam0_lidar=None) -> np.ndarray:
+    """The poses of the file ``--poses`` names, its errors naming the option; a value that is neither one of the
+    ``keywords`` nor an existing path (a misspelt keyword) is told what the option takes."""
+    if not Path(poses).exists():
+        raise InputError(f"--poses {poses}: expected {keywords} or the path of a KITTI odometry poses.txt, got "
+                         f"{poses!r}, which is neither (no such file)")
     try:
-        read_kitti_poses(poses)
+        return read_kitti_poses(poses, T_cam0_lidar)
     except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         raise type(exc)(f"--poses {poses}: {str(exc).removeprefix('poses: ')}") from None
+
+
+def _poses_file_lines(poses: str, count: int, positions: list[int]) -> list[str]:
+    """A poses file's lines for the frames used (one line per paired frame of the bag)."""
+    _read_poses_file(poses, "auto, tf, odometry")
     lines = [line for line in Path(poses).read_text().splitlines() if line.strip()]
     if len(lines) != count:
         raise InputError(f"--poses {poses}: expected {count} poses (one per paired frame of the bag, in time "

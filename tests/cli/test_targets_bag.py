@@ -293,6 +293,13 @@ def test_tf_poses_demanded_without_tf(sequence, tmp_path, capsys, monkeypatch):
              "kiss-icp package, not installed; pip install \"crfdepth[odometry]\", or give --poses FILE")
 
 
+def test_a_misspelt_poses_keyword_is_told_what_the_option_takes(recording, tmp_path, capsys):
+    out = tmp_path / "out"
+    _refused(["targets", "--bag", recording, "--poses", "odom", "--out-dir", out], capsys, out,
+             "crfdepth targets: error: --poses odom: expected auto, tf, odometry or the path of a KITTI odometry "
+             "poses.txt, got 'odom', which is neither (no such file)")
+
+
 def test_tf_odometry_with_a_jump_is_reported_by_frame(sequence, tmp_path, capsys):
     """A /tf pose 3 m off at frame 3: check_poses names frames 3 (and 4, the step back)."""
     import dataclasses

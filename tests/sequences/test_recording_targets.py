@@ -59,9 +59,11 @@ def test_bad_options_are_refused_naming_them(drive, tmp_path, options, named):
     assert not (tmp_path / "out").exists()
 
 
-def test_a_poses_file_that_is_not_there_is_named(drive, tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"^--poses nonsense: no such file: nonsense"):
-        make_targets(tmp_path / "out", drive=drive, poses="nonsense")
+def test_a_poses_value_that_is_neither_a_keyword_nor_a_file_is_told_what_the_option_takes(drive, tmp_path):
+    with pytest.raises(InputError, match=r"^--poses odometr: expected auto, odometry, oxts or the path of a KITTI "
+                                         r"odometry poses.txt, got 'odometr', which is neither \(no such file\)"):
+        make_targets(tmp_path / "out", drive=drive, poses="odometr")
+    assert not (tmp_path / "out").exists()
     with pytest.raises(InputError, match=r"^--out-dir: .* is inside the input drive"):
         make_targets(drive / "out", drive=drive)
 
