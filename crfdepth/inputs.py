@@ -25,6 +25,7 @@ from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.plausibility import MAX_LIDAR_DEPTH_M, check_sparse_plausible
 
 __all__ = [
+    "InvertedTransform",
     "checked_points_to_sparse",
     "image_to_numpy",
     "no_points_message",
@@ -201,6 +202,21 @@ def points_to_sparse(points, calibration: RigCalibration | Calibration, image_si
     return checked_points_to_sparse(prepare_points(points), calibration, image_size, trust_transform)
 
 
+class InvertedTransform(InputError):
+    """The refusal of a ``T_cam_lidar`` that looks inverted (:func:`points_to_sparse`), with the fix in Python's
+    words; :meth:`retold` gives it with another fix (the command line's ``--trust-transform``)."""
+
+    PYTHON_FIX = "pass its inverse (np.linalg.inv), or trust_transform=True to use it as given"
+
+    def __init__(self, finding: str, fix: str = PYTHON_FIX):
+        super().__init__(f"{finding}; {fix}")
+        self.finding = finding
+
+    def retold(self, fix: str) -> InvertedTransform:
+        """The same refusal with ``fix`` as its advice."""
+        return InvertedTransform(self.finding, fix)
+
+
 def checked_points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image_size: tuple[int, int],
                       trust_transform: bool) -> np.ndarray:
     """:func:`points_to_sparse` on checked inputs: (N, 3) float64 finite points."""
@@ -219,9 +235,9 @@ def checked_points_to_sparse(xyz: np.ndarray, calibration: RigCalibration, image
             T = calibration.T_cam_lidar
             tilt, inverse = ground_tilt_deg(normal, T), ground_tilt_deg(normal, np.linalg.inv(T))
             if tilt > INVERTED_MIN_TILT_DEG and inverse < INVERTED_MAX_INVERSE_TILT_DEG:
-                raise InputError(
+                raise InvertedTransform(
                     f"{calibration.name('T_cam_lidar')}: expected the transform that maps LiDAR points "
                     f"into the camera frame (x right, y down, z forward), got one that looks inverted: it turns the "
                     f"scan's ground plane {tilt:.0f} degrees from level under the camera, its inverse {inverse:.0f} "
-                    f"degrees; pass its inverse (np.linalg.inv), or trust_transform=True to use it as given")
+                    f"degrees")
     return sparse

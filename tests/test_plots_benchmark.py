@@ -102,3 +102,21 @@ def test_the_evaluation_table_holds_the_committed_json(bench):
         cells = next(line for line in lines if line.startswith("|") and marker in line).split("|")[2:-1]
         for protocol, cell in zip(("a", "b", "c"), (cells[0], cells[1], cells[3])):
             assert int(cell.split("/")[0]) == round(table[protocol][method]["rmse"]), (method, protocol, cell)
+
+
+def test_the_front_picture_is_the_example_rig_as_the_script_draws_it(tmp_path):
+    """docs/own_sensors.jpg (README, docs index, own-sensors page) is what benchmarks/front_picture.py makes of
+    docs/example: regenerated here, it may differ from the committed JPEG only as far as another machine's floating
+    point and JPEG encoder move it (on the machine that made it: 0)."""
+    script = load_benchmark("front_picture")
+    out = tmp_path / "front.jpg"
+    assert script.main(["--out", str(out)]) == 0
+    made = cv2.imread(str(out)).astype(np.int16)
+    committed = cv2.imread(str(ROOT / "docs" / "own_sensors.jpg")).astype(np.int16)
+    assert made.shape == committed.shape == (284, 644, 3)
+    diff = np.abs(made - committed)
+    assert diff.mean() < 1.0 and np.percentile(diff, 99) <= 8, (diff.mean(), np.percentile(diff, 99))
+    # the left panel's map holds the scan in depth colours over the darkened image; the right one, no dark pixel
+    assert (made[:240, 324:] > 20).any(-1).all()
+    with pytest.raises(SystemExit):
+        script.main(["--out", str(tmp_path / "front.png")])

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import importlib
 import logging
 import sys
@@ -112,9 +113,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"crfdepth {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress at INFO level")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser.commands = {}  # name -> its parser, for refuse_unknown
     for name in _COMMANDS:
-        add_command(subparsers, importlib.import_module(name))
+        command = add_command(subparsers, importlib.import_module(name))
+        parser.commands[command.prog.rpartition(" ")[2]] = command
     return parser
+
+
+def refuse_unknown(parser: argparse.ArgumentParser, args: argparse.Namespace, unknown: list[str]) -> None:
+    """Exit (status 2) on arguments no parser took, as the sub-command's usage error (argparse alone blames
+    ``crfdepth``), naming the closest option of that command for a misspelt one."""
+    target = getattr(parser, "commands", {}).get(getattr(args, "command", None), parser)
+    message = f"unrecognized arguments: {' '.join(unknown)}"
+    flag = next((a.partition("=")[0] for a in unknown if a.startswith("--")), None)
+    close = difflib.get_close_matches(flag, [o for o in target._option_string_actions if o.startswith("--")],
+                                      n=1, cutoff=0.7) if flag else []
+    if close:
+        message += f" (did you mean {close[0]}?)"
+    target.error(message)
 
 
 class _LineFormatter(logging.Formatter):
@@ -138,7 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()
         argv = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:
+            refuse_unknown(parser, args, unknown)
         args.argv = argv  # the command line, run again in each rank that --strategy ddp starts
         command = args.command
         handler = logging.StreamHandler()  # stderr; a no-op where the root logger is already set up

@@ -137,10 +137,10 @@ from crfdepth.cli.complete_list import run_list
 from crfdepth.cli.complete_one import read_one, write_one
 from crfdepth.cli.completion import frame_errors
 from crfdepth.cli.model_options import add_model_arguments
+from crfdepth.cli.outputs import rerun_recording
 from crfdepth.errors import InputError
 from crfdepth.plausibility import SPARSE_UNITS
 from crfdepth.runs.folder import complete_folder
-from crfdepth.runs.outputs import rerun_recording
 from crfdepth.runs.ranks import launcher_world_size
 
 # --------------------------------------------------------------------------- arguments
@@ -269,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]
     if stray and args.bag is None:
         raise InputError(f"{', '.join(stray)}: bag options need --bag")
-    with rerun_recording(args.rerun) as args.recorder:  # checked now, written when the run ends
+    with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
         if args.bag is not None:
             return run_bag(args)
         if args.input_dir is not None:

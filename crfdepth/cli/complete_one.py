@@ -80,6 +80,11 @@ def read_one(args: argparse.Namespace) -> OneFrame:
              "--batch-size": None if args.batch_size == 1 else args.batch_size,  # given other than the default
              "--workers": None if args.workers == 0 else args.workers}
     missing = [flag for flag in needed if given[flag] is None]
+    if not points_mode and args.sparse is None and args.intrinsics is None:  # no LiDAR at all: both ways
+        absent = [flag for flag in ("--image", "--out") if given[flag] is None] + ["the LiDAR"]
+        raise InputError(f"one frame needs --image, --out and its LiDAR: --sparse DEPTH.png with --intrinsics K.txt, or "
+                         f"--points CLOUD with --calib RIG.yaml (many frames: --input-dir, --input-list or --bag); "
+                         f"missing {', '.join(absent)}")
     if missing:
         mode = "point-cloud mode" if points_mode else "one-frame mode"
         raise InputError(f"{mode} needs {', '.join(needed[:-1])} and --out; missing {', '.join(missing)}")
@@ -147,6 +152,7 @@ def write_one(args: argparse.Namespace, frame: OneFrame, depth: np.ndarray, std:
         lidar = {key: frame.inputs[key] for key in ("points", "calibration", "sparse", "K") if key in frame.inputs}
         args.recorder.complete_frame(rgb, depth, std, **lidar)
     if not args.quiet:
+        spread = "" if std is None else f", std {float(std.min()):.2f}-{float(std.max()):.2f} m"
         print(f"wrote {', '.join(str(p) for p in written)}: {depth.shape[1]}x{depth.shape[0]} depth, "
-              f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m, in {time.perf_counter() - frame.start:.1f} s")
+              f"{float(depth.min()):.2f}-{float(depth.max()):.2f} m{spread}, in {time.perf_counter() - frame.start:.1f} s")
     return 0

@@ -54,14 +54,15 @@ from crfdepth.api import complete_depth
 from crfdepth.checkpoints import load_pretrained, own_structure
 from crfdepth.cli.arguments import VisRange, add_rerun_argument, int_at_least, vis_range_type
 from crfdepth.cli.model_options import model_line
+from crfdepth.cli.outputs import rerun_recording
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
-from crfdepth.pictures.figures import depth_picture, std_picture
-from crfdepth.runs.outputs import rerun_recording, write_rgb_png
+from crfdepth.pictures.figures import captioned, depth_picture, std_picture
+from crfdepth.runs.outputs import write_rgb_png
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
@@ -183,6 +184,10 @@ def _frames(args: argparse.Namespace):
 # --------------------------------------------------------------------------- outputs
 
 
+# Where the points picture's virtual camera stands, above and behind the real one (metres).
+_VIEW_LIFT_M, _VIEW_BACK_M = 4.0, 10.0
+
+
 def _pictures(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, depth: np.ndarray,
               std: np.ndarray, vis_range: tuple[float, float]) -> dict[str, np.ndarray]:
     """The demo's pictures of one frame, keyed by :data:`PICTURES`."""
@@ -198,7 +203,10 @@ def _pictures(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, depth:
         "input": input_rgb,
         "depth": depth_rgb,
         "std": std_picture(std),
-        "points": render_point_cloud(depth, rgb, K.numpy(), max_depth=min(hi, EVAL_MAX_DEPTH_M)),
+        "points": captioned(render_point_cloud(depth, rgb, K.numpy(), max_depth=min(hi, EVAL_MAX_DEPTH_M),
+                                               lift_m=_VIEW_LIFT_M, back_m=_VIEW_BACK_M),
+                            f"the depth in 3D, coloured by the image, seen from {_VIEW_LIFT_M:g} m above and "
+                            f"{_VIEW_BACK_M:g} m behind the camera (black: out of its view)"),
     }
 
 
@@ -211,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     what was written where.
     """
     out_dir = _check_out_dir(args.out_dir)
-    with rerun_recording(args.rerun) as recorder:  # checked now, written when the run ends
+    with rerun_recording(args) as recorder:  # checked now, written when the run ends
         return _demo(args, out_dir, recorder)
 
 

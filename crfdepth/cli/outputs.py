@@ -4,8 +4,11 @@ locks and writes the output folders and files (atomically); these adapters read 
 from __future__ import annotations
 
 import argparse
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
+from crfdepth.pictures.rerun_recording import Recorder
 from crfdepth.runs import outputs
 from crfdepth.runs.outputs import output_folders
 
@@ -17,6 +20,11 @@ def check_output_folders(args: argparse.Namespace, inputs: list[Path], source: s
     return outputs.check_output_folders(args.out_dir, args.out_std_dir, args.vis, inputs, source)
 
 
-def rerun_recording(args: argparse.Namespace):
-    """:func:`crfdepth.runs.outputs.rerun_recording` of ``--rerun``."""
-    return outputs.rerun_recording(args.rerun)
+@contextlib.contextmanager
+def rerun_recording(args: argparse.Namespace) -> Iterator[Recorder | None]:
+    """:func:`crfdepth.runs.outputs.rerun_recording` of ``--rerun``; once the file is written, a line saying so
+    (not with ``--quiet``, nor for a bare ``--rerun`` streaming to a viewer)."""
+    with outputs.rerun_recording(args.rerun) as recorder:
+        yield recorder
+    if recorder is not None and args.rerun and not getattr(args, "quiet", False):
+        print(f"wrote {args.rerun}: a Rerun recording of {recorder.frames} frame(s); open it with: rerun {args.rerun}")

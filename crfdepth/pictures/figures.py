@@ -5,8 +5,9 @@
 - :func:`targets_picture`: camera-view targets on their image, dropped returns by reason (section 14).
 
 ``vis_range=(min_m, max_m)`` gives the same colours for the same metres in every frame of a
-sequence; without it the range is the map's 2nd to 98th percentile. The bar is drawn with
-OpenCV (no matplotlib at run time).
+sequence; without it the range is the map's 2nd to 98th percentile, and an end of the bar that the
+map's values pass is labelled open (``<=2 m``, ``>=67 m``). The bar is drawn with OpenCV (no
+matplotlib at run time).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from crfdepth.pictures.colour import (
 )
 from crfdepth.sequences.targets import REASON_COLOURS, Targets
 
-__all__ = ["depth_picture", "std_picture", "targets_picture"]
+__all__ = ["captioned", "depth_picture", "std_picture", "targets_picture"]
 
 
 def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
@@ -65,8 +66,9 @@ def depth_picture(depth, vis_range: tuple[float, float] | None = None, *,
     d = as_map("depth", depth)
     lo, hi = depth_range(d) if vis_range is None else check_vis_range(vis_range, positive=True)
     rgb = colorize_depth(d, lo, hi, invalid_color=invalid_color)
+    valid = d[np.isfinite(d) & (d > 0)] if vis_range is None else None
     return _with_colour_bar(rgb, _Scale("inverse", lo, hi), "depth",
-                            lambda m: colorize_depth(m, lo, hi, invalid_color=invalid_color))
+                            lambda m: colorize_depth(m, lo, hi, invalid_color=invalid_color), valid)
 
 
 def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *, scale: Scale = "log",
@@ -115,8 +117,9 @@ def std_picture(std, vis_range: tuple[float, float] | None = None, lidar=None, *
             raise InputError(f"lidar: expected an (H, W) sparse depth map of shape {s.shape} like std, "
                              f"got shape {points.shape}")
         rgb[np.isfinite(points) & (points > 0)] = check_color(lidar_color, "lidar_color")
+    valid = s[np.isfinite(s) & (s >= 0)] if vis_range is None else None
     return _with_colour_bar(rgb, _Scale(scale, lo, hi), "std" if scale == "linear" else "std, log",
-                            lambda m: colorize_std(m, lo, hi, scale=scale, invalid_color=invalid_color))
+                            lambda m: colorize_std(m, lo, hi, scale=scale, invalid_color=invalid_color), valid)
 
 
 # --------------------------------------------------------------------------- colour bar
@@ -174,11 +177,24 @@ def _format_metres(value: float) -> str:
     return f"{text} m"
 
 
-def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.ndarray:
+def _bar_labels(scale: _Scale, values: np.ndarray | None) -> list[tuple[float, str]]:
+    """The bar's tick values and labels, most important first: both ends (open, ``<=`` / ``>=``, where the map's
+    ``values`` pass them; None: a fixed range, the same bar in every frame), then round values."""
+    below = values is not None and values.size > 0 and float(values.min()) < scale.lo
+    above = values is not None and values.size > 0 and float(values.max()) > scale.hi
+    return [(scale.lo, ("<=" if below else "") + _format_metres(scale.lo)),
+            (scale.hi, (">=" if above else "") + _format_metres(scale.hi)),
+            *((v, _format_metres(v)) for v in scale.candidate_ticks() if v not in (scale.lo, scale.hi))]
+
+
+def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint, values: np.ndarray | None) -> np.ndarray:
     """``rgb`` on top of a white panel holding ``title`` and the colour bar of ``scale``.
 
     ``paint(metres)`` colours a (1, n) row of metres exactly as the map was coloured, so
-    the bar shows the map's own colours.
+    the bar shows the map's own colours. ``values``: the map's valid values when the range is
+    the default one (its 2nd to 98th percentile); an end of the bar that they pass is labelled
+    open, ``<=5 m`` or ``>=67 m``, since every value beyond it has that end's colour. None (a
+    fixed ``vis_range``): the bar is the same in every frame.
     """
     h, w = rgb.shape[:2]
     width = max(w, _BAR_MIN_WIDTH)
@@ -195,9 +211,8 @@ def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.nd
     cv2.rectangle(panel, (x0 - 1, _BAR_TOP - 1), (x1, _BAR_BOTTOM), _FRAME, 1)
     # Ticks: both ends first, then round values while their labels do not overlap.
     taken: list[tuple[int, int]] = []
-    for value in [scale.lo, scale.hi, *scale.candidate_ticks()]:
+    for value, label in _bar_labels(scale, values):
         x = x0 + int(round(float(scale.position(value)) * (n - 1)))
-        label = _format_metres(value)
         (label_w, _), _ = cv2.getTextSize(label, _FONT, _FONT_SCALE, 1)
         left = min(max(x - label_w // 2, 0), width - label_w)
         span = (left - 4, left + label_w + 4)
@@ -206,6 +221,23 @@ def _with_colour_bar(rgb: np.ndarray, scale: _Scale, title: str, paint) -> np.nd
         taken.append(span)
         cv2.line(panel, (x, _BAR_BOTTOM), (x, _BAR_BOTTOM + _TICK_LENGTH - 1), _INK, 1)
         cv2.putText(panel, label, (left, _LABEL_BASELINE), _FONT, _FONT_SCALE, _INK, 1, cv2.LINE_AA)
+    return out
+
+
+def captioned(rgb: np.ndarray, caption: str) -> np.ndarray:
+    """``rgb`` over a white panel as tall as a colour bar's, holding ``caption`` (one line, its font shrunk to fit the
+    width): a picture without a scale laid out like those with one.
+
+    Returns:
+        (H + 44, W, 3) uint8 RGB.
+    """
+    h, w = rgb.shape[:2]
+    out = np.full((h + _BAR_PANEL_HEIGHT, w, 3), _PAPER, np.uint8)
+    out[:h] = rgb
+    (text_w, text_h), _ = cv2.getTextSize(caption, _FONT, _FONT_SCALE, 1)
+    font_scale = _FONT_SCALE * min(1.0, (w - 16) / max(text_w, 1))
+    text_h = cv2.getTextSize(caption, _FONT, font_scale, 1)[0][1]
+    cv2.putText(out[h:], caption, (8, (_BAR_PANEL_HEIGHT + text_h) // 2), _FONT, font_scale, _INK, 1, cv2.LINE_AA)
     return out
 
 

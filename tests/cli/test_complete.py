@@ -322,6 +322,18 @@ def test_complete_bad_input(main, synth, tmp_path, capsys, case):
     assert not (tmp_path / "vis").exists()  # nor a folder created
 
 
+def test_an_image_without_lidar_is_told_both_ways_to_give_it(main, synth, tmp_path, capsys):
+    out = tmp_path / "depth.png"
+    assert main(["complete", "--image", str(synth["image"]), "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (
+        "crfdepth complete: error: one frame needs --image, --out and its LiDAR: --sparse DEPTH.png with "
+        "--intrinsics K.txt, or --points CLOUD with --calib RIG.yaml (many frames: --input-dir, --input-list or "
+        "--bag); missing the LiDAR\n")
+    assert main(["complete"]) == 2
+    assert capsys.readouterr().err.endswith("; missing --image, --out, the LiDAR\n")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("case", ["missing folder", "not png", "out is the input", "out is a folder"])
 def test_complete_bad_output(main, synth, tmp_path, capsys, case):
     (tmp_path / "folder.png").mkdir()

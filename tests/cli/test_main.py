@@ -84,6 +84,21 @@ def test_usage_errors_are_one_line_naming_the_option(main, capsys):
     assert capsys.readouterr().err.startswith("crfdepth project: error: --camera: invalid choice: ")
 
 
+def test_an_unknown_option_is_refused_by_its_command_naming_the_closest(main, capsys):
+    """argparse alone blames ``crfdepth`` for an option its sub-command does not know, and suggests nothing."""
+    given = ["project", "--velodyne", "x.bin", "--image", "i.png", "--out", "o.png", "--calib", "c.txt"]
+    for argv, expected in (
+        ([*given, "--seeed", "3"], "crfdepth project: error: unrecognized arguments: --seeed 3 (did you mean --seed?)\n"),
+        ([*given, "--seeed=3"], "crfdepth project: error: unrecognized arguments: --seeed=3 (did you mean --seed?)\n"),
+        ([*given, "--zzz"], "crfdepth project: error: unrecognized arguments: --zzz\n"),
+        (["--bogus"], "crfdepth: error: unrecognized arguments: --bogus\n"),
+    ):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2
+        assert capsys.readouterr().err == expected, argv
+
+
 def test_no_command_prints_help_and_exits_2(main, capsys):
     assert main([]) == 2
     assert "project" in capsys.readouterr().out

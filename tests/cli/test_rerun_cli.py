@@ -47,8 +47,9 @@ def _files(folder: Path) -> list[str]:
 
 def test_demo_records_the_scene(tmp_path, capsys):
     out, rrd = tmp_path / "demo", tmp_path / "demo.rrd"
-    code, _, err = run_main(["demo", "--out-dir", out, "--rerun", rrd], capsys)
+    code, printed, err = run_main(["demo", "--out-dir", out, "--rerun", rrd], capsys)
     assert code == 0, err
+    assert printed.splitlines()[-1] == f"wrote {rrd}: a Rerun recording of 1 frame(s); open it with: rerun {rrd}"
     scene = make_scene(0, beams=64)
     found = read_recording(rrd)
     assert COMPLETE_ENTITIES | {rec.STD} <= set(found) and rec.TARGETS not in found
@@ -88,8 +89,10 @@ def test_complete_one_frame_records_depth_std_and_lidar(tmp_path, capsys):
 def test_complete_folder_records_one_step_per_frame_and_no_std_unless_asked(tmp_path, capsys):
     folder = write_folder(tmp_path / "in", 2)
     out, rrd = tmp_path / "out", tmp_path / "folder.rrd"
-    code, _, err = run_main(["complete", "--input-dir", folder, "--out-dir", out, "--rerun", rrd, *FAST], capsys)
+    code, printed, err = run_main(["complete", "--input-dir", folder, "--out-dir", out, "--rerun", rrd, *FAST],
+                                  capsys)
     assert code == 0, err
+    assert printed == ""  # --quiet: not even the recording's line
     found = read_recording(rrd)
     assert COMPLETE_ENTITIES <= set(found) and rec.STD not in found
     assert sorted(found[rec.DEPTH]) == sorted(found[rec.IMAGE]) == sorted(found[rec.LIDAR_3D]) == [0, 1]

@@ -130,7 +130,11 @@ def test_inverted_example_rig_is_refused(capsys, tmp_path):
     assert first.startswith(f"crfdepth complete: error: --calib {rig}: expected the transform that maps LiDAR points "
                             f"into the camera frame (x right, y down, z forward), got one that looks inverted: it "
                             f"turns the scan's ground plane 90 degrees from level under the camera, its inverse 1 "
-                            f"degrees")
+                            f"degrees; invert it in the calibration file, or give --trust-transform to use it as given")
+    # and --trust-transform does use it as given
+    assert main(["complete", "--image", str(EXAMPLE / "image.png"), "--points", str(EXAMPLE / "scan.pcd"), "--calib",
+                 str(rig), "--trust-transform", "--out", str(out), "--quiet"]) == 0
+    assert "looks inverted" not in capsys.readouterr().err
 
 
 def _kitti_calib(tmp_path, Tr: np.ndarray) -> Path:
@@ -207,6 +211,7 @@ def test_inverted_rig_through_a_bag_is_refused(capsys, tmp_path):
     first = capsys.readouterr().err.splitlines()[0]
     assert first.startswith("crfdepth complete: error: ")
     assert "looks inverted: it turns the scan's ground plane 90 degrees from level under the camera" in first
+    assert "; invert it in the calibration file, or give --trust-transform to use it as given" in first
     assert not out.exists()
 
 

@@ -10,7 +10,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.pictures import figures
-from crfdepth.pictures.colour import colorize_depth, colorize_std, depth_range
+from crfdepth.pictures.colour import colorize_depth, colorize_std, depth_range, std_range
 from crfdepth.pictures.figures import depth_picture, std_picture, targets_picture
 from crfdepth.sequences.targets import KEPT, MOVED, OCCLUDED, REASON_COLOURS, Targets
 
@@ -87,6 +87,38 @@ def test_tick_candidates_are_round_metres_inside_the_range():
     assert figures._Scale("linear", 0.0, 1.0).candidate_ticks() == pytest.approx([0, 0.2, 0.4, 0.6, 0.8, 1.0])
     labels = [figures._format_metres(v) for v in (0.0, 0.25, 2.0, 12.0, 150.0)]
     assert labels == ["0 m", "0.25 m", "2 m", "12 m", "150 m"]
+
+
+def test_an_end_of_the_bar_that_the_map_passes_is_labelled_open():
+    """The default range is the 2nd to 98th percentile: a std map with a 12.7 m tail must not read as if its
+    brightest colour were the 98th percentile's metres."""
+    std = np.geomspace(0.1, 1.0, 400).reshape(20, 20)
+    std[0, :5] = 0.05
+    std[-1, :5] = 12.7
+    lo, hi = std_range(std)
+    labels = [label for _, label in figures._bar_labels(figures._Scale("log", lo, hi), std[std > 0])]
+    assert labels[0].startswith("<=") and labels[1].startswith(">="), labels
+    assert not any(label.startswith(("<", ">")) for label in labels[2:])
+    closed = [label for _, label in figures._bar_labels(figures._Scale("log", 0.01, 20.0), std[std > 0])]
+    assert not any(label.startswith(("<", ">")) for label in closed), closed
+    # Only the labels differ: the map's pixels are those of the closed bar's range.
+    open_picture, fixed = std_picture(std), std_picture(std, vis_range=(lo, hi))
+    np.testing.assert_array_equal(open_picture[:20, :20], fixed[:20, :20])
+    depth = np.linspace(5.0, 50.0, 400).reshape(20, 20)
+    depth[0, :5], depth[-1, -5:] = 2.0, 90.0
+    labels = [label for _, label in figures._bar_labels(figures._Scale("inverse", *depth_range(depth)), depth.ravel())]
+    assert labels[:2] == [f"<={figures._format_metres(depth_range(depth)[0])}",
+                          f">={figures._format_metres(depth_range(depth)[1])}"]
+
+
+@pytest.mark.parametrize("width", [120, 1216])
+def test_a_caption_panel_is_as_tall_as_a_colour_bar_and_its_text_fits(width):
+    rgb = np.zeros((30, width, 3), np.uint8)
+    picture = figures.captioned(rgb, "the depth in 3D, seen from 4 m above and 10 m behind the camera")
+    assert picture.shape == depth_picture(np.full((30, width), 5.0)).shape[:1] + (width, 3)
+    np.testing.assert_array_equal(picture[:30], rgb)
+    ink = np.flatnonzero((picture[30:] < 128).all(-1).any(0))
+    assert ink.size and ink[0] >= 4 and ink[-1] <= width - 4  # inside the picture, however narrow
 
 
 def _targets(h: int = 4, w: int = 6) -> Targets:
