@@ -15,18 +15,19 @@ files written before the groups use and which ``CRFDepth(mode="pixel")`` still t
 Each group checks its fields as it is built, and :class:`CRFConfig` the rules across groups (the
 gate needs the mean aggregate): a :class:`~crfdepth.errors.InputError` naming the field by its flat
 name, the one users know (``Gate(window=4)``: ``gate_window: expected an odd int >= 3 (pixels), got 4``).
-The solver's ``method`` / ``rtol`` / ``max_iter`` and the std's ``terms`` are checked where they are
-read, by :func:`crfdepth.linalg.solver_settings` and :func:`crfdepth.uncertainty.predictive.check_std_terms`
-(modules above this one), when ``CRFDepth`` is built.
+The solver's ``method`` / ``rtol`` / ``max_iter`` (:func:`check_solver`) and the std's ``terms``
+(:func:`check_std_terms`) are checked here too, by the functions that :mod:`crfdepth.linalg` and
+:mod:`crfdepth.uncertainty.predictive` (modules above this one) call on the same values.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal, Mapping
 
-from crfdepth.checks import check_number
+from crfdepth.checks import check_choice, check_number
 from crfdepth.errors import InputError
 
 Mode = Literal["superpixel", "pixel"]
@@ -39,6 +40,13 @@ mixing a near and a far surface lands at their geometric mean."""
 PRIORS = ("nearest", "ip_basic")
 POTENTIALS = ("colour", "normal", "distance")
 UNCERTAINTIES = ("predictive", "posterior")  # the std of ``return_std`` (section 5)
+
+SOLVER_METHODS = ("cg", "cgs")  # the Krylov methods of crfdepth.linalg.adjoint
+STD_TERMS = ("bias", "depth", "posterior", "distance", "edge", "gate")
+"""Names of the predictive std's weights (:mod:`crfdepth.uncertainty.predictive`): ``bias`` (log metres), then
+one exponent per signal."""
+DEFAULT_STD_TERMS = {"bias": -1.35, "depth": 1.17, "posterior": 0.64, "distance": 1.09, "edge": 0.95, "gate": 0.19}
+"""Hand-set weights: the shipped weights' fit on raw KITTI scans, rounded (crfdepth/weights/README.md)."""
 
 DEFAULT_WINDOW = 5
 """Side of the occlusion gate's square neighbourhood, pixels (:mod:`crfdepth.potentials.occlusion`)."""
@@ -54,6 +62,31 @@ so that a return that far behind its prediction keeps a quarter of its weight.""
 def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise InputError(f"{name}: expected one of {choices}, got {value!r}")
+
+
+def check_solver(method: object, rtol: object, max_iter: object) -> None:
+    """A solve's ``method`` (one of :data:`SOLVER_METHODS`), ``rtol`` (in (0, 1)) and ``max_iter`` (an int >= 0
+    or None), errors naming each."""
+    check_choice("method", method, SOLVER_METHODS)
+    if isinstance(rtol, bool) or not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
+        raise InputError(f"rtol: expected a number in (0, 1), got {rtol!r}")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0):
+        raise InputError(f"max_iter: expected a non-negative int or None, got {max_iter!r}")
+
+
+def check_std_terms(terms: Mapping[str, float] | None, name: str = "std_terms") -> dict[str, float]:
+    """``terms`` as floats in the order of :data:`STD_TERMS` (None: :data:`DEFAULT_STD_TERMS`); errors name
+    ``name``."""
+    if terms is None:
+        return dict(DEFAULT_STD_TERMS)
+    if not isinstance(terms, Mapping) or set(terms) != set(STD_TERMS):
+        got = sorted(terms) if isinstance(terms, Mapping) else type(terms).__name__
+        raise InputError(f"{name}: expected a mapping with the keys {STD_TERMS}, got {got}")
+    bad = {k: v for k, v in terms.items() if isinstance(v, bool) or not isinstance(v, (int, float))
+           or not math.isfinite(v)}
+    if bad:
+        raise InputError(f"{name}: expected finite numbers, got {bad}")
+    return {k: float(terms[k]) for k in STD_TERMS}
 
 
 def _check_positive(group: Any, names: dict[str, str]) -> None:
@@ -140,7 +173,7 @@ class Solver:
     memory_limit_gb: float | None = None
 
     def __post_init__(self) -> None:
-        # method, rtol and max_iter are checked where the solves read them (crfdepth.linalg.solver_settings).
+        check_solver(self.method, self.rtol, self.max_iter)
         if self.memory_limit_gb is not None:
             check_number("memory_limit_gb", self.memory_limit_gb, low=0.0)
 
@@ -155,7 +188,7 @@ class Uncertainty:
     terms: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
-        # terms are checked where the predictive std reads them (crfdepth.uncertainty.predictive.check_std_terms).
+        check_std_terms(self.terms)  # kept as given (None: the hand-set ones), so files store what was given
         _check_choice("uncertainty", self.kind, UNCERTAINTIES)
         _check_positive(self, {"std_scale": "scale"})
 

@@ -33,7 +33,7 @@ from crfdepth.potentials.energy import PotentialWeights, energy
 from crfdepth.potentials.head import PotentialHead
 from crfdepth.potentials.parameters import ConstrainedWeights
 from crfdepth.precision import autocast_off, widen
-from crfdepth.uncertainty.predictive import PredictiveStd, check_std_terms
+from crfdepth.uncertainty.predictive import PredictiveStd
 from crfdepth.weights import load_state, pretrained_state, weights_path
 
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
@@ -138,10 +138,8 @@ class CRFDepth(ConstrainedWeights):
         """The configuration, the one copy (:class:`~crfdepth.config.CRFConfig`); :attr:`config` is it as plain data."""
         structure, terms, gate, std = (self.settings.structure, self.settings.potentials, self.settings.gate,
                                        self.settings.uncertainty)
-        std_terms = check_std_terms(std.terms)
-        self.std_head = None if std.kind == "posterior" else PredictiveStd(std_terms)
+        self.std_head = None if std.kind == "posterior" else PredictiveStd(std.terms)
         self.head = PotentialHead() if structure.head else None
-        self.solve_settings  # checks method, rtol and max_iter now, rather than at the first solve
         weights = dict(alpha=terms.alpha, beta=terms.beta, gamma=terms.gamma, delta=terms.delta, sigma_d=terms.sigma_d,
                        sigma_n=terms.sigma_n, sigma_p=terms.sigma_p, confidence=terms.confidence, std_scale=std.scale,
                        refine_prior=terms.refine_prior, gate_threshold=gate.threshold, gate_softness=gate.softness,

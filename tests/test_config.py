@@ -7,8 +7,10 @@ import json
 import pytest
 
 from crfdepth.config import (
+    DEFAULT_STD_TERMS,
     FLAT,
     GROUPS,
+    SOLVER_METHODS,
     CRFConfig,
     Gate,
     Potentials,
@@ -118,10 +120,23 @@ def test_the_shipped_weights_file_predates_the_groups_and_loads():
     (lambda: Gate(window=4), "gate_window"), (lambda: Gate(threshold=0.0), "gate_threshold"),
     (lambda: Gate(softness=float("nan")), "gate_softness"), (lambda: Solver(memory_limit_gb=0), "memory_limit_gb"),
     (lambda: Uncertainty(kind="sampled"), "uncertainty"), (lambda: Uncertainty(scale=-2.0), "std_scale"),
+    (lambda: Solver(method="gmres"), "method"), (lambda: Solver(rtol=1.0), "rtol"), (lambda: Solver(rtol=True), "rtol"),
+    (lambda: Solver(max_iter=-1), "max_iter"), (lambda: Solver(max_iter=2.5), "max_iter"),
+    (lambda: Uncertainty(terms={"bias": 0.0}), "std_terms"),
+    (lambda: Uncertainty(terms={**DEFAULT_STD_TERMS, "edge": float("inf")}), "std_terms"),
 ])
 def test_each_group_refuses_a_bad_value_naming_its_flat_name(build, name):
     with pytest.raises(InputError, match=rf"^{name}: expected"):
         build()
+
+
+def test_the_solver_group_takes_the_methods_the_solves_have_and_keeps_std_terms_as_given():
+    from crfdepth.linalg import adjoint
+
+    assert set(SOLVER_METHODS) == set(adjoint._METHODS)
+    assert Uncertainty().terms is None and Uncertainty(terms=DEFAULT_STD_TERMS).terms == DEFAULT_STD_TERMS
+    with pytest.raises(InputError, match=r"^method: expected one of 'cg', 'cgs', got 'gmres'$"):
+        CRFDepth(method="gmres")  # the model's message is the group's
 
 
 def test_a_group_is_refused_with_the_message_the_model_gave():

@@ -17,9 +17,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from crfdepth.checks import check_choice
+from crfdepth.config import check_solver
 from crfdepth.errors import InputError
-from crfdepth.linalg.adjoint import _METHODS, GRAD_RTOL, SolveInfo, SolverSettings, solve_system
+from crfdepth.linalg.adjoint import GRAD_RTOL, SolveInfo, SolverSettings, solve_system
 from crfdepth.linalg.system import System
 from crfdepth.precision import full_precision
 
@@ -83,13 +83,9 @@ def solver_settings(method: Method = "cg", rtol: float = 1e-6, max_iter: int | N
 
 def _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol=GRAD_RTOL,
                     preconditioner="auto") -> SolverSettings:
-    check_choice("method", method, sorted(_METHODS))
-    if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
-        raise InputError(f"rtol: expected a number in (0, 1), got {rtol!r}")
+    check_solver(method, rtol, max_iter)  # the rules of the configuration's Solver group
     if not (isinstance(grad_rtol, (int, float)) and 0 < grad_rtol < 1):
         raise InputError(f"grad_rtol: expected a number in (0, 1), got {grad_rtol!r}")
-    if max_iter is not None and (not isinstance(max_iter, int) or max_iter < 0):
-        raise InputError(f"max_iter: expected a non-negative int or None, got {max_iter!r}")
     if not isinstance(check_every, int) or check_every < 1:
         raise InputError(f"check_every: expected a positive int, got {check_every!r}")
     if on_nonconvergence not in ("warn", "raise", "ignore"):

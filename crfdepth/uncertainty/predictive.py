@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from crfdepth.config import DEFAULT_STD_TERMS, STD_TERMS, check_std_terms  # the names the configuration checks
 from crfdepth.errors import InputError
 from crfdepth.geometry.nearest import nearest_valid
 from crfdepth.geometry.windows import window_max
@@ -53,8 +54,6 @@ from crfdepth.geometry.windows import window_max
 __all__ = ["DEFAULT_STD_TERMS", "RANGE_NOISE_M", "STD_TERMS", "PredictiveStd", "check_std_terms", "fit_std_terms",
            "predictive_std", "std_features"]
 
-STD_TERMS = ("bias", "depth", "posterior", "distance", "edge", "gate")
-"""Names of the weights: ``bias`` (log metres), then one exponent per signal (module docstring)."""
 SIGNALS = STD_TERMS[1:]
 OFFSETS = {"depth": 0.0, "posterior": 1e-6, "distance": 1.0, "edge": 0.01, "gate": 0.01}
 """Added to each signal before its log: the value below which a signal stops mattering."""
@@ -62,8 +61,6 @@ EDGE_WINDOW, LIDAR_WINDOW = 5, 15
 COVERAGE = math.erf(1 / math.sqrt(2))  # 0.6827: a Gaussian's share within one std
 RANGE_NOISE_M = 0.02
 """The LiDAR's own range noise, metres (1 sigma), added in quadrature by :class:`PredictiveStd`."""
-DEFAULT_STD_TERMS = {"bias": -1.35, "depth": 1.17, "posterior": 0.64, "distance": 1.09, "edge": 0.95, "gate": 0.19}
-"""Hand-set weights: the shipped weights' fit on raw KITTI scans, rounded (crfdepth/weights/README.md)."""
 
 
 def _log(x: torch.Tensor) -> torch.Tensor:
@@ -128,20 +125,6 @@ def _log_signals(features: torch.Tensor) -> torch.Tensor:
     """``log(f_k + offset_k)`` of (B, 5, H, W) or (N, 5) signals."""
     shape = (1, -1, 1, 1) if features.dim() == 4 else (1, -1)
     return (features + features.new_tensor([OFFSETS[k] for k in SIGNALS]).view(shape)).clamp_min(1e-12).log()
-
-
-def check_std_terms(terms: Mapping[str, float] | None, name: str = "std_terms") -> dict[str, float]:
-    """``terms`` as floats in the order of :data:`STD_TERMS` (None: the hand-set ones); errors name ``name``."""
-    if terms is None:
-        return dict(DEFAULT_STD_TERMS)
-    if not isinstance(terms, Mapping) or set(terms) != set(STD_TERMS):
-        got = sorted(terms) if isinstance(terms, Mapping) else type(terms).__name__
-        raise InputError(f"{name}: expected a mapping with the keys {STD_TERMS}, got {got}")
-    bad = {k: v for k, v in terms.items() if isinstance(v, bool) or not isinstance(v, (int, float))
-           or not math.isfinite(v)}
-    if bad:
-        raise InputError(f"{name}: expected finite numbers, got {bad}")
-    return {k: float(terms[k]) for k in STD_TERMS}
 
 
 class PredictiveStd(nn.Module):
