@@ -369,7 +369,7 @@ def test_complete_cuda_unavailable(main, synth, tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, words", [
     (["--input-dir", "X"], ["--input-dir needs --out-dir"]),
-    (["--image", "a.png"], ["missing --sparse, --intrinsics, --out"]),
+    (["--image", "a.png"], ["one frame needs --image, --out and its LiDAR", "; missing --out, the LiDAR"]),
 ])
 def test_complete_bad_option_combinations(main, argv, words, capsys):
     assert main(["complete", *argv]) == 2
