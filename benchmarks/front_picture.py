@@ -20,6 +20,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from crfdepth import CRFDepth, complete_depth
+from crfdepth.inputs import points_to_sparse
+from crfdepth.io.calibration import load_any_calibration
+from crfdepth.io.files import atomic_write_bytes
+from crfdepth.io.kitti import read_rgb
+from crfdepth.io.pointcloud import read_points
+from crfdepth.pictures.colour import depth_range, draw_points
+from crfdepth.pictures.figures import depth_picture
+
 ROOT = Path(__file__).resolve().parents[1]
 PANEL = (320, 240)  # width, height of each panel's map, pixels
 JPEG_QUALITY = 90
@@ -27,14 +36,6 @@ JPEG_QUALITY = 90
 
 def front_picture(example: Path) -> np.ndarray:
     """(H, 2 * 320, 3) uint8 RGB: the scan on the image | the completed depth, with their colour bars."""
-    from crfdepth import CRFDepth, complete_depth
-    from crfdepth.inputs import points_to_sparse
-    from crfdepth.io.calibration import load_any_calibration
-    from crfdepth.io.kitti import read_rgb
-    from crfdepth.io.pointcloud import read_points
-    from crfdepth.pictures.colour import depth_range, draw_points
-    from crfdepth.pictures.figures import depth_picture
-
     rgb = read_rgb(example / "image.png")
     points = read_points(example / "scan.pcd")
     calibration = load_any_calibration(example / "rig.yaml")
@@ -66,8 +67,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     ok, data = cv2.imencode(".jpg", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 RGB picture
         parser.error(f"--out: could not encode {args.out}")
-    from crfdepth.io.files import atomic_write_bytes
-
     atomic_write_bytes(args.out, data.tobytes())
     print(f"wrote {args.out}: {picture.shape[1]}x{picture.shape[0]}")
     return 0

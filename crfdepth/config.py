@@ -68,7 +68,7 @@ def check_solver(method: object, rtol: object, max_iter: object) -> None:
     """A solve's ``method`` (one of :data:`SOLVER_METHODS`), ``rtol`` (in (0, 1)) and ``max_iter`` (an int >= 0
     or None), errors naming each."""
     check_choice("method", method, SOLVER_METHODS)
-    if isinstance(rtol, bool) or not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
+    if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise InputError(f"rtol: expected a number in (0, 1), got {rtol!r}")
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0):
         raise InputError(f"max_iter: expected a non-negative int or None, got {max_iter!r}")

@@ -63,13 +63,13 @@ from tqdm import tqdm
 
 from crfdepth import api
 from crfdepth.cli.arguments import BAD_INPUT, add_topic_arguments, positive_number
-from crfdepth.cli.completion import CLI_TRANSFORM_FIX, flag_names, frame_errors
+from crfdepth.cli.completion import cli_error, frame_errors
 from crfdepth.cli.file_errors import FileError
 from crfdepth.cli.model_options import build_model
 from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
-from crfdepth.inputs import InvertedTransform, points_to_sparse
+from crfdepth.inputs import points_to_sparse
 from crfdepth.io.ros.bag import Recording, camera_info_topic
 from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
 from crfdepth.runs.outputs import check_writable_dir, write_files, write_frame
@@ -175,10 +175,8 @@ def _check_pairs(bag: Recording, args, plan: Plan) -> list[tuple[int, type[BaseE
                 rgb, xyz, flags = decode_frame(args, plan, i, image_msg, cloud_msg, c)
                 try:
                     points_to_sparse(xyz, plan.calibrations[i], rgb.shape[:2], trust_transform=args.trust_transform)
-                except InvertedTransform as exc:
-                    raise flag_names(exc.retold(CLI_TRANSFORM_FIX), flags) from None
                 except InputError as exc:
-                    raise flag_names(exc, flags) from None
+                    raise cli_error(exc, flags) from None
             except BAD_INPUT as exc:
                 bad.append((i, type(exc), str(exc)))
             checked += 1

@@ -3,7 +3,7 @@
 - :func:`frame_errors` / :func:`flag_names`: one frame through
   :func:`crfdepth.api.complete_depth`, errors under the user's flags (``complete``'s
   one-frame, point-cloud and bag modes);
-- :data:`CLI_TRANSFORM_FIX`: the fix of a transform that looks inverted;
+- :func:`cli_error`: an error of the library in the command line's words;
 - :func:`cli_advice`: the fix a memory refusal advises on the command line, for one frame or (given to
   :mod:`crfdepth.runs` as ``memory_advice``) a batch of the folder modes and ``evaluate``.
 """
@@ -25,10 +25,18 @@ from crfdepth.model import CRFDepth
 from crfdepth.plausibility import ImplausibleDepth
 from crfdepth.runs.batches import flag_names
 
-__all__ = ["CLI_TRANSFORM_FIX", "cli_advice", "flag_names", "frame_errors"]
+__all__ = ["cli_advice", "cli_error", "flag_names", "frame_errors"]
 
 # The fix of a T_cam_lidar that looks inverted, in the command line's words (crfdepth.inputs.InvertedTransform).
-CLI_TRANSFORM_FIX = "invert it in the calibration file, or give --trust-transform to use it as given"
+_TRANSFORM_FIX = "invert it in the calibration file, or give --trust-transform to use it as given"
+
+
+def cli_error(exc: InputError, flags: dict[str, str]) -> InputError:
+    """``exc`` in the command line's words: named by the user's ``flags`` (:func:`flag_names`), and a transform that
+    looks inverted with ``--trust-transform`` as its fix."""
+    if isinstance(exc, InvertedTransform):
+        exc = exc.retold(_TRANSFORM_FIX)
+    return flag_names(exc, flags)
 
 
 def cli_advice(device: str, batch: int | None = None) -> str:
@@ -67,10 +75,8 @@ def frame_errors(args: argparse.Namespace, model, size: tuple[int, int], where: 
         if sparse_units is None:
             raise flag_names(exc, where) from None
         raise exc.retold(where["sparse"], sparse_units) from None
-    except InvertedTransform as exc:
-        raise flag_names(exc.retold(CLI_TRANSFORM_FIX), where) from None
     except InputError as exc:
-        raise flag_names(exc, where) from None
+        raise cli_error(exc, where) from None
     finally:
         if isinstance(model, CRFDepth):
             model.progress = hook
