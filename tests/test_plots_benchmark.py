@@ -104,19 +104,39 @@ def test_the_evaluation_table_holds_the_committed_json(bench):
             assert int(cell.split("/")[0]) == round(table[protocol][method]["rmse"]), (method, protocol, cell)
 
 
+def _box_means(picture: np.ndarray) -> np.ndarray:
+    """8 x 8 box means: what survives any JPEG encoder (its 8 x 8 blocks, chroma subsampling and ringing)."""
+    return cv2.blur(picture.astype(np.float64), (8, 8))
+
+
 def test_the_front_picture_is_the_example_rig_as_the_script_draws_it(tmp_path):
     """docs/own_sensors.jpg (README, docs index, own-sensors page) is what benchmarks/front_picture.py makes of
-    docs/example: regenerated here, it may differ from the committed JPEG only as far as another machine's floating
-    point and JPEG encoder move it (on the machine that made it: 0)."""
+    docs/example. The picture's array is compared before encoding, on its two 320 x 240 maps, as 8 x 8 box means:
+    a JPEG encoder (quality 90, any release) moves those by a mean under 1 level and a 99th percentile under 14
+    (measured: 0.47 / 3.2 on the completed depth, 1.5 / 12.8 on the scan drawn over the image); a stale picture
+    does not pass (the learned weights instead of the paper's: 5.1 / 36.7 on the depth). The colour bars below
+    the maps hold text drawn by OpenCV's fonts, whose placement changes between releases: only their presence
+    is asserted."""
     script = load_benchmark("front_picture")
-    out = tmp_path / "front.jpg"
-    assert script.main(["--out", str(out)]) == 0
-    made = cv2.imread(str(out)).astype(np.int16)
-    committed = cv2.imread(str(ROOT / "docs" / "own_sensors.jpg")).astype(np.int16)
-    assert made.shape == committed.shape == (284, 644, 3)
-    diff = np.abs(made - committed)
-    assert diff.mean() < 1.0 and np.percentile(diff, 99) <= 8, (diff.mean(), np.percentile(diff, 99))
+    made = script.front_picture(ROOT / "docs" / "example")
+    committed = cv2.cvtColor(cv2.imread(str(ROOT / "docs" / "own_sensors.jpg")), cv2.COLOR_BGR2RGB)
+    assert made.dtype == np.uint8 and made.shape == committed.shape == (284, 644, 3)
+    for name, region, mean_limit, p99_limit in (("scan on the image", np.s_[:240, :320], 4.0, 32.0),
+                                                 ("completed depth", np.s_[:240, 324:], 2.0, 16.0)):
+        diff = np.abs(_box_means(made[region]) - _box_means(committed[region]))
+        assert diff.mean() < mean_limit and np.percentile(diff, 99) < p99_limit, (name, diff.mean(),
+                                                                                 np.percentile(diff, 99))
     # the left panel's map holds the scan in depth colours over the darkened image; the right one, no dark pixel
     assert (made[:240, 324:] > 20).any(-1).all()
+    # each panel has a colour bar under it: saturated colours in the rows below the map
+    for columns in (np.s_[:320], np.s_[324:]):
+        bar = made[240:, columns].astype(np.int16)
+        assert ((bar.max(-1) - bar.min(-1)) > 100).sum() > 1000
+    # the script writes that array as a JPEG
+    out = tmp_path / "front.jpg"
+    assert script.main(["--out", str(out)]) == 0
+    written = cv2.cvtColor(cv2.imread(str(out)), cv2.COLOR_BGR2RGB)
+    assert written.shape == made.shape
+    assert np.abs(_box_means(written) - _box_means(made)).mean() < 2.0
     with pytest.raises(SystemExit):
         script.main(["--out", str(tmp_path / "front.png")])

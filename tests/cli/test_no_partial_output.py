@@ -217,12 +217,18 @@ def damaged(tmp_path) -> dict[str, Path]:
 
 
 def test_the_damaged_pngs_make_decoder_noise(damaged):
-    """The files of these tests do make libpng and OpenCV print (else the tests below would prove nothing)."""
+    """The files of these tests make the decoder print something on stderr (else the tests below would prove
+    nothing). What it prints is the decoder's business and changes between releases: only that it prints is
+    asserted, and that the truncated files do not decode."""
     probe = ("import cv2, numpy, sys\n"
-             "for path in sys.argv[1:]: cv2.imdecode(numpy.fromfile(path, numpy.uint8), cv2.IMREAD_UNCHANGED)\n")
-    result = subprocess.run([sys.executable, "-c", probe, damaged["truncated"], damaged["iccp"]], capture_output=True,
-                            text=True, timeout=300)
-    assert "libpng warning: iCCP" in result.stderr and "PNG input buffer is incomplete" in result.stderr
+             "for path in sys.argv[1:]:\n"
+             "    image = cv2.imdecode(numpy.fromfile(path, numpy.uint8), cv2.IMREAD_UNCHANGED)\n"
+             "    print(path, image is not None)\n")
+    result = subprocess.run([sys.executable, "-c", probe, damaged["truncated"], damaged["truncated sparse"],
+                             damaged["iccp"]], capture_output=True, text=True, timeout=300)
+    assert result.stderr.strip() != ""
+    assert result.stdout.split() == [str(damaged["truncated"]), "False", str(damaged["truncated sparse"]), "False",
+                                     str(damaged["iccp"]), "True"]
 
 
 @pytest.mark.parametrize("case, expected", [

@@ -66,7 +66,10 @@ def test_tensors_of_any_leading_singleton_shape_give_the_numpy_picture():
     expected = depth_picture(depth)
     for shaped in (torch.from_numpy(depth), torch.from_numpy(depth)[None], torch.from_numpy(depth)[None, None]):
         np.testing.assert_array_equal(depth_picture(shaped), expected)
-    np.testing.assert_array_equal(std_picture(torch.from_numpy(depth).float()[None, None]), std_picture(depth))
+    # float32 against float64: a value on a colour boundary may round to the neighbouring level, never further
+    single = std_picture(torch.from_numpy(depth).float()[None, None]).astype(np.int16)
+    double = std_picture(depth).astype(np.int16)
+    assert single.shape == double.shape and np.abs(single - double).max() <= 1
 
 
 @pytest.mark.parametrize(("kind", "lo", "hi", "middle"), [
