@@ -2,7 +2,9 @@
 
 A page line ``<!-- cli-reference -->`` (docs/reference/cli.md) becomes, for ``crfdepth`` and
 each of its sub-commands, a heading and the ``--help`` text, formatted at a fixed width so
-the page does not depend on the terminal that builds the site.
+the page does not depend on the terminal that builds the site. The width (72 columns) fits the
+theme's text column on a laptop; on a narrower window the block wraps its lines
+(docs/stylesheets/cli.css) instead of hiding them behind a scrollbar.
 
 The library's docstrings cite objects as Sphinx roles (``:func:`~crfdepth.api.complete_depth```),
 which mkdocstrings renders as ``:func:`` and a code span. The hook drops the role, shortens a
@@ -14,10 +16,11 @@ from __future__ import annotations
 
 import argparse
 import functools
+import html
 import re
 
 MARKER = "<!-- cli-reference -->"
-WIDTH = 100  # columns of the help text
+WIDTH = 72  # columns of the help text
 # A Sphinx role as rendered from a docstring: ``:class:<code>~crfdepth.model.CRFDepth</code>``.
 ROLE = re.compile(r":(?:class|func|meth|mod|data|attr|exc|obj):<code>(?P<tilde>~?)(?P<path>[\w.]+)</code>")
 
@@ -50,8 +53,9 @@ def commands() -> list[tuple[str, argparse.ArgumentParser]]:
 
 
 def cli_reference() -> str:
-    """The Markdown that replaces :data:`MARKER`: a level-2 heading and a text block per command."""
-    return "\n\n".join(f"## `{name}`\n\n```text\n{_help(parser)}\n```" for name, parser in commands())
+    """The Markdown that replaces :data:`MARKER`: a level-2 heading and a ``pre.cli-help`` block per command."""
+    return "\n\n".join(f'## `{name}`\n\n<pre class="cli-help"><code>{html.escape(_help(parser))}</code></pre>'
+                       for name, parser in commands())
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:

@@ -82,6 +82,19 @@ def test_cli_reference_holds_every_command_and_option(site):
         assert not missing, f"{prog}: options missing from the command-line reference: {missing}"
 
 
+def test_cli_reference_fits_the_page_and_wraps_rather_than_scrolls(site):
+    """Every help line fits 72 columns (the theme's text column on a laptop), and the blocks wrap on a narrower
+    window: the page's stylesheet sets ``white-space: pre-wrap`` on them, so no option hides behind a scrollbar."""
+    page = (site / "reference" / "cli" / "index.html").read_text(encoding="utf-8")
+    blocks = re.findall(r'<pre class="cli-help"><code>(.*?)</code></pre>', page, flags=re.S)
+    assert len(blocks) == len(_commands())
+    long = [line for block in blocks for line in html.unescape(block).splitlines() if len(line) > 72]
+    assert not long, f"{len(long)} help lines over 72 columns, e.g. {long[0]!r}"
+    assert 'href="../../stylesheets/cli.css"' in page
+    css = (site / "stylesheets" / "cli.css").read_text()
+    assert re.search(r"pre\.cli-help > code \{[^}]*white-space: pre-wrap", css)
+
+
 def test_api_reference_holds_the_model_and_its_docstring(site):
     from crfdepth.api import complete_depth
     from crfdepth.model import CRFDepth

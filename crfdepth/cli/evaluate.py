@@ -122,9 +122,9 @@ DESCRIPTION = ("Run a checkpoint (or the shipped weights) over a dataset with gr
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``crfdepth evaluate``."""
     data = parser.add_argument_group("data")
-    data.add_argument("--layout", required=True, choices=LAYOUTS,
-                      help="dataset layout (crfdepth.data.build_dataset); test_selection has no "
-                           "ground truth and is refused")
+    data.add_argument("--layout", required=True, choices=LAYOUTS, metavar="LAYOUT",
+                      help=f"dataset layout (crfdepth.data.build_dataset): {', '.join(LAYOUTS)}; test_selection "
+                           "has no ground truth and is refused")
     data.add_argument("--data", metavar="DIR",
                       help="dataset folder (not needed for --layout synthetic)")
     data.add_argument("--split", choices=("train", "val"), default=None,
