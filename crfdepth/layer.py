@@ -35,6 +35,7 @@ pixels. All sums are ``index_add`` and stay differentiable.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -43,6 +44,7 @@ from torch import nn
 
 from crfdepth.checks import check_map, check_scalar_tensor, describe
 from crfdepth.errors import InputError
+from crfdepth.layer_inputs import check_anchored, check_labels, check_not_empty, check_projection
 from crfdepth.linalg import SolveInfo, System, solve_system, solver_settings
 from crfdepth.potentials.energy import unary_system
 from crfdepth.precision import full_dtype, full_precision
@@ -67,41 +69,6 @@ class RefineOutput:
     depth: torch.Tensor
     std: torch.Tensor | None
     info: SolveInfo
-
-
-# ----------------------------------------------------------------------------------------
-# input checks (all before any solve; the shared ones are in crfdepth.checks)
-# ----------------------------------------------------------------------------------------
-
-def _check_projection(projection_weight, channels: int, ref: torch.Tensor,
-                      ref_features: torch.Tensor) -> torch.Tensor:
-    p = projection_weight
-    is_1x1 = isinstance(p, torch.Tensor) and p.dim() == 4 and tuple(p.shape[2:]) == (1, 1)
-    if not isinstance(p, torch.Tensor) or not (p.dim() == 2 or is_1x1):
-        raise InputError(f"projection_weight: expected an (E, C) or (E, C, 1, 1) tensor, got {describe(p)}")
-    if p.shape[1] != channels:
-        raise InputError(f"features: expected {p.shape[1]} channels, the C of projection_weight (E, C) = "
-                         f"{tuple(p.shape[:2])}, got {channels} (features {describe(ref_features)}); give features "
-                         f"with C channels or a projection_weight for {channels}")
-    if p.dtype != ref.dtype or p.device != ref.device:
-        raise InputError(f"projection_weight: expected dtype {ref.dtype} on {ref.device} like depth, "
-                         f"got {p.dtype} on {p.device}")
-    if not bool(torch.isfinite(p.detach()).all()):
-        raise InputError("projection_weight: expected finite values, got NaN/inf")
-    return p.reshape(p.shape[0], channels)
-
-
-def _check_labels(labels, depth: torch.Tensor) -> torch.Tensor:
-    b, _, h, w = depth.shape
-    if not isinstance(labels, torch.Tensor) or tuple(labels.shape) != (b, h, w) \
-            or labels.dtype not in (torch.int64, torch.int32):
-        got = describe(labels) + (f" {labels.dtype}" if isinstance(labels, torch.Tensor) else "")
-        raise InputError(f"labels: expected a ({b}, {h}, {w}) int64 tensor of segment indices, got {got}")
-    if labels.device != depth.device:
-        raise InputError(f"labels: expected device {depth.device} like depth, got {labels.device}")
-    if labels.numel() and int(labels.min()) < 0:
-        raise InputError(f"labels: expected segment indices >= 0, got minimum {int(labels.min())}")
-    return labels.long()
 
 
 # ----------------------------------------------------------------------------------------
@@ -177,7 +144,8 @@ def crf_refine(
         sparse_weight: ``lambda >= 0``, weight of each LiDAR pixel; required with ``sparse``.
         edge_scale: ``s > 0``, the largest edge weight.
         prior_weight: ``eps > 0``, added to the confidence everywhere so that ``A`` is
-            positive definite; small against ``c`` and ``s``.
+            positive definite; small against ``c`` and ``s``, but in a frame with no
+            confidence > 0 and no LiDAR at least machine epsilon times ``s``.
         labels: optional (B, H, W) int64 segment index per pixel (e.g. SLIC superpixels of
             each frame, :func:`crfdepth.superpixels.segments.slic_segments`): solve on the segment graph
             and paint back (piecewise-constant output). Labels need not be consecutive.
@@ -198,13 +166,23 @@ def crf_refine(
     Raises:
         InputError: before any solve, for a non-tensor or wrongly shaped argument,
             mismatched batch, size, dtype or device, NaN/inf in any tensor, negative
-            ``confidence`` or ``sparse``, ``sparse`` without ``sparse_weight``, or
-            non-positive scales; the message names the argument.
+            ``confidence`` or ``sparse``, ``sparse`` without ``sparse_weight``,
+            non-positive scales, an empty batch (B, H or W of 0), or a ``prior_weight``
+            below machine precision times ``edge_scale`` in a frame with no confidence
+            > 0 and no LiDAR pixel (numerically singular); the message names the argument.
+        ConvergenceError: with ``on_nonconvergence="raise"``, a solve that did not converge.
+            A solve whose result is NaN/inf (a numerically singular system) is never
+            reported converged and warns even under "ignore", naming ``prior_weight``.
+
+    Second-order gradients (``create_graph=True`` and a gradient of the gradient) through
+    the solve are not supported and raise a RuntimeError naming ``create_graph``; first-order
+    gradients are (:mod:`crfdepth.linalg.adjoint`).
     """
     check_map("depth", depth, None, 1)
+    check_not_empty(depth)
     check_map("confidence", confidence, depth, 1, nonneg=True)
     check_map("features", features, depth, None)
-    projection = _check_projection(projection_weight, features.shape[1], depth, features)
+    projection = check_projection(projection_weight, features.shape[1], depth, features)
     scale = check_scalar_tensor("edge_scale", edge_scale, depth, positive=True)
     eps = check_scalar_tensor("prior_weight", prior_weight, depth, positive=True)
     if sparse is not None:
@@ -214,8 +192,13 @@ def crf_refine(
         lam = check_scalar_tensor("sparse_weight", sparse_weight, depth, positive=False)
     sigma = check_scalar_tensor("std_scale", std_scale, depth, positive=True) if return_std else None
     if labels is not None:
-        labels = _check_labels(labels, depth)
+        labels = check_labels(labels, depth)
     settings = solver_settings(rtol=rtol, max_iter=max_iter, on_nonconvergence=on_nonconvergence)
+    check_anchored(eps, scale, confidence, sparse, lam if sparse is not None else None)
+    settings = dataclasses.replace(settings, singular_hint=(
+        f"raise prior_weight (now {float(eps.detach()):g}, default 1e-3) against edge_scale "
+        f"({float(scale.detach()):g}) where confidence is 0 and there is no LiDAR, or give those pixels some "
+        f"confidence"))
 
     y = depth[:, 0]
     unaries = [(confidence[:, 0] + eps, y)]
@@ -348,6 +331,8 @@ class CRFRefine(nn.Module):
                              f"{features.shape[1]} ({describe(features)}); build the layer with "
                              f"in_channels={features.shape[1]} or give it {channels}-channel features")
         if labels is None and self.superpixels is not None:
+            check_map("depth", depth, None, 1)
+            check_not_empty(depth)
             labels = self._segment(image, depth)
         dtype = full_dtype(depth.dtype) if isinstance(depth, torch.Tensor) and depth.is_floating_point() else None
         cast = (lambda t: t.to(dtype)) if dtype is not None else (lambda t: t)

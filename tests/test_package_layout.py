@@ -126,7 +126,7 @@ LAYERS = [  # bottom first (docs/design.md section 8); a module imports only its
     {"crfdepth.errors", "crfdepth._version"},
     {"crfdepth.checks", "crfdepth.plausibility", "crfdepth.precision"},
     {"crfdepth.config"},  # its groups check themselves with crfdepth.checks
-    {"crfdepth.intrinsics"},
+    {"crfdepth.intrinsics", "crfdepth.layer_inputs"},
     {"crfdepth.geometry"},
     {"crfdepth.io", "crfdepth.metrics"},
     {"crfdepth.linalg", "crfdepth.superpixels", "crfdepth.weights"},

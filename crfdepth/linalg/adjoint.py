@@ -10,16 +10,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
-import sys
-import warnings
 from dataclasses import dataclass, field
 
 import torch
 
-from crfdepth.errors import ConvergenceError, ConvergenceWarning
 from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.multigrid import GridMultigrid
+from crfdepth.linalg.nonconvergence import report_nonconvergence
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 from crfdepth.linalg.system import System
 from crfdepth.precision import HALF, autocast_off, full_dtype
@@ -35,7 +32,7 @@ class SolveInfo:
         iterations: int64 iterations taken per graph (over all restarts).
         rel_residual: ``||b - A x|| / ||b||`` per graph, recomputed from the returned x
             (0 for a graph with ``b = 0``).
-        converged: ``rel_residual <= rtol`` per graph.
+        converged: ``rel_residual <= rtol`` and x finite, per graph (never True for NaN/inf).
         rtol: the tolerance asked for.
         adjoint: diagnostics of the adjoint solve, filled in when backward runs.
     """
@@ -74,6 +71,10 @@ class SolverSettings:
     restarts: int = 3
     grad_rtol: float = GRAD_RTOL
     preconditioner: str = "auto"
+    singular_hint: str = ""
+    """What the caller's user can change when the system turns out numerically singular (a solve
+    that gives NaN/inf or a residual larger than ``||b||``), said in the user's own argument names;
+    empty: a generic sentence about ``d``."""
 
 
 # ----------------------------------------------------------------------------------------
@@ -91,10 +92,20 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
 
     With a ``precondition`` (multigrid) convergence is checked after every iteration: one
     costs more than a host synchronisation.
+
+    Each row is solved for ``b / 2^k`` with ``2^k`` near its largest ``|b_i|`` (exact in floating
+    point, the solution scales back exactly), so that norms neither underflow nor overflow: a
+    right-hand side of 1e-30 in float32 once had ``||b|| = 0`` and counted as converged whatever x
+    was. A row with ``b = 0`` gets its exact answer ``x = 0``. A row whose x or residual is not
+    finite never counts as converged.
     """
+    scale = _power_of_two_scale(b_rows)
+    zero_rhs = scale == 0
+    scale = torch.where(zero_rhs, torch.ones_like(scale), scale)
+    b_rows = b_rows / scale
     s = inv_sqrt_diag_rows
     c = b_rows * s
-    y = None if x0_rows is None else x0_rows / s
+    y = None if x0_rows is None else torch.where(zero_rhs, 0.0, x0_rows / scale) / s
     max_iter = settings.max_iter if settings.max_iter is not None else _default_max_iter(b_rows.shape[1])
     krylov = _METHODS[settings.method]
     total = torch.zeros(b_rows.shape[0], dtype=torch.int64, device=b_rows.device)
@@ -111,41 +122,23 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
         true_res = torch.linalg.vector_norm((c - scaled_matvec(y)) / s, dim=1)
         rel = torch.where(b_norm > 0, true_res / b_norm.clamp_min(torch.finfo(b_norm.dtype).tiny),
                           torch.zeros_like(true_res))
-        converged = rel <= settings.rtol
+        converged = (rel <= settings.rtol) & torch.isfinite(y).all(dim=1)
         budget = max_iter - int(total.max())
         if bool(converged.all()) or budget <= 0 or not bool(res.converged.any()):
             break
-    x_rows = y * s
+    x_rows = y * s * scale
     return x_rows, SolveInfo(settings.method, total, rel, converged, settings.rtol)
 
 
-def _report(info: SolveInfo, settings: SolverSettings, what: str) -> None:
-    if settings.on_nonconvergence == "ignore" or bool(info.converged.all()):
-        return
-    bad = torch.nonzero(~info.converged).flatten().tolist()
-    details = ", ".join(f"graph {g}: {int(info.iterations[g])} iterations, relative residual "
-                        f"{float(info.rel_residual[g]):.3e}" for g in bad[:8])
-    msg = (f"{what} ({settings.method}) did not reach rtol={settings.rtol:g} for {len(bad)} of "
-           f"{info.converged.numel()} graph(s): {details}. Raise max_iter, loosen rtol, or pass a "
-           f"warm start x0.")
-    if settings.on_nonconvergence == "raise":
-        raise ConvergenceError(msg)
-    warnings.warn(msg, ConvergenceWarning, stacklevel=_caller_level())
-
-
-# the folders of crfdepth (two above this file) and of torch: the frames _caller_level passes over
-_LIBRARY_DIRS = (os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep,
-                 os.path.dirname(os.path.abspath(torch.__file__)) + os.sep)
-
-
-def _caller_level() -> int:
-    """The ``stacklevel`` of ``warnings.warn`` in :func:`_report` that names the first frame outside crfdepth and
-    torch: the user's call, however deep in the library (model, layer, public solve, autograd's backward) the
-    solve ran."""
-    frame, level = sys._getframe(2), 2  # the frame that called _report is level 2 of warnings.warn
-    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
-        frame, level = frame.f_back, level + 1
-    return level if frame is not None else 1
+def _power_of_two_scale(rows: torch.Tensor) -> torch.Tensor:
+    """(G, 1) the power of two just above each row's largest ``|value|``, 0 for a zero row: dividing by
+    it is exact and brings the row's largest entry into [0.5, 1)."""
+    if rows.shape[1] == 0:
+        return rows.new_zeros(rows.shape[0], 1)
+    peak = rows.abs().amax(dim=1, keepdim=True)
+    usable = torch.isfinite(peak) & (peak > 0)
+    exponent = torch.frexp(torch.where(usable, peak, torch.ones_like(peak))).exponent
+    return torch.where(peak == 0, torch.zeros_like(peak), torch.exp2(exponent.to(rows.dtype)))
 
 
 class _LaplacianSolve(torch.autograd.Function):
@@ -168,7 +161,13 @@ class _LaplacianSolve(torch.autograd.Function):
     - ``dLoss/dw_ij = -(lam_i - lam_j)(x_i - x_j)``   (``dA = dw_ij (e_i - e_j)(e_i - e_j)^T``)
 
     No iteration is recorded, so memory is that of a few vectors whatever the iteration
-    count. ``x0`` is only a warm start and gets no gradient. First-order only.
+    count. ``x0`` is only a warm start and gets no gradient.
+
+    First-order only: the backward is not itself differentiable. Under ``create_graph=True`` its
+    gradients come back joined to the graph through :class:`_NoDoubleBackward`, so that a second
+    differentiation through them raises :data:`DOUBLE_BACKWARD_MESSAGE` instead of silently
+    leaving out the terms through the solve (``once_differentiable`` loses those that flow
+    through ``d`` and the weights).
     """
 
     @staticmethod
@@ -183,20 +182,32 @@ class _LaplacianSolve(torch.autograd.Function):
             x0_rows = None if x0 is None else structure.to_rows(x0.to(work))
             x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(b.to(work)), x0_rows,
                                          forward_settings, precondition)
-            _report(info, forward_settings, "solve")
+            report_nonconvergence(info, forward_settings, "solve")
             x = structure.from_rows(x_rows)
         info_box.append(info)
         ctx.settings, ctx.info = settings, info
         ctx.solver_state = (structure, matvec, s_rows, diag_rows, precondition)
-        ctx.save_for_backward(x)  # in the working precision
+        out = x.to(b.dtype)
+        # x in the working precision and the output (the same tensor when b is float64): under
+        # create_graph the backward ties its gradients to the output, and so to every input, through
+        # _NoDoubleBackward
+        ctx.save_for_backward(x) if out is x else ctx.save_for_backward(x, out)
         ctx.num_weights = len(weights)
         ctx.dtype = b.dtype
-        return x.to(b.dtype)
+        return out
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x):
-        (x,) = ctx.saved_tensors
+        saved = ctx.saved_tensors
+        x, out = saved[0], saved[-1]
+        with torch.no_grad():
+            grads = _LaplacianSolve._adjoint(ctx, x, grad_x)
+        if torch.is_grad_enabled():  # create_graph=True: these gradients may be differentiated again
+            grads = _NoDoubleBackward.tie(grads, (grad_x, out))
+        return grads
+
+    @staticmethod
+    def _adjoint(ctx, x, grad_x):
         needs = ctx.needs_input_grad  # (structure, settings, info_box, x0, b, d, *weights)
         if not any(needs[4:]):
             return (None,) * (6 + ctx.num_weights)
@@ -205,7 +216,7 @@ class _LaplacianSolve(torch.autograd.Function):
         lam_rows, info = _krylov_solve(layout, scaled_matvec, s_rows, diag_rows, g_rows, None, ctx.settings,
                                        precondition)
         ctx.info.adjoint = info
-        _report(info, ctx.settings, "adjoint solve")
+        report_nonconvergence(info, ctx.settings, "adjoint solve")
         lam = layout.from_rows(lam_rows)
         grad_b = lam.to(ctx.dtype) if needs[4] else None
         grad_d = (-lam * x).to(ctx.dtype) if needs[5] else None
@@ -214,6 +225,46 @@ class _LaplacianSolve(torch.autograd.Function):
             gw = layout.weight_grad(lam, x)
             grad_w = [g.to(ctx.dtype) for g in (gw if isinstance(gw, tuple) else (gw,))]
         return (None, None, None, None, grad_b, grad_d, *grad_w)
+
+
+DOUBLE_BACKWARD_MESSAGE = (
+    "create_graph: second-order gradients (double backward, e.g. a gradient penalty or a Hessian-vector "
+    "product) through crfdepth's CRF solve are not supported: its backward is one implicit adjoint solve "
+    "(docs/design.md section 4) and is not itself differentiable. First-order gradients are supported, "
+    "with or without create_graph=True, as long as they are not differentiated again; differentiate the "
+    "inputs of the CRF (not through it) or compute second-order terms by finite differences.")
+"""The error of a second differentiation through :class:`_LaplacianSolve` (a RuntimeError, as
+torch's own "differentiate twice" errors)."""
+
+
+class _NoDoubleBackward(torch.autograd.Function):
+    """Identity on the gradients of :class:`_LaplacianSolve` whose own backward raises
+    :data:`DOUBLE_BACKWARD_MESSAGE`.
+
+    :meth:`tie` makes those gradients depend, in the graph, on the incoming gradient and on
+    the solve's output (and through its node on ``b``, ``d`` and the weights): everything they
+    depend on in truth, so that any second-order derivative that would flow through the
+    solve's backward reaches this node and fails clearly, and none is silently left out.
+    """
+
+    @staticmethod
+    def forward(ctx, num_grads, *tensors):
+        return tuple(t.clone() for t in tensors[:num_grads])
+
+    @staticmethod
+    def backward(ctx, *grad_outputs):
+        raise RuntimeError(DOUBLE_BACKWARD_MESSAGE)
+
+    @staticmethod
+    def tie(grads: tuple, dependencies: tuple) -> tuple:
+        present = [i for i, g in enumerate(grads) if g is not None]
+        if not present or not any(t.requires_grad for t in dependencies):
+            return grads
+        tied = _NoDoubleBackward.apply(len(present), *(grads[i] for i in present), *dependencies)
+        out = list(grads)
+        for i, t in zip(present, tied):
+            out[i] = t
+        return tuple(out)
 
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16, torch.float32)
@@ -303,5 +354,5 @@ def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettin
                                                                        list(system.weights))
             x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(system.rhs),
                                          None if x0 is None else structure.to_rows(x0), settings, precondition)
-    _report(info, settings, "solve")
+    report_nonconvergence(info, settings, "solve")
     return structure.from_rows(x_rows), info

@@ -40,7 +40,7 @@ class KrylovResult:
 
     iterations: torch.Tensor  # int64: iterations taken (frozen at the check that met rtol)
     rel_residual: torch.Tensor  # ||b - A x|| / ||b|| by the recurrence at the last check
-    converged: torch.Tensor  # bool
+    converged: torch.Tensor  # bool: within rtol, with a finite residual and iterate
 
 
 def _rowdot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -75,9 +75,12 @@ class _Monitor:
         self.active = self.active & (res > self.threshold) & torch.isfinite(res)
         return not bool(self.active.any())
 
-    def result(self) -> KrylovResult:
+    def result(self, y: torch.Tensor) -> KrylovResult:
+        """The outcome for the iterate ``y`` (G, n): a system whose residual or iterate holds NaN/inf
+        (a breakdown of a numerically singular system) never counts as converged."""
         converged = self.rel_residual * self.b_norm.squeeze(-1) <= self.threshold.squeeze(-1)
-        return KrylovResult(self.iterations, self.rel_residual, converged & torch.isfinite(self.rel_residual))
+        converged = converged & torch.isfinite(self.rel_residual) & torch.isfinite(y).all(dim=1)
+        return KrylovResult(self.iterations, self.rel_residual, converged)
 
 
 def _start(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor, rtol: float,
@@ -116,7 +119,7 @@ def conjugate_gradient(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None,
     """
     y, r, monitor, done = _start(matvec, c, y0, residual_weight, rtol, max_iter)
     if done:
-        return y, monitor.result()
+        return y, monitor.result(y)
     if precondition is None and c.shape[0] == 1 and c.device.type == "cpu" and c.shape[1] <= _HOST_LOOP_MAX_NODES:
         return _cg_one_system_on_host(matvec, y, r, r.clone(), monitor, max_iter, check_every)
     return _cg_loop(matvec, precondition, y, r, monitor, max_iter, check_every)
@@ -142,7 +145,7 @@ def _cg_loop(matvec, precondition, y, r, monitor, max_iter, check_every):
         beta = rz_new / rz.clamp_min(tiny)
         rz = rz_new
         p.mul_(beta).add_(z)
-    return y, monitor.result()
+    return y, monitor.result(y)
 
 
 def _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every):
@@ -185,7 +188,7 @@ def _cg_one_system_on_host(matvec, y, r, p, monitor, max_iter, check_every):
         if it % check_every == 0 and float(dot(rv * weight, rv)) <= threshold * threshold:
             break
     monitor.check(r, it)
-    return y, monitor.result()
+    return y, monitor.result(y)
 
 
 def conjugate_gradient_squared(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor | None, residual_weight: torch.Tensor,
@@ -199,7 +202,7 @@ def conjugate_gradient_squared(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor
     tiny = torch.finfo(c.dtype).tiny
     y, r, monitor, done = _start(matvec, c, y0, residual_weight, rtol, max_iter)
     if done:
-        return y, monitor.result()
+        return y, monitor.result(y)
     r_hat = r.clone()
     rho = _rowdot(r_hat, r)
     u = r.clone()
@@ -221,4 +224,4 @@ def conjugate_gradient_squared(matvec: MatVec, c: torch.Tensor, y0: torch.Tensor
         r.addcmul_(matvec(uq), alpha, value=-1.0)
         if (it % check_every == 0 or it == max_iter) and monitor.check(r, it):
             break
-    return y, monitor.result()
+    return y, monitor.result(y)

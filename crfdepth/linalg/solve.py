@@ -148,7 +148,7 @@ def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, 
         edge_index: (2, E) int64 node indices in ``[0, N)``; edges may not join graphs.
         edge_weight: (E,) weights >= 0.
         ptr: (G + 1,) int64 node offsets of the graphs of a batch (``ptr[0] = 0``,
-            ``ptr[-1] = N``, non-decreasing); None for one graph.
+            ``ptr[-1] = N``, non-decreasing, G >= 1); None for one graph.
         x0: (N,) warm start (no gradient flows to it); None starts from zero.
         method: "cg" (Jacobi-preconditioned Conjugate Gradient, default) or "cgs"
             (Conjugate Gradient Squared as in the paper; can diverge in float32).
@@ -176,6 +176,13 @@ def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, 
         InputError: on mismatched shapes, dtypes or devices, indices out of range or
             across graphs, negative ``d`` or ``edge_weight``, NaN/inf anywhere, or a
             singular system; raised before iterating.
+        ConvergenceError: with ``on_nonconvergence="raise"``, a solve (or the adjoint solve)
+            that did not converge. A graph whose ``x`` or residual is NaN/inf (a numerically
+            singular system, e.g. ``d`` far below the edge weights) is never reported
+            converged, and is warned about even under "ignore".
+
+    Second-order gradients (``create_graph=True`` and a gradient of the gradient) are not
+    supported and raise a RuntimeError naming ``create_graph``.
     """
     settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol)
     _check_tensor("b", b)
@@ -206,7 +213,10 @@ def solve_laplacian(b: torch.Tensor, d: torch.Tensor, edge_index: torch.Tensor, 
     else:
         _check_tensor("ptr", ptr)
         ptr = ptr.to(device=b.device, dtype=torch.int64)
-        if ptr.dim() != 1 or ptr.numel() < 2 or int(ptr[0]) != 0 or int(ptr[-1]) != n \
+        if ptr.dim() == 1 and ptr.numel() < 2:
+            raise InputError(f"ptr: expected G + 1 >= 2 node offsets (a batch of at least 1 graph), got "
+                             f"{ptr.tolist()}")
+        if ptr.dim() != 1 or int(ptr[0]) != 0 or int(ptr[-1]) != n \
                 or bool((ptr[1:] < ptr[:-1]).any()):
             raise InputError(f"ptr: expected non-decreasing node offsets from 0 to {n} (G + 1 entries), "
                              f"got {ptr.tolist()[:10]}")
@@ -235,7 +245,7 @@ def solve_grid_laplacian(b: torch.Tensor, d: torch.Tensor, weight_h: torch.Tenso
     Laplacian is applied with shifted slices. Each image of the batch is its own graph.
 
     Args:
-        b: (B, H, W) right-hand side.
+        b: (B, H, W) right-hand side, B, H, W >= 1.
         d: (B, H, W) diagonal, >= 0 (see :func:`solve_laplacian` for positivity).
         weight_h: (B, H, W-1) weights >= 0 between pixel (r, c) and (r, c+1).
         weight_v: (B, H-1, W) weights >= 0 between pixel (r, c) and (r+1, c).
@@ -255,8 +265,11 @@ def solve_grid_laplacian(b: torch.Tensor, d: torch.Tensor, weight_h: torch.Tenso
     settings = _check_settings(method, rtol, max_iter, check_every, on_nonconvergence, grad_rtol,
                                preconditioner)
     _check_tensor("b", b)
-    if b.dim() != 3 or b.shape[1] < 1 or b.shape[2] < 1:
+    if b.dim() != 3:
         raise InputError(f"b: expected a (B, H, W) tensor, got shape {tuple(b.shape)}")
+    if b.numel() == 0:
+        raise InputError(f"b: expected a batch of at least 1 image of at least 1x1 pixels, (B, H, W) with "
+                         f"B, H, W >= 1, got shape {tuple(b.shape)}")
     bsz, h, w = b.shape
     _check_float("b", b, b, nonneg=False)
     _check_array("d", d, (bsz, h, w), b, nonneg=True)
