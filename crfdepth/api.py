@@ -39,9 +39,10 @@ from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_po
 from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import Calibration, RigCalibration
 from crfdepth.memory import check_frame_size, check_model_memory, estimate_bytes, is_out_of_memory, out_of_memory
+from crfdepth.model import CRFDepth
 from crfdepth.precision import autocast_off
 
-__all__ = ["check_frame", "complete_batch", "complete_checked", "complete_depth"]
+__all__ = ["check_frame", "check_model", "complete_batch", "complete_checked", "complete_depth"]
 
 logger = logging.getLogger(__name__)
 
@@ -82,13 +83,21 @@ def _device(device) -> torch.device:
     return parsed
 
 
+def check_model(model) -> CRFDepth:
+    """``model`` if it is a :class:`~crfdepth.model.CRFDepth` (or a ``torch.compile`` of one: its module is
+    returned, the pipelines run it as they are), else an InputError naming ``model``."""
+    model = getattr(model, "_orig_mod", model) if isinstance(model, torch.nn.Module) else model
+    if not isinstance(model, CRFDepth):
+        raise InputError(f"model: expected a crfdepth.CRFDepth (CRFDepth.from_pretrained(), crfdepth.load_model(), "
+                         f"or None for the default), got {type(model).__name__}")
+    return model
+
+
 def _model_on(model, device: str | torch.device):
     device = _device(device)
     if model is None:
         return load_pretrained().to(device)
-    if not isinstance(model, torch.nn.Module):
-        raise InputError(f"model: expected a crfdepth.model.CRFDepth (or None for the default), got "
-                         f"{type(model).__name__}")
+    model = check_model(model)
     param = next(model.parameters(), None)
     if param is not None and param.device != device and not (device.index is None and param.device.type == device.type):
         model = copy.deepcopy(model).to(device)  # the caller's model is left where it is
@@ -127,8 +136,8 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             :func:`crfdepth.io.kitti.read_depth_png`), millimetres, centimetres, or a
             millimetre / whole-metre PNG read as metres * 256.
         points: (N, 3) or (N, 4) point cloud in the LiDAR frame, metres (extra columns,
-            e.g. intensity, are ignored); rows with NaN/inf are dropped with a warning
-            giving the count.
+            e.g. intensity, are ignored), or a structured / record array with fields x, y, z
+            (pypcd4, ROS); rows with NaN/inf are dropped with a warning giving the count.
         T_cam_lidar: (4, 4) rigid transform mapping LiDAR points into the camera frame
             (x right, y down, z forward), metres; required with ``points`` and ``K``.
         K: (3, 3) pinhole intrinsics of ``image`` (pixels), or 9 numbers row-major.
@@ -288,6 +297,7 @@ def complete_checked(model, image: torch.Tensor, sparse: torch.Tensor, K: torch.
     (:class:`~crfdepth.memory.MemoryRefusal`). ``model`` is a :class:`~crfdepth.model.CRFDepth`; the
     tensors are moved to its device and dtype. Returns (B, H, W) float32 depth and std (None without
     ``return_std``), metres, on the model's device."""
+    model = check_model(model)
     check_model_memory(model, sparse.shape[0], *sparse.shape[2:], bool(return_std))
     return _complete_on_model(model, image, sparse, K, return_std)
 

@@ -18,7 +18,8 @@ from crfdepth.errors import InputError
 
 __all__ = [ "MAX_RETURN_DEPTH_M", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
            "check_depth_frames", "check_depth_values", "check_frames", "check_has_data",
-           "check_map", "check_number", "check_return_depths", "check_rigid", "check_scalar_tensor", "describe"]
+           "check_map", "check_number", "check_return_depths", "check_rigid", "check_scalar_tensor", "describe",
+           "nonfinite", "to_numpy"]
 
 # Largest deviation of R^T R from I (and of the last row from 0 0 0 1) of a rigid transform.
 RIGID_TOLERANCE = 1e-3
@@ -35,6 +36,31 @@ def describe(value: object) -> str:
     if shape is not None:
         return f"shape {tuple(shape)} {getattr(value, 'dtype', '')}".rstrip()
     return type(value).__name__
+
+
+def to_numpy(t: torch.Tensor) -> np.ndarray:
+    """A tensor's values as a numpy array on the host; float16 / bfloat16 (which numpy lacks) as float32,
+    exactly."""
+    t = t.detach().cpu()
+    return (t.float() if t.dtype in (torch.float16, torch.bfloat16) else t).numpy()
+
+
+def nonfinite(values, channel_axis: int | None = None) -> str | None:
+    """Where a float array or tensor is not finite, for messages: ``NaN at 3 pixel(s)``, ``inf at 1 pixel(s)``
+    or both joined by ``and``; None when every value is finite. With ``channel_axis`` a pixel counts once
+    whatever its channels hold."""
+    lib = torch if isinstance(values, torch.Tensor) else np
+    v = values.detach() if isinstance(values, torch.Tensor) else np.asarray(values)
+    if not (v.is_floating_point() if lib is torch else np.issubdtype(v.dtype, np.floating)):
+        return None
+    parts = []
+    for word, mask in (("NaN", lib.isnan(v)), ("inf", lib.isinf(v))):
+        if channel_axis is not None:
+            mask = mask.any(channel_axis) if lib is torch else mask.any(axis=channel_axis)
+        count = int(mask.sum())
+        if count:
+            parts.append(f"{word} at {count} pixel(s)")
+    return " and ".join(parts) or None
 
 
 def check_choice(name: str, value: object, choices) -> object:
@@ -217,15 +243,24 @@ def check_frames(image, sparse, K) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     # One pass per tensor: min and max propagate NaN, and a NaN fails every comparison.
     low, high = (float(v) for v in torch.aminmax(sparse.detach()))
     if not (low >= 0 and high < math.inf):
-        raise InputError("sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got NaN, inf or negative values")
+        bad = nonfinite(sparse, 1)
+        raise InputError(f"sparse: expected finite depth >= 0 in metres (0 = no LiDAR), got "
+                         f"{bad or f'negative values (minimum {low:.4g})'}")
     check_return_depths("sparse", sparse)
+    if not image.is_floating_point():
+        raise InputError(f"image: expected floating-point RGB in [0, 1], got dtype {image.dtype}")
     low, high = (float(v) for v in torch.aminmax(image.detach()))
     if not (low >= 0 and high <= 1):
+        bad = nonfinite(image, 1)
+        if bad:
+            raise InputError(f"image: expected finite RGB values in [0, 1], got {bad}")
         raise InputError(f"image: expected finite RGB values in [0, 1], got range [{low:.3g}, {high:.3g}]")
     if tuple(K.shape) == (3, 3):
         K = K[None].expand(bsz, 3, 3)
     if tuple(K.shape) != (bsz, 3, 3):
         raise InputError(f"K: expected shape (3, 3) or ({bsz}, 3, 3), got {tuple(K.shape)}")
+    if not K.is_floating_point():
+        raise InputError(f"K: expected floating-point intrinsics (pixels), got dtype {K.dtype}")
     if not bool(torch.isfinite(K).all()) or bool((K[:, 0, 0] <= 0).any()) or bool((K[:, 1, 1] <= 0).any()):
         raise InputError(f"K: expected finite intrinsics with focal lengths > 0, got fx {K[:, 0, 0].tolist()}, "
                          f"fy {K[:, 1, 1].tolist()}")
@@ -243,7 +278,7 @@ def as_matrix(value: object, shape: tuple[int, int], name: str, allow_flat: bool
     """``value`` as a finite float64 array of ``shape`` (or of its row-major flat length)."""
     check_has_data(name, value)
     if isinstance(value, torch.Tensor):
-        value = value.detach().cpu().numpy()
+        value = to_numpy(value)
     try:
         array = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):

@@ -6,14 +6,16 @@ readers, the API, ``CRFDepth.forward``), with messages in the form of :mod:`crfd
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
 
-from crfdepth.checks import as_matrix
+from crfdepth.checks import as_matrix, to_numpy
 from crfdepth.errors import InputError
+from crfdepth.plausibility import PlausibilityWarning
 
-__all__ = ["INTRINSICS_TOLERANCE", "MAX_FOV_DEG", "MAX_INTRINSICS_CONDITION", "MAX_OFF_AXIS_DEG", "MAX_SKEW_RATIO",
+__all__ = ["INTRINSICS_TOLERANCE", "IntrinsicsWarning", "OTHER_SIZE_AGREEMENT", "OTHER_SIZE_CENTRE", "MAX_FOV_DEG", "MAX_INTRINSICS_CONDITION", "MAX_OFF_AXIS_DEG", "MAX_SKEW_RATIO",
            "MIN_FOV_DEG", "PRINCIPAL_POINT_MARGIN", "check_batch_intrinsics", "check_intrinsics"]
 
 # Field of view of K over the image, degrees (check_intrinsics): a pinhole image cannot reach 180
@@ -38,6 +40,17 @@ PRINCIPAL_POINT_MARGIN = 0.5
 # the principal point may lie anywhere; instead every pixel must see a ray within this angle of the optical
 # axis, since a pinhole image holds no ray at 90 degrees or beyond (a KITTI crop reaches at most 41 degrees).
 MAX_OFF_AXIS_DEG = 85.0
+# Without crop, warn (IntrinsicsWarning) when the principal point lies outside the image, or when cx / W and cy / H
+# are both below 0.35 or both above 0.65 and within 1.5x of each other: the K of a smaller or larger image used on
+# a resized one (a 2x upscale puts them at about 0.25). Measured cx / W, cy / H: shared KITTI frames 0.485-0.494,
+# 0.461-0.488, their depth-selection crops 0.491, 0.426; NYU v2 0.509-0.510, 0.494-0.529; synthetic street and
+# docs/example 0.491, 0.426.
+OTHER_SIZE_CENTRE = (0.35, 0.65)
+OTHER_SIZE_AGREEMENT = 1.5
+
+
+class IntrinsicsWarning(PlausibilityWarning):
+    """A ``K`` that passes :func:`check_intrinsics` but looks like the intrinsics of another image size."""
 
 
 def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | None = None,
@@ -58,6 +71,9 @@ def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | N
     - the principal point within half an image of the image (``PRINCIPAL_POINT_MARGIN``:
       ``-W/2 <= cx <= 1.5 W``, same for cy): further out almost always means K belongs to
       another resolution or has cx and cy swapped (docs/design.md section 1);
+    - (without ``crop``) a principal point inside the image and, when it is off-centre, not off-centre by the
+      same factor in both axes: else an :class:`IntrinsicsWarning` (not an error: a crop can do it) saying which
+      image size K looks made for (the K of a 1242x375 image used on its 2x upscale);
     - a field of view (the angle between the rays through the image's opposite edges,
       horizontal or vertical, whichever is wider) in (``MIN_FOV_DEG``, ``MAX_FOV_DEG``) =
       (1, 170) degrees. A pinhole image approaches 180 degrees only as its edges go to
@@ -76,7 +92,7 @@ def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | N
     that is not a matrix of numbers, never its whole repr.
     """
     if isinstance(K, torch.Tensor):
-        K = K.detach().cpu().numpy()
+        K = to_numpy(K)  # float16 / bfloat16 as float32
     try:
         K = np.array(K, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
@@ -125,6 +141,8 @@ def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | N
         # Field of view: the angle between the rays of the image's two edges, cx and cy anywhere.
         fov_x = math.degrees(math.atan((width - cx) / fx) + math.atan(cx / fx))
         fov_y = math.degrees(math.atan((height - cy) / fy) + math.atan(cy / fy))
+        if not crop:
+            _warn_other_size(what, cx, cy, width, height, fov_x, fov_y)
         if max(fov_x, fov_y) >= MAX_FOV_DEG:
             raise InputError(f"{what}: expected a field of view below {MAX_FOV_DEG:g} degrees over the {width}x{height} "
                              f"(WxH) image, got {fov_x:.1f} x {fov_y:.1f} degrees (fx={fx:g}, fy={fy:g} "
@@ -144,6 +162,29 @@ def check_intrinsics(K: object, what: str = "K", image_size: tuple[int, int] | N
                                  f"{off_axis:.1f} degrees off it (fx={fx:g}, fy={fy:g}, cx={cx:g}, cy={cy:g}): K "
                                  f"probably belongs to another image size or is in other units")
     return K
+
+
+def _warn_other_size(what: str, cx: float, cy: float, width: int, height: int, fov_x: float, fov_y: float) -> None:
+    """Warn (:class:`IntrinsicsWarning`) when the principal point says that K belongs to another image size:
+    outside the image, or off-centre by the same factor in both axes (``OTHER_SIZE_CENTRE`` and
+    ``OTHER_SIZE_AGREEMENT``), as the K of a smaller (or larger) image used on a resized one. A crop moves
+    the principal point along one axis, or both by different factors, and is not warned about."""
+    rx, ry = cx / width, cy / height
+    outside = not (0 <= cx <= width and 0 <= cy <= height)
+    low, high = OTHER_SIZE_CENTRE
+    scaled = (rx > 0 and ry > 0 and max(rx, ry) / min(rx, ry) <= OTHER_SIZE_AGREEMENT
+              and ((rx < low and ry < low) or (rx > high and ry > high)))
+    if not (outside or scaled):
+        return
+    scale = 0.5 / math.sqrt(rx * ry) if rx > 0 and ry > 0 else None
+    where = "outside the image" if outside else f"at ({rx:.2f}, {ry:.2f}) of its width and height"
+    likely = (f"; K looks like the intrinsics of a {2 * cx:.0f}x{2 * cy:.0f} image (the image is {scale:.2g}x that "
+              f"size): scale fx, fy, cx and cy by {scale:.3g} after resizing the image" if scaled and scale else
+              "; K probably belongs to another image size (scale K with the image after a resize, shift cx, cy "
+              "after a crop) or cx and cy are swapped")
+    warnings.warn(f"{what}: expected the principal point near the centre of the {width}x{height} (WxH) image, got "
+                  f"(cx, cy) = ({cx:g}, {cy:g}), {where} (field of view {fov_x:.0f} x {fov_y:.0f} degrees){likely}",
+                  IntrinsicsWarning, stacklevel=4)
 
 
 def check_batch_intrinsics(K: torch.Tensor, image_size: tuple[int, int], batched: bool) -> None:

@@ -130,6 +130,12 @@ class CRFDepth(ConstrainedWeights):
     - ``memory_limit_gb``: refuse a forward whose estimated peak memory
       (:mod:`crfdepth.memory`, an upper bound) exceeds this many GB, before
       allocating; None: the memory the device has available at each forward.
+
+    ``torch.compile(model)`` works, under ``torch.no_grad()``, ``torch.inference_mode()`` or with
+    autograd, and gives the eager depth, but compiles nothing of the CRF: its input checks and its
+    pipeline always run eagerly (``torch.compiler.disable``). Their numpy steps and data-dependent
+    solver loops made dynamo fail with an internal "Guard failed ... This is a bug" error (torch 2.13);
+    compile the network around the CRF instead.
     """
 
     def __init__(self, config: CRFConfig | Mapping[str, Any] | None = None, **options: Any) -> None:
@@ -259,6 +265,26 @@ class CRFDepth(ConstrainedWeights):
                 device has available; size and memory are checked from the shape alone,
                 before anything is allocated.
         """
+        image, sparse, K = self._checked_inputs(image, sparse, K, return_std)
+        return self._pipeline(image, sparse, K, return_std)
+
+    @torch.compiler.disable
+    def _pipeline(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, return_std: bool) -> CRFOutput:
+        """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs, with autocast off.
+
+        Always run eagerly, also inside ``torch.compile``: its numpy steps (superpixels, the nearest fill, the
+        solver's bookkeeping) made dynamo fail with an internal "Guard failed on the same frame it was created.
+        This is a bug" error under ``torch.no_grad()`` and ``torch.inference_mode()`` (torch 2.13)."""
+        with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
+            return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
+
+    @torch.compiler.disable
+    def _checked_inputs(self, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``.
+
+        Always run eagerly, also inside ``torch.compile``: the checks read values on the host (numpy, ``float``),
+        which dynamo would trace as tensor code and guard on (under ``torch.inference_mode()`` those guards failed
+        with dynamo's internal "This is a bug" error)."""
         image, sparse, K = widen(image), widen(sparse), widen(K)
         if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
             # Size and memory first, from the shape alone: the checks below allocate per pixel.
@@ -269,10 +295,7 @@ class CRFDepth(ConstrainedWeights):
         batched = isinstance(K, torch.Tensor) and K.dim() == 3 and K.shape[0] > 1
         image, sparse, K = check_frames(image, sparse, K)
         check_batch_intrinsics(K, tuple(sparse.shape[2:]), batched)
-        image = image.to(sparse.dtype)
-        K = K.to(sparse.dtype)
-        with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
-            return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
+        return image.to(sparse.dtype), sparse, K.to(sparse.dtype)
 
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]
