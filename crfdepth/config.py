@@ -74,6 +74,18 @@ def check_solver(method: object, rtol: object, max_iter: object) -> None:
         raise InputError(f"max_iter: expected a non-negative int or None, got {max_iter!r}")
 
 
+MAX_STD_SAMPLES = 4096
+"""Most samples of the posterior-variance estimate: its error falls as 1 / sqrt(samples), so 4096 is already
+1.6% of one sample's, and each sample is a solve (a 20-digit count would run for ever)."""
+
+
+def check_std_samples(samples: object, name: str = "std_samples") -> int:
+    """``samples`` of the variance estimate, an integer in [1, :data:`MAX_STD_SAMPLES`], told under ``name`` (the
+    keyword the caller gave it by: ``std_samples`` for the model and the layer, ``samples`` for the std
+    functions)."""
+    return check_number(name, samples, low=1, high=MAX_STD_SAMPLES, low_open=False, high_open=False, integer=True)
+
+
 def check_std_terms(terms: Mapping[str, float] | None, name: str = "std_terms") -> dict[str, float]:
     """``terms`` as floats in the order of :data:`STD_TERMS` (None: :data:`DEFAULT_STD_TERMS`); errors name
     ``name``."""
@@ -191,6 +203,8 @@ class Uncertainty:
         check_std_terms(self.terms)  # kept as given (None: the hand-set ones), so files store what was given
         _check_choice("uncertainty", self.kind, UNCERTAINTIES)
         _check_positive(self, {"std_scale": "scale"})
+        # named by CRFDepth's keyword (std_samples), not the field, and refused when built, not at the first std
+        check_std_samples(self.samples)
 
 
 GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "gate": Gate, "solver": Solver,

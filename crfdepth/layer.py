@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from crfdepth.checks import check_map, check_scalar_tensor, describe
+from crfdepth.config import check_std_samples
 from crfdepth.errors import InputError
 from crfdepth.layer_inputs import check_anchored, check_labels, check_not_empty, check_projection
 from crfdepth.linalg import SolveInfo, System, solve_system, solver_settings
@@ -180,6 +181,8 @@ def crf_refine(
     """
     check_map("depth", depth, None, 1)
     check_not_empty(depth)
+    if return_std:
+        check_std_samples(std_samples)
     check_map("confidence", confidence, depth, 1, nonneg=True)
     check_map("features", features, depth, None)
     projection = check_projection(projection_weight, features.shape[1], depth, features)
@@ -299,7 +302,7 @@ class CRFRefine(nn.Module):
         self.log_std_scale = nn.Parameter(torch.tensor(math.log(std_scale)))
         self.prior_weight = float(prior_weight)
         self.superpixels = superpixels
-        self.std_samples = std_samples
+        self.std_samples = check_std_samples(std_samples)
         self.rtol = rtol
         self.max_iter = max_iter
 

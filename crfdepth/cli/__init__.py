@@ -15,7 +15,9 @@ returns 2): the commands tell the errors of the files they read and write under 
 path it concerns, found in the command line, never shown as a traceback; 130 on Ctrl-C, with
 one line (``crfdepth project: interrupted``; a folder or bag run adds how many frames it
 wrote: ``crfdepth complete: interrupted after 3 of 10 frame(s) written to pred/``, the
-text of the ``KeyboardInterrupt`` it re-raises). Warnings raised while a command runs (NaN
+text of the ``KeyboardInterrupt`` it re-raises); 1 when a command fails on good input, with one line: a solve
+that did not converge under ``on_nonconvergence="raise"``, no memory left, or an internal error (a bug: the line
+says so, and ``crfdepth --verbose`` shows Python's traceback instead). Warnings raised while a command runs (NaN
 points dropped, a solve that did not converge) are one line each on stderr,
 ``crfdepth complete: warning: points: dropped 3 of ...``, without Python's category and
 source line (:func:`warnings_as_lines`). ``crfdepth --version`` prints
@@ -36,7 +38,7 @@ from types import ModuleType
 
 from crfdepth._version import __version__
 from crfdepth.cli.file_errors import error_message
-from crfdepth.errors import InputError
+from crfdepth.errors import ConvergenceError, InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
 _COMMANDS = (
@@ -48,6 +50,15 @@ _COMMANDS = (
 )
 # The exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
 EXIT_INTERRUPTED = 130
+# The exit status of a command that failed on good input: a solve that did not converge when asked to raise, no
+# memory left, or a bug (one line each, never a traceback; --verbose shows the traceback of a bug).
+EXIT_FAILED = 1
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message (a traceback-free summary)."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else ""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -166,11 +177,28 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return 2
         try:
+            from crfdepth.cli.model_options import check_device  # imports torch: not for --help / --version
+
+            check_device(getattr(args, "device", None))  # --device cuda without CUDA: refused before any work
             with warnings_as_lines(command):
                 return int(args.func(args) or 0)
         except (InputError, OSError) as exc:  # bad input, or a file that cannot be read or written
             print(f"crfdepth {command}: error: {error_message(exc, argv)}", file=sys.stderr)
             return 2
+        except ConvergenceError as exc:  # a model whose solver settings say on_nonconvergence="raise"
+            print(f"crfdepth {command}: error: {_first_line(exc)}", file=sys.stderr)
+            return EXIT_FAILED
+        except MemoryError as exc:  # torch's out-of-memory errors are MemoryErrors too
+            print(f"crfdepth {command}: error: out of memory ({_first_line(exc) or 'no detail'}): give fewer or "
+                  f"smaller frames at once (--batch-size, --devices) or a device with more memory", file=sys.stderr)
+            return EXIT_FAILED
+        except Exception as exc:  # a bug: one line that says so; --verbose shows Python's traceback
+            if getattr(args, "verbose", False):
+                raise
+            print(f"crfdepth {command}: error: internal error, {type(exc).__name__}: {_first_line(exc)} (a bug in "
+                  f"crfdepth {__version__}; run it again as crfdepth --verbose ... for the traceback and report it)",
+                  file=sys.stderr)
+            return EXIT_FAILED
     except KeyboardInterrupt as exc:
         detail = str(exc)  # a command that writes several files says how far it got ("after 3 of 10 ...")
         print(f"crfdepth{' ' + command if command else ''}: interrupted{' ' + detail if detail else ''}",

@@ -14,15 +14,26 @@ import numpy as np
 
 from crfdepth.errors import BAD_INPUT  # what crfdepth.cli.main reports as bad input (one line, exit status 2)
 
-__all__ = ["BAD_INPUT", "MAX_WORKERS", "STRATEGIES", "VisRange", "add_batch_arguments", "add_rerun_argument",
-           "add_topic_arguments", "fraction", "int_at_least", "positive_number", "vis_range_type"]
+__all__ = ["BAD_INPUT", "MAX_COUNT", "MAX_DEVICES", "MAX_RINGS", "MAX_SEED", "MAX_WORKERS", "STRATEGIES", "VisRange",
+           "add_batch_arguments", "add_rerun_argument", "add_topic_arguments", "fraction", "int_at_least",
+           "positive_number", "seed_type", "vis_range_type"]
 
+MAX_COUNT = 2**31 - 1
+"""Largest value of an integer option without a bound of its own (a count of frames, a window): the largest C
+``int``, so that no option reaches a library as a number it cannot hold (a 20-digit ``--keep-every-ring`` was an
+``OverflowError`` traceback)."""
+MAX_SEED = 2**32 - 1
+"""Largest ``--seed``: what every seeding API the commands reach takes (``numpy.random.seed`` stops at
+2**32 - 1; ``numpy.random.default_rng`` and ``torch.Generator.manual_seed`` take more)."""
+MAX_RINGS = 128
+"""Largest ``--keep-every-ring``: the most laser rings a LiDAR has (128-beam sensors; KITTI's HDL-64E has 64)."""
 
 
 def int_at_least(low: int, high: int | None = None, meaning: str | None = None):
-    """An argparse ``type`` accepting integers >= ``low`` (and <= ``high`` when given); ``meaning``,
-    when given, says in the message what the number is."""
-    bounds = f">= {low}" if high is None else f"in [{low}, {high}]"
+    """An argparse ``type`` accepting integers in [``low``, ``high``] (``high`` None: :data:`MAX_COUNT`);
+    ``meaning``, when given, says in the message what the number is. Refused: ``--name: expected an integer in
+    [lo, hi] (meaning), got 'value'``."""
+    high = MAX_COUNT if high is None else high
     note = f" ({meaning})" if meaning else ""
 
     def parse(text: str) -> int:
@@ -30,11 +41,16 @@ def int_at_least(low: int, high: int | None = None, meaning: str | None = None):
             value = int(text)
         except ValueError:
             value = low - 1
-        if value < low or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}{note}, got {text!r}")
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}]{note}, got {text!r}")
         return value
 
     return parse
+
+
+def seed_type(meaning: str | None = None):
+    """An argparse ``type`` for a ``--seed``: an integer in [0, :data:`MAX_SEED`]."""
+    return int_at_least(0, MAX_SEED, meaning)
 
 
 def fraction(*, include_one: bool, meaning: str | None = None):
@@ -114,6 +130,10 @@ def add_rerun_argument(parser: argparse.ArgumentParser, frames: str) -> None:
 # More reading processes than this cannot keep up better with a solve that takes seconds per
 # frame; the cap turns a typo (--workers 400) into a usage error instead of 400 processes.
 MAX_WORKERS = 64
+# --devices: processes on one machine (GPUs, or CPU processes sharing the cores); the same cap, for the same reason.
+MAX_DEVICES = 64
+# --batch-size: frames per model call; more than this holds no machine's memory at KITTI's frame size.
+MAX_BATCH = 1024
 # How --devices processes are started (crfdepth.runs.ranks.joined_group), named after Lightning's strategies.
 STRATEGIES = ("auto", "spawn", "ddp")
 
@@ -122,9 +142,9 @@ def add_batch_arguments(group: argparse._ActionsContainer) -> None:
     """``--batch-size B`` and ``--workers N`` (read by :func:`crfdepth.runs.batches.frame_batches`), and ``--devices N``, ``--num-nodes
     M`` and ``--strategy`` (:mod:`crfdepth.runs.processes`, :mod:`crfdepth.runs.ranks`, :mod:`crfdepth.runs.launch`),
     shared by ``complete --input-dir`` / ``--input-list`` and ``evaluate``."""
-    group.add_argument("--batch-size", type=int_at_least(1), default=1, metavar="B",
-                       help="frames per model call (default 1, the fastest on CPU as measured; batches are "
-                            "meant for --device cuda); consecutive frames of the same size go together, a size "
+    group.add_argument("--batch-size", type=int_at_least(1, MAX_BATCH), default=1, metavar="B",
+                       help=f"frames per model call, 1 to {MAX_BATCH} (default 1, the fastest on CPU as measured; "
+                            "batches are meant for --device cuda); consecutive frames of the same size go together, a size "
                             "change starts a new batch. Each frame's solve stops when it has converged, so "
                             "depths differ from batch 1 by the solver tolerance only (measured: at most 1/256 m, "
                             "one unit of a depth PNG)")
@@ -133,9 +153,9 @@ def add_batch_arguments(group: argparse._ActionsContainer) -> None:
                             f"num_workers, 0 to {MAX_WORKERS}; default 0: this process, enough for local KITTI "
                             f"frames, which read in about 20 ms; more help when reading is slow, e.g. from "
                             f"network storage)")
-    group.add_argument("--devices", type=int_at_least(1), default=1, metavar="N",
-                       help="N processes, one per device (--device cuda: GPUs 0..N-1; cpu: N processes sharing the "
-                            "cores), the batches dealt to them in turn: the outputs are one process's (depth within "
+    group.add_argument("--devices", type=int_at_least(1, MAX_DEVICES), default=1, metavar="N",
+                       help=f"N processes, one per device, 1 to {MAX_DEVICES} (--device cuda: GPUs 0..N-1; cpu: N "
+                            "processes sharing the cores), the batches dealt to them in turn: the outputs are one process's (depth within "
                             "one PNG code: the threads' summation order)")
     group.add_argument("--num-nodes", type=int_at_least(1), default=1, metavar="M",
                        help="M machines of N --devices each: start the same command on every node with torchrun "

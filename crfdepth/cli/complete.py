@@ -127,6 +127,7 @@ records: ``--input-list``, ``--devices``, ``--num-nodes``, ``--strategy`` and a 
 from __future__ import annotations
 
 import argparse
+import logging
 
 from crfdepth import api
 from crfdepth.cli.arguments import VisRange, add_batch_arguments, add_rerun_argument, vis_range_type
@@ -139,9 +140,12 @@ from crfdepth.cli.completion import frame_errors
 from crfdepth.cli.model_options import add_model_arguments
 from crfdepth.cli.outputs import rerun_recording
 from crfdepth.errors import InputError
+from crfdepth.io.calibration import is_rig_file
 from crfdepth.plausibility import SPARSE_UNITS
 from crfdepth.runs.folder import complete_folder
 from crfdepth.runs.ranks import launcher_world_size
+
+logger = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------- arguments
 
@@ -175,7 +179,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     one.add_argument("--calib", metavar="CALIB",
                      help="with --points: rig calibration YAML/JSON (K, T_cam_lidar, optional distortion and "
                           "image_size) or a KITTI calibration (raw day folder, calib_*.txt, object calib file)")
-    one.add_argument("--camera", type=int, choices=(0, 1, 2, 3), default=2,
+    one.add_argument("--camera", type=int, choices=(0, 1, 2, 3), default=None,
                      help="with a KITTI --calib, or --input-dir of a KITTI raw drive (2 or 3): camera index "
                           "(default: 2, left colour)")
     one.add_argument("--out", metavar="DEPTH.png", help="output depth PNG (its folder must exist)")
@@ -229,6 +233,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_model_arguments(parser)
 
 
+def _warn_ignored(args: argparse.Namespace) -> None:
+    """A warning for each option given that the mode run does not read (the options refused in a mode are refused
+    where the mode is checked): ``--trust-transform`` without a point cloud to project (``--sparse``, or a folder
+    whose drive scans are projected with KITTI's own calibration), ``--camera`` with ``--sparse`` (whose map is
+    already in one camera) or with a rig ``--calib`` (one camera), and a KITTI ``--calib`` picking the camera."""
+    points = args.points is not None or args.calib is not None
+    if args.trust_transform and not points and args.bag is None:
+        logger.warning("--trust-transform is ignored with %s (it applies to a point cloud projected with a rig "
+                       "transform: --points with --calib, or --bag)",
+                       "--input-dir" if args.input_dir is not None else
+                       "--input-list" if args.input_list is not None else "--sparse")
+    if args.camera is not None and args.bag is None and args.input_dir is None and args.input_list is None:
+        if not points:
+            logger.warning("--camera is ignored with --sparse (the depth map is already in its camera's image; "
+                           "--camera picks the camera of a KITTI --calib or raw drive)")
+        elif args.calib is not None and is_rig_file(args.calib):
+            logger.warning("--camera is ignored with the rig calibration --calib %s (it holds one camera; --camera "
+                           "picks the camera of a KITTI calibration)", args.calib)
+    if args.camera is None:
+        args.camera = 2  # the default, None when parsed so that a --camera given to no use is told
+
+
 def run(args: argparse.Namespace) -> int:
     """Complete one frame or a folder as ``args`` asks; returns 0.
 
@@ -264,6 +290,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun is not None and (args.input_list is not None or scale or launched):
         raise InputError(f"--rerun: records the frames of one process (one frame, --input-dir or --bag), got "
                          f"{' '.join(scale) or ('--input-list' if args.input_list is not None else 'a launcher')}")
+    _warn_ignored(args)
     if args.input_list is not None:
         return run_list(args, run_folder, run_bag)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]

@@ -70,12 +70,12 @@ from crfdepth.cli.outputs import check_output_folders, output_folders
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import count_in_image
 from crfdepth.inputs import points_to_sparse
-from crfdepth.io.ros.bag import Recording, camera_info_topic
+from crfdepth.io.ros.bag import CLOUD_TYPE, IMAGE_TYPES, Recording, camera_info_topic
 from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S, Plan, decode_frame, paired_frames, plan_frames
-from crfdepth.runs.outputs import check_writable_dir, write_files, write_frame
+from crfdepth.runs.outputs import check_writable_dir, same_file, write_files, write_frame
 from crfdepth.runs.skip_bad import skipped_frames, write_skipped
 
-__all__ = ["BAG_ONLY", "add_arguments", "run_bag"]
+__all__ = ["BAG_ONLY", "add_arguments", "check_bag", "run_bag"]
 
 BAG_ONLY = ("--image-topic", "--points-topic", "--camera-info-topic", "--max-dt", "--out-bag", "--rectified",
             "--overwrite")
@@ -189,15 +189,34 @@ def _check_pairs(bag: Recording, args, plan: Plan) -> list[tuple[int, type[BaseE
     return bad
 
 
+def _check_outputs(args: argparse.Namespace) -> tuple[Path | None, list[tuple[str, str | None]]]:
+    """The options, ``--out-bag`` and the output folders checked (nothing created); returns them."""
+    _check_flags(args)
+    out_bag = _check_out_bag(args)
+    targets = check_output_folders(args, [Path(args.bag)], "the --bag input")
+    if out_bag is not None and any(value is not None and same_file(out_bag, value) for _, value in targets):
+        raise InputError(f"--out-bag: {out_bag} is also an output folder (--out-dir, --out-std-dir or --vis); "
+                         f"expected a bag of its own")
+    _check_index(args.out_dir, args.overwrite)
+    return out_bag, targets
+
+
+def check_bag(args: argparse.Namespace) -> None:
+    """What ``complete --bag`` checks before reading a frame, without writing anything: the options, the outputs,
+    the recording opened and its topics of the right types (``--input-list`` checks every line so before it
+    completes any)."""
+    _check_outputs(args)
+    with Recording(args.bag, f"--bag {args.bag}") as bag:
+        bag.check_topic(args.image_topic, "--image-topic", IMAGE_TYPES, "camera image")
+        bag.check_topic(args.points_topic, "--points-topic", (CLOUD_TYPE,), "point cloud")
+
+
 def run_bag(args: argparse.Namespace) -> int:
     """``complete --bag``: see the module docstring. Bad input raises ``BAD_INPUT`` naming the flag."""
     from crfdepth.io.ros.writer import BagWriter
 
-    _check_flags(args)
     max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
-    out_bag = _check_out_bag(args)
-    targets = check_output_folders(args, [Path(args.bag)], "the --bag input")
-    _check_index(args.out_dir, args.overwrite)
+    out_bag, targets = _check_outputs(args)
     start = time.perf_counter()
     with Recording(args.bag, f"--bag {args.bag}") as bag:
         plan = plan_frames(bag, args, max_dt)

@@ -37,6 +37,7 @@ from pathlib import Path
 from crfdepth.cli.arguments import BAD_INPUT
 from crfdepth.data.kitti.drive import is_raw_drive, raw_drives, shown_drives
 from crfdepth.errors import InputError
+from crfdepth.runs.outputs import is_inside, same_file
 from crfdepth.runs.ranks import Ranks, Spread, run_in_group
 
 __all__ = ["read_input_list", "run_list"]
@@ -119,11 +120,17 @@ def _run_list(args: argparse.Namespace, ranks: Ranks | None, run_folder, run_bag
     """:func:`run_list` alone or as one rank of a group joined once for the whole list: rank 0 reads the list and
     runs each recording, each folder is shared out (:func:`~crfdepth.cli.complete_folder.run_folder`), and an
     input's error is raised on every rank alike, so that ``--skip-bad`` goes on, or the run stops, everywhere."""
-    entries = read_input_list(args.input_list) if ranks is None else \
-        ranks.share(lambda: read_input_list(args.input_list))
+    def read_and_check():
+        entries = read_input_list(args.input_list)
+        return entries, _check_inputs(args, entries, _names(entries))
+
+    entries, bad = read_and_check() if ranks is None else ranks.share(read_and_check)
     names = _names(entries)
     failed, done = [], 0
     for (number, entry, kind), name in zip(entries, names):
+        if number in bad:  # --skip-bad: refused by the check of every line, before any input was completed
+            failed.append(bad[number])
+            continue
         mine = _input_args(args, entry, kind, name)
         try:
             if kind == "folder":
@@ -145,6 +152,38 @@ def _run_list(args: argparse.Namespace, ranks: Ranks | None, run_folder, run_bag
         for message in failed:
             print(f"failed: {message}")
     return 0
+
+
+def _check_inputs(args: argparse.Namespace, entries: list[tuple[int, Path, str]], names: list[str]) -> dict[int, str]:
+    """Every line checked as its run will check it before reading a frame (the folder's layout and frames, the
+    recording's topics, the output subfolders: not among the inputs of any line, writable, not locked), nothing
+    written. The first bad line raises, named ``--input-list line N (PATH): ...``; with ``--skip-bad`` the bad
+    lines are returned instead (line number -> message), to be left out and listed as failed."""
+    from crfdepth.cli.complete_bag import check_bag
+    from crfdepth.cli.complete_folder import folder_run
+    from crfdepth.runs.folder import check_folder_run
+
+    bad = {}
+    for (number, entry, kind), name in zip(entries, names):
+        mine = _input_args(args, entry, kind, name)
+        try:
+            for flag, value in (("--out-dir", mine.out_dir), ("--out-std-dir", mine.out_std_dir), ("--vis", mine.vis)):
+                inside = next((p for _, p, _ in entries if value and (same_file(value, p) or is_inside(value, p))),
+                              None)
+                if inside is not None:
+                    raise InputError(f"{flag}: {value} is or lies inside the input {inside} of the list; refusing "
+                                     f"to write among the inputs, choose a folder outside them")
+            if kind == "folder":
+                check_folder_run(folder_run(mine))
+            else:
+                check_bag(mine)
+        except BAD_INPUT as exc:
+            message = f"--input-list line {number} ({entry}): {exc}"
+            if not args.skip_bad:
+                raise type(exc)(f"{message} [every line is checked before any input is completed; nothing "
+                                f"written]") from None
+            bad[number] = message
+    return bad
 
 
 def _input_args(args: argparse.Namespace, entry: Path, kind: str, name: str) -> argparse.Namespace:

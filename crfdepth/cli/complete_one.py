@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import logging
 import os
 import time
@@ -51,7 +52,8 @@ class OneFrame:
 
 
 def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
-    """``--out`` / ``--out-std`` checked before anything is read: PNG names in writable folders, not inputs."""
+    """``--out`` / ``--out-std`` / ``--vis`` / ``--rerun`` checked before anything is read: PNG names in writable
+    folders, none an input, no two naming the same file (the pictures of ``--vis`` included)."""
     with flagged("--out", args.out, "write"):  # a name too long, a path through a file ...
         out = check_output_file(args.out, "--out", suffix=".png")
     out_std = None
@@ -64,8 +66,24 @@ def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
         for source, src_path in inputs.items():
             if same_file(path, src_path):
                 raise InputError(f"{flag}: {path} is the {source} input; refusing to overwrite it")
+    written = {"--out": out, "--out-std": out_std}
     if args.vis:  # created once the frame is completed; a folder that cannot be is refused now
+        for flag, path in (*written.items(), *inputs.items()):
+            if path is not None and same_file(args.vis, path):
+                raise InputError(f"--vis: expected a folder for the pictures, got {args.vis}, the {flag} file")
         check_output_folder(args.vis, "--vis")
+    if args.vis is not None:
+        folder = Path(args.vis) if args.vis else out.parent
+        for kind in ("depth", "std"):
+            written[f"--vis ({kind} picture)"] = folder / f"{out.stem}_vis_{kind}.png"
+    if args.rerun:
+        written["--rerun"] = Path(args.rerun)
+    outputs = [(f, p) for f, p in written.items() if p is not None]
+    for (flag, path), (other, other_path) in [*itertools.product(inputs.items(), outputs),
+                                              *itertools.combinations(outputs, 2)]:
+        if same_file(path, other_path):
+            raise InputError(f"{other}: {other_path} is also the {flag} {'input' if flag in inputs else 'output'}; "
+                             f"expected different files")
     return out, out_std
 
 

@@ -52,7 +52,7 @@ import torch
 
 from crfdepth.api import complete_depth
 from crfdepth.checkpoints import load_pretrained, own_structure
-from crfdepth.cli.arguments import VisRange, add_rerun_argument, int_at_least, vis_range_type
+from crfdepth.cli.arguments import MAX_SEED, VisRange, add_rerun_argument, int_at_least, seed_type, vis_range_type
 from crfdepth.cli.model_options import model_line
 from crfdepth.cli.outputs import rerun_recording
 from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M
@@ -62,7 +62,7 @@ from crfdepth.io.kitti import write_depth_png
 from crfdepth.metrics import average_metrics, depth_metrics, format_metrics
 from crfdepth.pictures.colour import depth_range, draw_points, render_point_cloud
 from crfdepth.pictures.figures import captioned, depth_picture, std_picture
-from crfdepth.runs.outputs import write_rgb_png
+from crfdepth.runs.outputs import is_inside, same_file, write_rgb_png
 from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
@@ -76,6 +76,9 @@ MAX_BEAMS = 128
 
 
 # --------------------------------------------------------------------------- flag parsing
+
+# The defaults of the options that only one mode reads (None when parsed: not given, so that the other mode warns).
+_DEFAULTS = {"seed": 0, "beams": 64, "max_frames": 2}
 
 
 HELP = "run the full pipeline on a built-in scene (no download) or on KITTI frames"
@@ -92,9 +95,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", default="crfdepth_demo", metavar="DIR",
                         help=f"folder for the pictures, created if missing; the depth data go to "
                              f"DIR/{DATA_FOLDER}/ (default: ./crfdepth_demo)")
-    parser.add_argument("--seed", type=int_at_least(0), default=0,
-                        help="seed of the synthetic scene, >= 0 (default 0)")
-    parser.add_argument("--beams", type=int_at_least(1, MAX_BEAMS), default=64,
+    parser.add_argument("--seed", type=seed_type(), default=None,
+                        help=f"seed of the synthetic scene, 0 to {MAX_SEED} (default 0)")
+    parser.add_argument("--beams", type=int_at_least(1, MAX_BEAMS), default=None,
                         help=f"beams of the simulated LiDAR, 1 to {MAX_BEAMS} (default 64)")
     own = ", ".join(f"{name}: {own_structure(name)['mode']}" for name in WEIGHTS)
     parser.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
@@ -102,8 +105,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", choices=WEIGHTS, default=DEFAULT_WEIGHTS,
                         help=f"shipped weight set: kitti (learned on KITTI) or paper (hand-set); "
                              f"default: {DEFAULT_WEIGHTS}")
-    parser.add_argument("--max-frames", type=int_at_least(1), default=2,
-                        help="KITTI frames to run, >= 1 (default 2)")
+    parser.add_argument("--max-frames", type=int_at_least(1), default=None,
+                        help="--kitti: frames to run, >= 1 (default 2)")
     parser.add_argument("--vis-range", nargs=2, type=vis_range_type, action=VisRange, default=None,
                         metavar=("MIN", "MAX"),
                         help="fixed depth colour range in metres, 0 < MIN < MAX, the same in every "
@@ -132,6 +135,20 @@ def _check_out_dir(path: str) -> Path:
     if not os.access(existing, os.W_OK | os.X_OK):
         raise PermissionError(f"--out-dir: expected a writable folder, got {existing} (not writable)")
     return directory
+
+
+def _check_mode_options(args: argparse.Namespace) -> None:
+    """A warning for each option given that the mode run does not read: ``--seed`` and ``--beams`` make the
+    synthetic scene (ignored with ``--kitti``), ``--max-frames`` counts KITTI frames (ignored without it)."""
+    if args.kitti is not None:
+        for flag in (f for f in ("--seed", "--beams") if getattr(args, f[2:]) is not None):
+            logger.warning("%s is ignored with --kitti (it sets the synthetic scene; the KITTI frames have their "
+                           "own LiDAR)", flag)
+    elif args.max_frames is not None:
+        logger.warning("--max-frames is ignored without --kitti (the synthetic scene is one frame)")
+    for name, default in _DEFAULTS.items():  # None: not given
+        if getattr(args, name) is None:
+            setattr(args, name, default)
 
 
 def _make_dirs(directory: Path) -> Path:
@@ -219,7 +236,14 @@ def run(args: argparse.Namespace) -> int:
     metrics line per method and one line per written file group, then a last line saying
     what was written where.
     """
+    _check_mode_options(args)
     out_dir = _check_out_dir(args.out_dir)
+    if args.kitti is not None:  # the pictures and data/ would be written among the frames read
+        frames = _kitti_folder(Path(args.kitti))
+        for folder in (out_dir, out_dir / DATA_FOLDER):
+            if same_file(folder, frames) or is_inside(folder, frames):
+                raise InputError(f"--out-dir: {folder} is or lies inside the --kitti frames {frames}; refusing to "
+                                 f"write among the inputs, choose a folder outside it")
     with rerun_recording(args) as recorder:  # checked now, written when the run ends
         return _demo(args, out_dir, recorder)
 

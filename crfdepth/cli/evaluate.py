@@ -82,7 +82,7 @@ import torch
 from torch.utils.data import Subset
 
 from crfdepth.checkpoints import describe
-from crfdepth.cli.arguments import add_batch_arguments, fraction, int_at_least
+from crfdepth.cli.arguments import MAX_RINGS, add_batch_arguments, fraction, int_at_least, seed_type
 from crfdepth.cli.completion import cli_advice
 from crfdepth.cli.model_options import add_model_arguments, build_model, model_maker
 from crfdepth.cli.progress import FrameBars
@@ -91,7 +91,7 @@ from crfdepth.errors import InputError
 from crfdepth.metrics import UNITS
 from crfdepth.runs.evaluation import EvaluationRun, evaluate_dataset
 from crfdepth.runs.evaluation_report import UNCERTAINTY_UNITS, csv_text, format_table, summarize
-from crfdepth.runs.outputs import output_folders, write_files
+from crfdepth.runs.outputs import is_inside, output_folders, same_file, write_files
 from crfdepth.runs.ranks import Ranks, Spread, run_in_group
 from crfdepth.weights import DEFAULT_WEIGHTS
 
@@ -136,10 +136,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="raw / object: how LiDAR points are held out as targets (default: fraction)")
     data.add_argument("--holdout-fraction", type=fraction(include_one=False), default=None, metavar="F",
                       help="raw / object with --holdout fraction: share of points held out (default 0.2)")
-    data.add_argument("--keep-every-ring", type=int_at_least(1), default=None, metavar="N",
+    data.add_argument("--keep-every-ring", type=int_at_least(2, MAX_RINGS), default=None, metavar="N",
                       help="raw / object with --holdout rings: keep every N-th laser ring as input "
                            "(default 4)")
-    data.add_argument("--seed", type=int_at_least(0), default=None, metavar="S",
+    data.add_argument("--seed", type=seed_type(), default=None, metavar="S",
                       help="raw / object: hold-out seed; synthetic: first scene (default 0)")
     data.add_argument("--limit", type=int_at_least(1), default=None, metavar="N",
                       help="evaluate only the first N frames")
@@ -170,6 +170,9 @@ def _dataset_options(args: argparse.Namespace) -> dict[str, Any]:
         if args.layout not in layouts:
             raise InputError(f"{flag}: only applies to --layout {' / '.join(layouts)}, got --layout {args.layout}")
         options[keyword] = value
+    if args.holdout == "rings" and args.holdout_fraction is not None:
+        logger.warning("--holdout-fraction is ignored with --holdout rings (it sets the share of points held out "
+                       "with --holdout fraction)")
     return options
 
 
@@ -208,6 +211,10 @@ def _check_out_dir(args: argparse.Namespace, root: Path | None) -> Path:
         raise InputError(f"--out-dir: expected a folder, got a file: {out_dir}")
     if root is not None and os.path.realpath(out_dir) == os.path.realpath(root):
         raise InputError(f"--out-dir: {out_dir} is the --data folder; refusing to write there")
+    for flag, folder in (("--data", root), ("--targets-root", args.targets_root)):
+        if folder is not None and (same_file(out_dir, folder) or is_inside(out_dir, folder)):
+            raise InputError(f"--out-dir: {out_dir} is or lies inside the {flag} folder {folder}; refusing to write "
+                             f"among the inputs, choose a folder outside it")
     existing = next((p for p in (out_dir, *out_dir.parents) if p.exists()), Path("."))
     if not os.access(existing, os.W_OK | os.X_OK):
         raise PermissionError(f"--out-dir: cannot create or write {out_dir} ({existing} is not writable)")

@@ -25,7 +25,10 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["add_model_arguments", "build_model", "model_line", "model_maker"]
+__all__ = ["add_model_arguments", "available_devices", "build_model", "check_device", "model_line", "model_maker"]
+
+MAX_SUPERPIXELS = 1216 * 352
+"""Largest ``--superpixels`` (segments for a 1216x352 image, scaled with the image): one per pixel."""
 
 
 def _potentials(text: str) -> tuple[str, ...]:
@@ -59,7 +62,7 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--mode", choices=("superpixel", "pixel"), default=None,
                        help=f"graph nodes (default: the weights' own structure ({own('mode')}), or the "
                             f"checkpoint's)")
-    model.add_argument("--superpixels", type=int_at_least(1), default=None, metavar="N",
+    model.add_argument("--superpixels", type=int_at_least(1, MAX_SUPERPIXELS), default=None, metavar="N",
                        help=f"superpixel mode: SLIC segments for a 1216x352 image (default: the weights' own "
                             f"({own('superpixels')}), or the checkpoint's)")
     model.add_argument("--potentials", type=_potentials, default=None, metavar="LIST",
@@ -80,6 +83,22 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="default: cpu")
     model.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                        help="default: float32")
+
+
+def available_devices() -> str:
+    """The ``--device`` values this machine runs, as a message names them: ``cpu`` or ``cpu, cuda (2 GPUs)``."""
+    if not torch.cuda.is_available():
+        return "cpu"
+    count = torch.cuda.device_count()
+    return f"cpu, cuda ({count} GPU{'s' if count != 1 else ''})"
+
+
+def check_device(device: str | None) -> None:
+    """Refuse ``--device cuda`` where PyTorch has no CUDA, naming the devices there are; ``crfdepth.cli.main`` calls
+    it for every command before the command starts, :func:`build_model` again (the library's runs call that)."""
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"--device cuda: CUDA is not available in this PyTorch installation/machine (devices "
+                         f"here: {available_devices()}); use --device cpu")
 
 
 def _model_overrides(args: argparse.Namespace) -> dict:
@@ -127,9 +146,7 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
     read or does not fit (file and problem named, prefixed ``--checkpoint:``);
     FileNotFoundError for a missing checkpoint.
     """
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: CUDA is not available in this PyTorch installation/machine; "
-                         "use --device cpu")
+    check_device(args.device)
     overrides = _model_overrides(args)
     if args.checkpoint is not None:
         if args.weights is not None:

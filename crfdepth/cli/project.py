@@ -32,12 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from crfdepth.checks import check_return_depths
-from crfdepth.cli.arguments import fraction, int_at_least
+from crfdepth.cli.arguments import MAX_RINGS, fraction, int_at_least, seed_type
 from crfdepth.errors import InputError
 from crfdepth.geometry.projection import keep_every_ring, keep_fraction, project_velodyne
 from crfdepth.inputs import no_points_message
 from crfdepth.intrinsics import check_intrinsics
-from crfdepth.io.calibration import RIG_SUFFIXES, RigCalibration, load_calibration
+from crfdepth.io.calibration import RIG_SUFFIXES, RigCalibration, is_rig_file, load_calibration
 from crfdepth.io.files import check_output_file
 from crfdepth.io.kitti import check_png_depth, read_rgb, read_velodyne, write_depth_png
 
@@ -63,11 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output depth PNG (its folder must exist)")
     parser.add_argument("--camera", type=int, default=2, choices=(0, 1, 2, 3),
                         help="KITTI camera index (default: 2, left colour)")
-    parser.add_argument("--keep-every-ring", type=int_at_least(1, meaning="keep one laser ring in K"), default=None, metavar="K",
+    parser.add_argument("--keep-every-ring", type=int_at_least(1, MAX_RINGS, meaning="keep one laser ring in K"), default=None, metavar="K",
                         help="keep one laser ring in K (rings recovered from the scan order)")
     parser.add_argument("--keep-fraction", type=fraction(include_one=True, meaning="the share of points kept"), default=None, metavar="F",
                         help="keep a random fraction F in (0, 1] of the points")
-    parser.add_argument("--seed", type=int, default=0, metavar="S",
+    parser.add_argument("--seed", type=seed_type(), default=None, metavar="S",
                         help="seed of --keep-fraction (default: 0)")
     parser.add_argument("--quiet", action="store_true",
                         help="do not print the line saying what was written")
@@ -103,7 +103,7 @@ def _check_kitti_inputs(args: argparse.Namespace) -> None:
         raise InputError(f"--velodyne: expected a KITTI Velodyne scan (.bin, N x 4 float32), got a {suffix} point "
                          f"cloud {args.velodyne}; for other point clouds and rig calibrations use crfdepth complete "
                          f"--points CLOUD --calib CALIB")
-    if Path(args.calib).suffix.lower() in RIG_SUFFIXES:
+    if Path(args.calib).suffix.lower() in RIG_SUFFIXES or is_rig_file(args.calib):
         raise InputError(f"--calib: expected a KITTI calibration (object-benchmark file or raw-data day folder), got "
                          f"a rig calibration {args.calib}; for a rig calibration (K, T_cam_lidar) use crfdepth "
                          f"complete --points CLOUD --calib {args.calib}")
@@ -119,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
     """
     out = _check_out(args)
     _check_kitti_inputs(args)
+    if args.seed is not None and args.keep_fraction is None:
+        logger.warning("--seed is ignored without --keep-fraction (it seeds the random choice of the points kept)")
     try:
         points = read_velodyne(args.velodyne)
     except (InputError, FileNotFoundError, IsADirectoryError) as exc:
@@ -140,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     if args.keep_every_ring is not None:
         points = keep_every_ring(points, args.keep_every_ring)
     if args.keep_fraction is not None:
-        points = keep_fraction(points, args.keep_fraction, seed=args.seed)
+        points = keep_fraction(points, args.keep_fraction, seed=0 if args.seed is None else args.seed)
     if points.shape[0] == 0 and total:
         raise InputError("--keep-every-ring / --keep-fraction: expected to keep some of the scan's points, got 0 "
                          "of them; use a smaller --keep-every-ring or a larger --keep-fraction")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from crfdepth.cli.arguments import add_rerun_argument, add_topic_arguments, int_at_least, positive_number
+from crfdepth.cli.arguments import MAX_COUNT, add_rerun_argument, add_topic_arguments, int_at_least, positive_number
 from crfdepth.cli.outputs import check_output_folders, output_folders, rerun_recording
 from crfdepth.io.ros.frames import DEFAULT_MAX_DT_S
 from crfdepth.pictures.figures import targets_picture
@@ -46,6 +46,8 @@ def parse_frames(text: str) -> tuple[int, int]:
     if not sep or first < 0 or last < first:
         raise argparse.ArgumentTypeError(f"expected A:B, two frame numbers with 0 <= A <= B (both included), "
                                          f"got {text!r}")
+    if last > MAX_COUNT:
+        raise argparse.ArgumentTypeError(f"expected A:B, frame numbers in [0, {MAX_COUNT}], got {text!r}")
     return first, last
 
 

@@ -50,11 +50,12 @@ from crfdepth.errors import InputError
 from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.distortion import DISTORTION_LENGTHS, check_distortion  # noqa: F401 (DISTORTION_LENGTHS: re-exported)
 from crfdepth.io.files import MAX_CALIBRATION_BYTES, check_input_file, read_text
-from crfdepth.io.key_values import entry_array, list_keys, quote_value, read_key_values, read_mapping
+from crfdepth.io.key_values import entry_array, is_rig_file, list_keys, quote_value, read_key_values, read_mapping
 
 __all__ = [
     "Calibration",
     "RigCalibration",
+    "is_rig_file",
     "load_any_calibration",
     "load_calibration",
     "read_object_calibration",
@@ -369,7 +370,9 @@ def load_any_calibration(path: PathLike, camera: int = 2) -> RigCalibration:
     Args:
         path: ``.yaml`` / ``.yml`` / ``.json`` rig file (:func:`read_rig_calibration`); or
             a KITTI raw-data day folder, one of its ``calib_*.txt`` files, or an object
-            benchmark ``calib/*.txt`` (:func:`load_calibration`).
+            benchmark ``calib/*.txt`` (:func:`load_calibration`). A file of another name
+            (``rig.txt``, ``rig``) is told by its content (:func:`is_rig_file`): a top-level
+            ``K`` or ``T_cam_lidar`` key makes it a rig file, else it is read as KITTI.
         camera: KITTI camera index 0-3 (2 = left colour); ignored for rig files.
 
     Returns:
@@ -378,6 +381,7 @@ def load_any_calibration(path: PathLike, camera: int = 2) -> RigCalibration:
         ``project_velodyne``.
     """
     path = Path(path)
-    if path.suffix.lower() in RIG_SUFFIXES:
+    if path.suffix.lower() in RIG_SUFFIXES or is_rig_file(path):
         return read_rig_calibration(path)
     return RigCalibration.from_kitti(load_calibration(path, camera), source=str(path))
+

@@ -21,6 +21,7 @@ Messages quote at most a short prefix of a key or value (:func:`quote_key`,
 from __future__ import annotations
 
 import json
+import re
 import reprlib
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import yaml
 from crfdepth.errors import InputError
 from crfdepth.io.files import MAX_CALIBRATION_BYTES, read_text
 
-__all__ = ["MAX_YAML_DEPTH", "MAX_YAML_NODES", "entry_array", "list_keys", "quote_key", "quote_value",
+__all__ = ["MAX_YAML_DEPTH", "MAX_YAML_NODES", "entry_array", "is_rig_file", "list_keys", "quote_key", "quote_value",
            "read_key_values", "read_mapping"]
 
 # Keys listed in a message ("keys present: ..."), and characters of a key quoted, at most.
@@ -206,3 +207,22 @@ def read_mapping(text: str, path: Path, kind: str, what: str = "calibration") ->
     except (ValueError, yaml.YAMLError) as exc:  # ValueError: also an integer of over 4300 digits
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"{what}: {path} is not valid {kind}: {first[:200]}") from None
+
+
+# A rig file's own keys at the top level of its YAML (``K:`` at the start of a line) or JSON (``"K":``); a KITTI
+# calibration has neither (its keys: P0..P3, R0_rect, Tr_velo_to_cam, R, T, S_rect_0X, P_rect_0X, ...).
+_RIG_KEY = re.compile(r'^(?:K|T_cam_lidar)\s*:|"(?:K|T_cam_lidar)"\s*:', re.MULTILINE)
+
+
+def is_rig_file(path: str | Path) -> bool:
+    """Is ``path`` a rig calibration (YAML / JSON with ``K`` or ``T_cam_lidar``) whatever its name says? A
+    folder, a file that cannot be read and a KITTI calibration are not (their own readers tell what is wrong)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(MAX_CALIBRATION_BYTES)
+    except OSError:
+        return False
+    return _RIG_KEY.search(head.decode("utf-8", errors="replace")) is not None

@@ -47,7 +47,7 @@ from crfdepth.runs.skip_bad import skipped_frames, write_failed, write_skipped
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["FolderResult", "FolderRun", "complete_folder"]
+__all__ = ["FolderResult", "FolderRun", "check_folder_run", "complete_folder"]
 
 
 @dataclass(frozen=True)
@@ -140,14 +140,27 @@ def _open(folder: Path, path: str, camera: int):
 
 
 def _inputs(dataset) -> tuple[list[Path], list[Path]]:
-    """The input folders of ``dataset`` (no output folder may be one) and, per frame, the PNG whose header
-    gives its size (resume's batch plan: a drive's sparse input is a ``.bin`` scan, so its image)."""
+    """The input folders of ``dataset`` (no output folder may be one or lie inside one: the folder itself and the
+    subfolders it reads) and, per frame, the PNG whose header gives its size (resume's batch plan: a drive's sparse
+    input is a ``.bin`` scan, so its image)."""
     if isinstance(dataset, KittiDrive):
         cam = f"image_0{dataset.camera}"
         subs = (cam, f"{cam}/data", "velodyne_points", "velodyne_points/data")
-        return [dataset.root / sub for sub in subs], [dataset.image_path(i) for i in range(len(dataset))]
+        return [dataset.root, *(dataset.root / sub for sub in subs)], [dataset.image_path(i) for i in
+                                                                       range(len(dataset))]
     subs = ("image", "velodyne_raw", "intrinsics", "groundtruth_depth")
-    return [dataset.root / sub for sub in subs], [dataset.sparse_path(i) for i in range(len(dataset))]
+    return [dataset.root, *(dataset.root / sub for sub in subs)], [dataset.sparse_path(i) for i in
+                                                                   range(len(dataset))]
+
+
+def check_folder_run(options: FolderRun) -> None:
+    """What :func:`complete_folder` checks before it reads a frame, without writing anything: the folder opened
+    (its layout, at least one frame, ``--camera``) and the output folders (not among the inputs, writable, not
+    locked). ``--input-list`` checks every line so before it completes any."""
+    dataset = _open_folder(options.input_dir, options.camera)
+    inputs, _ = _inputs(dataset)
+    check_output_folders(options.out_dir, options.out_std_dir, options.vis, inputs,
+                         f"an input folder of {dataset.root}")
 
 
 def _other_pngs(out_dir: Path, names: list[str]) -> int:

@@ -41,7 +41,7 @@ from crfdepth.pictures.figures import depth_picture, std_picture
 from crfdepth.pictures.rerun_recording import Recorder, import_rerun, open_recording
 
 __all__ = ["check_output_folder", "check_output_folders", "check_writable_dir", "make_output_dir", "output_folders",
-           "rerun_recording", "same_file", "write_depth_png", "write_files", "write_frame", "write_pictures",
+           "is_inside", "rerun_recording", "same_file", "write_depth_png", "write_files", "write_frame", "write_pictures",
            "write_rgb_png"]
 
 _MIN_DEPTH = 1.0 / 256.0  # smallest non-zero code of a KITTI depth PNG, metres
@@ -77,8 +77,8 @@ def check_output_folders(out_dir: str, out_std_dir: str | None, vis: str | None,
                          ) -> list[tuple[str, str | None]]:
     """The ``--out-dir``, ``--out-std-dir`` and ``--vis`` folders of the folder and bag modes as ``(flag, folder)``
     (``--vis`` only when ``vis`` is not None; ``""``, a bare ``--vis``, is ``<out-dir>_vis``), refused when one is
-    among ``inputs``
-    (named ``source`` in the message), two are the same folder, one is a file, the folder (or, for one to be
+    one of ``inputs`` or inside one (named ``source`` in the message: the run would write among its inputs),
+    two are the same folder, one is a file, the folder (or, for one to be
     created, the nearest existing folder above it) does not take new files, or another crfdepth run holds
     it locked. Nothing is created (a probe file is created and removed)."""
     targets = [("--out-dir", out_dir), ("--out-std-dir", out_std_dir)]
@@ -87,6 +87,10 @@ def check_output_folders(out_dir: str, out_std_dir: str | None, vis: str | None,
     for flag, value in targets:
         if value is not None and any(same_file(value, p) for p in inputs):
             raise InputError(f"{flag}: {value} is {source}; refusing to write there")
+        inside = next((p for p in inputs if value is not None and is_inside(value, p)), None)
+        if inside is not None:
+            raise InputError(f"{flag}: {value} is inside {source} ({inside}); refusing to write among the inputs, "
+                             f"choose a folder outside it")
     resolved = [os.path.realpath(v) for _, v in targets if v is not None]
     if len(set(resolved)) != len(resolved):
         raise InputError("--out-dir, --out-std-dir and --vis: expected different folders")
@@ -144,6 +148,12 @@ def output_folders(targets: list[tuple[str, str | None]]) -> Iterator[list[Path 
 
 def same_file(a: Path, b: Path) -> bool:
     return os.path.realpath(a) == os.path.realpath(b)
+
+
+def is_inside(path: str | Path, folder: str | Path) -> bool:
+    """Is ``path`` (existing or not) strictly inside ``folder``, links resolved?"""
+    path, folder = Path(os.path.realpath(path)), Path(os.path.realpath(folder))
+    return folder in path.parents
 
 
 def _write_new(path: Path, data: bytes) -> None:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import torch
 
-from crfdepth.errors import InputError
+from crfdepth.config import check_std_samples
 from crfdepth.linalg.adjoint import solve_system
 from crfdepth.linalg.solve import solver_settings
 from crfdepth.linalg.system import System
@@ -42,8 +42,7 @@ def _generator(seed: int | None, device) -> torch.Generator:
 
 
 def _check_samples(samples: int) -> None:
-    if not isinstance(samples, int) or samples < 1:
-        raise InputError(f"samples: expected a positive int, got {samples!r}")
+    check_std_samples(samples, "samples")
 
 
 @torch.no_grad()

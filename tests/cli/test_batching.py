@@ -217,9 +217,9 @@ def test_evaluate_batches_agree_per_frame(folder, tmp_path):
 
 @pytest.mark.parametrize("command", ["complete", "evaluate"])
 @pytest.mark.parametrize("option, value, expected", [
-    ("--batch-size", "0", "expected an integer >= 1, got '0'"),
-    ("--batch-size", "1.5", "expected an integer >= 1, got '1.5'"),
-    ("--batch-size", "two", "expected an integer >= 1, got 'two'"),
+    ("--batch-size", "0", "expected an integer in [1, 1024], got '0'"),
+    ("--batch-size", "1.5", "expected an integer in [1, 1024], got '1.5'"),
+    ("--batch-size", "two", "expected an integer in [1, 1024], got 'two'"),
     ("--workers", "-1", "expected an integer in [0, 64], got '-1'"),
     ("--workers", "2.0", "expected an integer in [0, 64], got '2.0'"),
     ("--workers", "400", "expected an integer in [0, 64], got '400'"),

@@ -43,7 +43,8 @@ def _profile(argv: list[str]) -> tuple[list[str], collections.Counter, collectio
                 path.extend(reversed(stack))
         elif event == "c_call" and getattr(arg, "__name__", "") in ("from_numpy", "numpy") and \
                 any(part in code.co_filename.replace("\\", "/") for part in BOUNDARY):
-            caller = frame.f_back.f_code.co_name if code.co_name == "<genexpr>" else code.co_name
+            # a generator's or crfdepth.checks.to_numpy's conversion is its caller's
+            caller = frame.f_back.f_code.co_name if code.co_name in ("<genexpr>", "to_numpy") else code.co_name
             conversions[(caller, arg.__name__)] += 1
 
     sys.setprofile(profile)
@@ -103,9 +104,9 @@ def test_a_folder_run_converts_each_batch_once_on_the_way_out(folder_run):
     _, _, conversions = folder_run
     # in: the data set's tensors go to the model as they are (no from_numpy at the API); the checks read them as
     # arrays (a view) each time a frame is read; out: the depth of each batch (of one frame) once. run_record
-    # hashes the weights, not a frame.
+    # hashes the weights, not a frame; check_intrinsics reads each frame's 3 x 3 K.
     frames = {key: n for key, n in conversions.items() if key[0] != "run_record"}
-    assert frames == {("image_to_numpy", "numpy"): 4, ("sparse_to_numpy", "numpy"): 4,
+    assert frames == {("image_to_numpy", "numpy"): 4, ("sparse_to_numpy", "numpy"): 4, ("check_intrinsics", "numpy"): 4,
                       ("_write_batch", "numpy"): 2}, conversions
 
 

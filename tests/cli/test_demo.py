@@ -126,11 +126,11 @@ def test_demo_unwritable_out_dir_is_refused_before_computing(tmp_path, capsys, m
 
 
 @pytest.mark.parametrize(("flags", "message"), [
-    (["--max-frames", "0"], "--max-frames: expected an integer >= 1, got '0'"),
-    (["--max-frames", "two"], "--max-frames: expected an integer >= 1, got 'two'"),
+    (["--max-frames", "0"], "--max-frames: expected an integer in [1, 2147483647], got '0'"),
+    (["--max-frames", "two"], "--max-frames: expected an integer in [1, 2147483647], got 'two'"),
     (["--beams", "0"], "--beams: expected an integer in [1, 128], got '0'"),
     (["--beams", "129"], "--beams: expected an integer in [1, 128], got '129'"),
-    (["--seed", "-1"], "--seed: expected an integer >= 0, got '-1'"),
+    (["--seed", "-1"], "--seed: expected an integer in [0, 4294967295], got '-1'"),
     (["--vis-range", "60", "5"], "--vis-range: expected MIN < MAX in metres, got 60 5"),
     (["--vis-range", "0", "5"], "--vis-range: expected a finite number of metres > 0, got '0'"),
     (["--vis-range", "5", "inf"], "--vis-range: expected a finite number of metres > 0, got 'inf'"),

@@ -11,6 +11,7 @@ import os
 
 import pytest
 
+from crfdepth.cli.arguments import MAX_DEVICES
 from crfdepth.cli.evaluate import CSV_NAME, JSON_NAME
 from crfdepth.runs import folder as complete_folder
 from tests.cli.frames import FAST, files, png, run, same_pngs, same_report, stem, write_folder
@@ -69,10 +70,13 @@ def test_a_process_failing_on_a_frame_keeps_the_others_work(folder, tmp_path, mo
         same_pngs(whole / sub, out / sub)
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) >= MAX_DEVICES, reason=f"{MAX_DEVICES} or more CPU cores")
 def test_more_devices_than_the_machine_has_is_refused(folder, tmp_path):
+    code, _, err = run(_argv(folder, tmp_path / "o", "--devices", str(MAX_DEVICES)))
+    assert code == 2 and err.startswith(f"crfdepth complete: error: --devices {MAX_DEVICES}: with --device cpu each "
+                                        "process needs a CPU core of its own and this machine has ")
     code, _, err = run(_argv(folder, tmp_path / "o", "--devices", "4096"))
-    assert code == 2 and err.startswith("crfdepth complete: error: --devices 4096: with --device cpu each process "
-                                        "needs a CPU core of its own and this machine has ")
+    assert code == 2 and err == f"crfdepth complete: error: --devices: expected an integer in [1, {MAX_DEVICES}], got '4096'\n"
     assert not (tmp_path / "o").exists()
     code, _, err = run(["complete", "--image", "a.png", "--sparse", "b.png", "--intrinsics", "k.txt", "--out",
                         tmp_path / "o.png", "--devices", "2"])

@@ -56,11 +56,12 @@ def test_a_missing_or_unreadable_line_is_named_before_anything_runs(folders, tmp
 def test_a_failing_input_stops_the_run_or_is_left_out_with_skip_bad(folders, tmp_path):
     empty = tmp_path / "empty" / "val_selection_cropped"
     for sub in ("image", "velodyne_raw", "intrinsics", "groundtruth_depth"):
-        (empty / sub).mkdir(parents=True)  # a folder of the layout without frames: refused when its turn comes
+        (empty / sub).mkdir(parents=True)  # a folder of the layout without frames: refused before any input runs
     listing = _listing(tmp_path, [str(folders[0]), str(empty), str(folders[1])])
     code, _, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "a", *FAST])
     assert code == 2 and err.startswith(f"crfdepth complete: error: --input-list line 2 ({empty}): ")
-    assert "[1 of 3 input(s) completed before it; --resume continues]" in err
+    assert "[every line is checked before any input is completed; nothing written]" in err
+    assert not (tmp_path / "a").exists()
     code, stdout, err = run(["complete", "--input-list", listing, "--out-dir", tmp_path / "b", "--skip-bad",
                              *[f for f in FAST if f != "--quiet"]])
     assert code == 0, err
@@ -103,9 +104,9 @@ def test_two_ranks_stop_the_list_alike_at_a_bad_input(folders, tmp_path):
     ranks = two_ranks(["complete", "--input-list", listing, "--out-dir", tmp_path / "o", "--num-nodes", "2", *FAST])
     assert [r.returncode for r in ranks] == [2, 2]
     last = [r.stderr.splitlines()[-1] for r in ranks]
-    assert last[0] == last[1] and last[0].startswith("crfdepth complete: error: --input-list line 2 (")
-    assert "every pixel is 0 (no LiDAR point)" in last[0] and "[1 of 4 input(s) completed before it" in last[0]
-    assert files(tmp_path / "o") == [f"val_selection_cropped-1/{leaf}" for leaf in (RUN_RECORD, png(0), png(1))]
+    assert last[0] == last[1] and last[0].startswith("crfdepth complete: error: --input-list line 3 (")
+    assert "[every line is checked before any input is completed; nothing written]" in last[0]
+    assert not (tmp_path / "o").exists()  # the folder without frames (line 3) is refused before line 1 runs
 
 
 def test_two_ranks_complete_a_recording_of_the_list_on_rank_0(folders, tmp_path):

@@ -108,3 +108,37 @@ def test_python_dash_m_runs_the_command():
     result = subprocess.run([sys.executable, "-m", "crfdepth", "--version"], capture_output=True, text=True,
                             cwd=PYPROJECT.parent, timeout=300)
     assert result.returncode == 0 and result.stdout == f"crfdepth {crfdepth.__version__}\n"
+
+
+_PROJECT_ARGV = ["project", "--velodyne", "x.bin", "--calib", "c", "--image", "i.png", "--out", "out.png"]
+
+
+@pytest.mark.parametrize("exc, first", [
+    (crfdepth.errors.ConvergenceError("solve (cg) did not reach rtol=1e-05 for 1 of 1 graph(s)\nmore"),
+     "crfdepth project: error: solve (cg) did not reach rtol=1e-05 for 1 of 1 graph(s)"),
+    (MemoryError("could not allocate 9 GB"),
+     "crfdepth project: error: out of memory (could not allocate 9 GB): give fewer or smaller frames at once"),
+    (RuntimeError("something crfdepth did not expect"),
+     "crfdepth project: error: internal error, RuntimeError: something crfdepth did not expect (a bug in crfdepth"),
+])
+def test_a_failure_on_good_input_is_one_line_with_exit_status_1(main, monkeypatch, capsys, exc, first):
+    from crfdepth.cli import project
+
+    def run(args):
+        raise exc
+
+    monkeypatch.setattr(project, "run", run)
+    assert main(_PROJECT_ARGV) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(first) and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+def test_verbose_shows_the_traceback_of_a_bug(main, monkeypatch):
+    from crfdepth.cli import project
+
+    def run(args):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(project, "run", run)
+    with pytest.raises(RuntimeError, match="^a bug$"):
+        main(["--verbose", *_PROJECT_ARGV])

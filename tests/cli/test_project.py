@@ -119,8 +119,8 @@ def test_project_missing_input_fails_cleanly(main, raw_paths, tmp_path, capsys, 
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("--keep-every-ring", "0", "--keep-every-ring: expected an integer >= 1 (keep one laser ring in K), got '0'"),
-    ("--keep-every-ring", "two", "--keep-every-ring: expected an integer >= 1 (keep one laser ring in K), got 'two'"),
+    ("--keep-every-ring", "0", "--keep-every-ring: expected an integer in [1, 128] (keep one laser ring in K), got '0'"),
+    ("--keep-every-ring", "two", "--keep-every-ring: expected an integer in [1, 128] (keep one laser ring in K), got 'two'"),
     ("--keep-fraction", "0", "--keep-fraction: expected a number in (0, 1] (the share of points kept), got '0'"),
     ("--keep-fraction", "1.5", "--keep-fraction: expected a number in (0, 1] (the share of points kept), got '1.5'"),
     ("--keep-fraction", "nan", "--keep-fraction: expected a number in (0, 1] (the share of points kept), got 'nan'"),

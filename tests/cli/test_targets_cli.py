@@ -207,7 +207,7 @@ def test_refuses_bad_frames(synthetic_drive, tmp_path, capsys, frames, expected)
 
 def test_refuses_a_negative_window(synthetic_drive, tmp_path, capsys):
     _refused(["targets", "--drive", synthetic_drive, "-k", "-1", "--out-dir", tmp_path / "out"], capsys,
-             tmp_path / "out", "crfdepth targets: error: -k/--window: expected an integer >= 0, got '-1'")
+             tmp_path / "out", "crfdepth targets: error: -k/--window: expected an integer in [0, 2147483647], got '-1'")
 
 
 def test_refuses_a_poses_file_with_the_wrong_count(synthetic_drive, tmp_path, capsys):

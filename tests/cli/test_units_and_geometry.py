@@ -188,15 +188,20 @@ def test_project_points_a_rig_yaml_to_complete(capsys, tmp_path):
 
 
 def test_key_listing_skips_comments(capsys, tmp_path):
-    """A rig YAML under another name reaches the KITTI reader: the keys listed are keys, not comments."""
+    """A key-value file that is no KITTI calibration reaches the KITTI reader: the keys listed are keys, not
+    comments. A rig YAML under another name is recognised by its content and refused as a rig."""
+    other = tmp_path / "calib.txt"
+    other.write_text("# Camera calibration of another rig\n# P2 is not here\nfocal: 721.5\ncentre: 609.6 172.9\n")
+    out = tmp_path / "out.png"
+    argv = ["project", "--velodyne", str(_scan(tmp_path)), "--image", str(EXAMPLE / "image.png"), "--out", str(out)]
+    first = _refused(capsys, [*argv, "--calib", str(other)], out)
+    assert first == f"crfdepth project: error: --calib: key 'P2' not found in {other} (keys present: centre, focal)"
+    assert "#" not in first
     renamed = tmp_path / "rig.txt"
     renamed.write_text((EXAMPLE / "rig.yaml").read_text())
-    out = tmp_path / "out.png"
-    first = _refused(capsys, ["project", "--velodyne", str(_scan(tmp_path)), "--calib", str(renamed), "--image",
-                              str(EXAMPLE / "image.png"), "--out", str(out)], out)
-    assert first == (f"crfdepth project: error: --calib: key 'P2' not found in {renamed} (keys present: "
-                     f"K, T_cam_lidar, image_size)")
-    assert "#" not in first and "Rig calibration" not in first
+    first = _refused(capsys, [*argv, "--calib", str(renamed)], out)
+    assert first.startswith(f"crfdepth project: error: --calib: expected a KITTI calibration (object-benchmark file "
+                            f"or raw-data day folder), got a rig calibration {renamed}; ")
 
 
 def test_inverted_rig_through_a_bag_is_refused(capsys, tmp_path):

@@ -57,5 +57,7 @@ def test_grid_estimate_matches_edge_estimate_and_is_seeded():
 
 def test_bad_samples():
     d, ei, w = superpixel_like_system(4, 4)
-    with pytest.raises(InputError, match="samples: expected a positive int"):
-        posterior_variance(d, ei, w, samples=0)
+    for samples, got in ((0, "0"), (1.5, "float 1.5"), (10**20, str(10**20))):
+        with pytest.raises(InputError) as info:
+            posterior_variance(d, ei, w, samples=samples)
+        assert str(info.value) == f"samples: expected an integer in [1, 4096], got {got}"
