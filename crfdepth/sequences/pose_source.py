@@ -12,6 +12,9 @@
   (:func:`crfdepth.sequences.pose_checks.check_poses`); ``auto`` is ``tf`` when the LiDAR frame's tree changes
   over time, else ``odometry``; a poses file has one line per paired frame of the bag.
 
+A poses file's and oxts' steps are checked as /tf's are (speed, yaw rate, jumps; at 10 Hz for a drive of
+consecutive frames, at the clouds' rate for a bag), an impossible one an error naming the line or file.
+
 Errors name the option as the command spells it (``--poses``, ``--frames``).
 """
 
@@ -30,6 +33,9 @@ from crfdepth.sequences.pose_checks import check_poses
 from crfdepth.sequences.poses import read_imu_to_velo, read_kitti_poses, read_oxts
 
 __all__ = ["bag_pose_plan", "drive_poses", "kiss_installed", "matrix_text"]
+
+KITTI_RATE_HZ = 10.0
+"""Frames per second of a KITTI raw drive (the Velodyne's rotation rate)."""
 
 
 def kiss_installed() -> bool:
@@ -58,6 +64,9 @@ def drive_poses(poses: str, drive: Path, frames: list[int], used: list[int], sca
     if mode == "auto":
         mode = "oxts" if oxts.is_dir() else "odometry"
     positions = [frames.index(f) for f in used]
+    # KITTI raw records at 10 Hz: the steps of consecutive frames are checked as /tf odometry is; a drive of
+    # every n-th frame only for an impossible step (crfdepth.sequences.poses.read_kitti_poses)
+    rate = KITTI_RATE_HZ if all(b - a == 1 for a, b in zip(frames, frames[1:])) else None
     if mode == "odometry":
         if not kiss_installed():
             why = "the drive has no oxts/data, and " if poses == "auto" else ""
@@ -77,7 +86,7 @@ def drive_poses(poses: str, drive: Path, frames: list[int], used: list[int], sca
             raise InputError(f"--poses oxts: expected the drive's oxts/data folder, got no {oxts}")
         try:
             T_velo_imu = read_imu_to_velo(drive.parent)
-            found = read_oxts(oxts.parent, T_velo_imu)
+            found = read_oxts(oxts.parent, T_velo_imu, rate=rate)
         except (InputError, FileNotFoundError) as exc:
             raise type(exc)(f"--poses {poses}: {exc}") from None
         if len(found) != len(frames):
@@ -87,7 +96,7 @@ def drive_poses(poses: str, drive: Path, frames: list[int], used: list[int], sca
     else:
         if calib.kitti is None:  # pragma: no cover - the day folder is always a KITTI calibration
             raise InputError(f"--poses {mode}: expected a KITTI calibration to read camera-0 poses with")
-        found = _read_poses_file(mode, "auto, odometry, oxts", calib.kitti.velo_to_rect_cam())
+        found = _read_poses_file(mode, "auto, odometry, oxts", calib.kitti.velo_to_rect_cam(), rate=rate)
         if len(found) != len(frames):
             raise InputError(f"--poses {mode}: expected {len(frames)} poses (one per frame of the drive, in frame "
                              f"order), got {len(found)}")
@@ -135,21 +144,22 @@ def _tf_poses(poses: str, bag: Recording, plan: Plan, clouds: list[int], rate: f
     return found, f"/tf odometry {root} -> {lidar}"
 
 
-def _read_poses_file(poses: str, keywords: str, T_cam0_lidar=None) -> np.ndarray:
+def _read_poses_file(poses: str, keywords: str, T_cam0_lidar=None, rate: float | None = None) -> np.ndarray:
     """The poses of the file ``--poses`` names, its errors naming the option; a value that is neither one of the
-    ``keywords`` nor an existing path (a misspelt keyword) is told what the option takes."""
+    ``keywords`` nor an existing path (a misspelt keyword) is told what the option takes. ``rate``: the frames'
+    rate (Hz) when its lines are consecutive frames, for the check of each step (``read_kitti_poses``)."""
     if not Path(poses).exists():
         raise InputError(f"--poses {poses}: expected {keywords} or the path of a KITTI odometry poses.txt, got "
                          f"{poses!r}, which is neither (no such file)")
     try:
-        return read_kitti_poses(poses, T_cam0_lidar)
+        return read_kitti_poses(poses, T_cam0_lidar, rate=rate)
     except (InputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         raise type(exc)(f"--poses {poses}: {str(exc).removeprefix('poses: ')}") from None
 
 
-def _poses_file_lines(poses: str, count: int, positions: list[int]) -> list[str]:
-    """A poses file's lines for the frames used (one line per paired frame of the bag)."""
-    _read_poses_file(poses, "auto, tf, odometry")
+def _poses_file_lines(poses: str, count: int, positions: list[int], rate: float | None = None) -> list[str]:
+    """A poses file's lines for the frames used (one line per paired frame of the bag, ``rate`` Hz)."""
+    _read_poses_file(poses, "auto, tf, odometry", rate=rate)
     lines = [line for line in Path(poses).read_text().splitlines() if line.strip()]
     if len(lines) != count:
         raise InputError(f"--poses {poses}: expected {count} poses (one per paired frame of the bag, in time "
@@ -182,4 +192,4 @@ def bag_pose_plan(poses: str, bag: Recording, plan: Plan, frames: list[int], use
             raise InputError(f"--poses {poses}: {why}LiDAR odometry needs the kiss-icp package, not installed; "
                              f"{odometry.EXTRA_HINT}, or give --poses FILE")
         return "odometry", None, "LiDAR odometry (KISS-ICP)"
-    return "FILE", _poses_file_lines(poses, len(frames), used_positions), f"poses file {mode}"
+    return "FILE", _poses_file_lines(poses, len(frames), used_positions, 1.0 / period), f"poses file {mode}"

@@ -24,6 +24,7 @@ from crfdepth.errors import InputError
 from crfdepth.geometry.rigid import axis_rotation, invert_rigid
 from crfdepth.io.files import check_input_file, read_text
 from crfdepth.io.key_values import entry_array, read_key_values
+from crfdepth.sequences.pose_checks import check_poses
 
 __all__ = [
     "oxts_to_pose",
@@ -34,6 +35,10 @@ __all__ = [
 
 POSE_TOLERANCE = 1e-3
 """Largest |R^T R - I| accepted in a pose file (KITTI writes 6-7 significant digits)."""
+
+MAX_POSE_STEP_M = 100.0
+"""Largest step (metres) between consecutive poses of a file whose frame rate is not known: 2.5 s at the
+40 m/s of :func:`~crfdepth.sequences.pose_checks.check_poses`; a longer one is a glitch or another unit."""
 
 
 # --------------------------------------------------------------------------- poses given
@@ -58,6 +63,25 @@ def _check_pose(T: np.ndarray, path: Path, lineno: int, what: str) -> None:
                          f"|R^T R - I| = {dev:.3g}, det {np.linalg.det(T[:3, :3]):.3g} on line {lineno}")
 
 
+def _check_steps(poses: np.ndarray, lines: list[int], path: Path, what: str, rate: float | None,
+                 unit: str = "line") -> None:
+    """Refuse an impossible step between consecutive poses (metres, degrees), as ``/tf`` odometry is refused
+    (:func:`crfdepth.sequences.pose_checks.check_poses`, docs/design.md section 12): with ``rate`` (Hz; the
+    poses are of consecutive frames at that rate) its speed, yaw-rate and jump checks; without, a step over
+    :data:`MAX_POSE_STEP_M`. ``lines``: the line (or file) of each pose, for the message."""
+    if rate is not None:
+        failures = check_poses(poses, rate=rate)
+    else:
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+        failures = [(k + 1, f"moved {steps[k]:.2f} m in one step (> {MAX_POSE_STEP_M:g} m between consecutive "
+                            "poses)") for k in np.flatnonzero(steps > MAX_POSE_STEP_M)]
+    if failures:
+        listed = "; ".join(f"{unit} {lines[k]}: {why}" for k, why in failures[:3])
+        more = f"; and {len(failures) - 3} more" if len(failures) > 3 else ""
+        raise InputError(f"{what}: expected poses without impossible steps in {path}, got {len(failures)} "
+                         f"failed step(s) ({listed}{more})")
+
+
 def _check_count(poses: np.ndarray, n_frames: int | None, path: Path, what: str) -> np.ndarray:
     if n_frames is not None:
         if len(poses) < n_frames:
@@ -73,7 +97,8 @@ def _to_lidar(poses_a: np.ndarray, T_a_lidar) -> np.ndarray:
     return np.stack([inv_ext @ first @ P @ T_a_lidar for P in poses_a])
 
 
-def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None) -> np.ndarray:
+def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None,
+                     rate: float | None = None) -> np.ndarray:
     """Read a KITTI odometry ``poses.txt``: one ``[R | t]`` of camera 0 per line (12 numbers).
 
     Args:
@@ -83,6 +108,9 @@ def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None) ->
             :meth:`crfdepth.io.calibration.Calibration.velo_to_rect_cam`). None: return the
             camera-0 poses as written.
         n_frames: the number of frames the poses are for; more poses are cut, fewer raise.
+        rate: frames per second when the lines are consecutive frames (KITTI: 10 Hz): each step is checked
+            as ``/tf`` odometry is (:func:`crfdepth.sequences.pose_checks.check_poses`: speed, yaw rate,
+            jumps). None (rate unknown): only a step over :data:`MAX_POSE_STEP_M` (100 m) is refused.
 
     Returns:
         (n, 4, 4) float64: with ``T_cam0_lidar`` the LiDAR poses
@@ -90,11 +118,11 @@ def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None) ->
 
     Raises:
         FileNotFoundError: no such file.
-        InputError: a line without 12 numbers, a non-rigid pose, fewer than ``n_frames``
-            poses (the message names the file and line).
+        InputError: a line without 12 numbers, a non-finite or non-rigid pose, an impossible step
+            between consecutive poses, fewer than ``n_frames`` poses (the message names the file and line).
     """
     path = check_input_file(path, "poses")
-    rows = []
+    rows, linenos = [], []
     for lineno, line in enumerate(read_text(path, "poses", "12 numbers per line").splitlines(), 1):
         if not line.strip():
             continue
@@ -102,9 +130,11 @@ def read_kitti_poses(path, T_cam0_lidar=None, *, n_frames: int | None = None) ->
         T[:3, :] = _numbers(line, path, lineno, 12, "poses").reshape(3, 4)
         _check_pose(T, path, lineno, "poses")
         rows.append(T)
+        linenos.append(lineno)
     if not rows:
         raise InputError(f"poses: expected 12 numbers per line in {path}, got an empty file")
     poses = _check_count(np.stack(rows), n_frames, path, "poses")
+    _check_steps(poses, linenos, path, "poses", rate)
     if T_cam0_lidar is None:
         return poses
     return _to_lidar(poses, check_rigid(T_cam0_lidar, "T_cam0_lidar"))
@@ -143,7 +173,7 @@ def read_imu_to_velo(day_dir) -> np.ndarray:
     return check_rigid(T, f"calibration: keys 'R', 'T' in {path}")
 
 
-def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None) -> np.ndarray:
+def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None, rate: float | None = None) -> np.ndarray:
     """Read a KITTI raw drive's GPS/IMU poses (``oxts/data/0000000000.txt`` ...).
 
     Args:
@@ -151,6 +181,8 @@ def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None) -> np.nda
         T_velo_imu: (4, 4) IMU -> Velodyne (:func:`read_imu_to_velo`). None: return the
             IMU poses relative to the first, ``T_imu(0)<-imu(t)``.
         n_frames: the number of frames; more packets are cut, fewer raise.
+        rate: packets per second (KITTI: 10 Hz), each step then checked as ``/tf`` odometry is; None: only a
+            step over :data:`MAX_POSE_STEP_M` is refused (:func:`read_kitti_poses`).
 
     Returns:
         (n, 4, 4) float64: with ``T_velo_imu``, ``T_lidar(0)<-lidar(t) =
@@ -159,7 +191,8 @@ def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None) -> np.nda
     Raises:
         FileNotFoundError: no such folder, or no ``.txt`` files in it.
         InputError: a file without 30 numbers on its first line, a latitude outside
-            (-90, 90), fewer than ``n_frames`` packets (the message names the file).
+            (-90, 90), an impossible step between consecutive packets, fewer than ``n_frames`` packets (the
+            message names the file).
     """
     folder = Path(folder)
     data = folder / "data" if (folder / "data").is_dir() else folder
@@ -185,6 +218,7 @@ def read_oxts(folder, T_velo_imu=None, *, n_frames: int | None = None) -> np.nda
         packets = packets[:n_frames]
     scale = math.cos(math.radians(packets[0, 0]))
     poses = np.stack([oxts_to_pose(p, scale) for p in packets])
+    _check_steps(poses, [f.name for f in files[:len(poses)]], data, "oxts", rate, unit="file")
     if T_velo_imu is None:
         first = invert_rigid(poses[0])
         return np.stack([first @ P for P in poses])
