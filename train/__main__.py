@@ -25,6 +25,11 @@ then, so that a refused run leaves no log folder behind:
 - the values the CRF's groups refuse (``--model.crf.gate.window 4``, :func:`train.options.check_crf`). The CRF's
   flat names of older commands, config files and checkpoints (``--model.crf "{mode: pixel}"``) are moved into
   their groups before the parser reads them (:func:`train.options.grouped_args`);
+- the subcommand: ``fit`` or ``validate`` (Lightning's ``test`` and ``predict`` are not offered: the module
+  has no test or predict step; ``validate`` scores a checkpoint on any data set);
+- ``--seed_everything`` outside [0, 2**32 - 1] (:func:`train.messages.check_seed`), a ``fit`` of 0 epochs or
+  steps (:func:`train.messages.check_fit_length`), an output folder that is a file
+  (:func:`train.options.check_output_folders`);
 - the ``trainer:`` values Lightning would refuse (``--trainer.max_epochs -3``,
   :func:`train.messages.check_trainer_values`) and an accelerator the machine does not have
   (``configs/ddp.yaml`` without a CUDA GPU, more GPUs than it has: :func:`train.options.check_accelerator`);
@@ -59,14 +64,25 @@ from crfdepth.checkpoints import read_trainer_checkpoint
 from crfdepth.errors import InputError
 from train.data import CRFDataModule
 from train.messages import (
+    SUBCOMMANDS,
     check_checkpoint_values,
+    check_fit_length,
+    check_seed,
     check_trainer_values,
     parser_message,
     section_message,
     trainer_message,
 )
 from train.module import CRFDepthModule
-from train.options import OptionError, check_accelerator, check_crf, check_model_options, grouped_args, grouped_crf
+from train.options import (
+    OptionError,
+    check_accelerator,
+    check_crf,
+    check_model_options,
+    check_output_folders,
+    grouped_args,
+    grouped_crf,
+)
 
 
 class EpochCheckpoint(ModelCheckpoint):
@@ -131,6 +147,13 @@ class CRFDepthCLI(LightningCLI):
         self._checkpoint: dict[str, Any] | None = None
         super().__init__(*args, **kwargs)
 
+    @staticmethod
+    def subcommands() -> dict[str, set[str]]:
+        """Lightning's ``fit`` and ``validate``. Its ``test`` and ``predict`` are left out: the module has no
+        test or predict step, so they would end in a traceback; ``validate`` scores any data set (one line
+        naming the two, :func:`train.messages.parser_message`)."""
+        return {name: skip for name, skip in LightningCLI.subcommands().items() if name in SUBCOMMANDS}
+
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         parser.add_lightning_class_args(EpochCheckpoint, "checkpoint")
         parser.set_defaults({
@@ -156,6 +179,10 @@ class CRFDepthCLI(LightningCLI):
         config = self.config[subcommand] if subcommand else self.config
         check_accelerator(config.get("trainer") or {})
         check_trainer_values(config.get("trainer") or {})
+        if subcommand == "fit":
+            check_fit_length(config.get("trainer") or {})
+        check_seed(config.get("seed_everything"))
+        check_output_folders(config)
         check_checkpoint_values(config.get("checkpoint") or {})
         if config.get("model") is not None:
             check_crf(config["model"].get("crf"))
@@ -219,7 +246,7 @@ class CRFDepthCLI(LightningCLI):
     def instantiate_trainer(self, **kwargs: Any):
         """Lightning's, after the datasets are built and a resumed run's data compared with the checkpoint's
         (so that their errors come before the Trainer's banner), with its refusals in one line."""
-        if self.subcommand in ("fit", "validate", "test"):
+        if self.subcommand in SUBCOMMANDS:
             try:
                 self.datamodule.setup(self.subcommand)
             except InputError as exc:  # "val_options: ..." is --data.val_options

@@ -54,6 +54,24 @@ NAME_SPLIT_LAYOUTS = ("raw", "object", "sequence")
 #: Default validation options of the synthetic layout: scenes from seed 1000 on.
 SYNTHETIC_VAL_SEED = 1000
 
+#: Largest ``batch_size`` / ``val_batch_size``: more frames than any machine's memory holds at KITTI's size
+#: (``crfdepth complete --batch-size`` has the same cap).
+MAX_BATCH = 1024
+#: Largest ``num_workers``: more loader processes cannot keep up better; a typo (400) is refused, not started.
+MAX_WORKERS = 64
+#: Largest ``seed``: the training order adds the epoch to it in a 64-bit torch generator seed.
+MAX_SEED = 2**62
+#: Largest side of ``crop`` (pixels): no camera frame is larger; a typo is refused before any frame is read.
+MAX_CROP = 2**16
+
+
+def _integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
 
 class TransformedDataset(Dataset):
     """``dataset`` with ``transform`` applied to every sample (after the dataset's own).
@@ -183,24 +201,27 @@ class CRFDataModule(pl.LightningDataModule):
                 check_choice(name, value, LAYOUTS)
         if val_names_contain is not None and val_fraction is not None:
             raise InputError("val_names_contain, val_fraction: give at most one of the two split options")
-        if val_fraction is not None and not 0.0 < float(val_fraction) < 1.0:
+        if val_fraction is not None and (not _number(val_fraction) or not 0.0 < float(val_fraction) < 1.0):
             raise InputError(f"val_fraction: expected a value in (0, 1), got {val_fraction!r}")
-        if not 0.0 <= float(flip) <= 1.0:
+        if not _number(flip) or not 0.0 <= float(flip) <= 1.0:  # nan fails both comparisons
             raise InputError(f"flip: expected a probability in [0, 1], got {flip!r}")
         if crop is not None and (not isinstance(crop, (list, tuple)) or len(crop) != 2
-                                 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in crop)):
+                                 or not all(_integer(v) and v > 0 for v in crop)):
             raise InputError(f"crop: expected [height, width], two integers > 0, got {crop!r}")
+        if crop is not None and max(crop) > MAX_CROP:
+            raise InputError(f"crop: expected [height, width] of at most {MAX_CROP} pixels each, got {list(crop)!r}")
         if thin is not None and (not isinstance(thin, (list, tuple)) or len(thin) != 2
-                                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in thin)
+                                 or not all(_number(v) for v in thin)
                                  or not 0.0 < float(thin[0]) <= float(thin[1]) <= 1.0):
             raise InputError(f"thin: expected [low, high] with 0 < low <= high <= 1, got {thin!r}")
         for name, value in (("batch_size", batch_size), ("val_batch_size", val_batch_size)):
-            if value is not None and (not isinstance(value, int) or value < 1):
-                raise InputError(f"{name}: expected an integer >= 1, got {value!r}")
-        if not isinstance(num_workers, int) or num_workers < 0:
-            raise InputError(f"num_workers: expected an integer >= 0, got {num_workers!r}")
-        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
-            raise InputError(f"seed: expected an integer >= 0 or null, got {seed!r}")
+            if value is not None and (not _integer(value) or not 1 <= value <= MAX_BATCH):
+                raise InputError(f"{name}: expected an integer in [1, {MAX_BATCH}], got {value!r}")
+        if not _integer(num_workers) or not 0 <= num_workers <= MAX_WORKERS:
+            raise InputError(f"num_workers: expected an integer in [0, {MAX_WORKERS}] (DataLoader worker processes; "
+                             f"0 = the main process), got {num_workers!r}")
+        if seed is not None and (not _integer(seed) or not 0 <= seed <= MAX_SEED):
+            raise InputError(f"seed: expected an integer in [0, {MAX_SEED}] or null, got {seed!r}")
         self.extra_train = [check_source(i, source) for i, source in enumerate(extra_train or [])]
         self.train_weight = check_weight("train_weight", train_weight)
         self.save_hyperparameters()
@@ -313,6 +334,12 @@ class CRFDataModule(pl.LightningDataModule):
         if self.train_set is not None:
             return
         train, val = self.build_datasets()
+        if self.crop is not None and len(train) > 0:  # checked now, not as a traceback of the first batch
+            first = train[0]
+            h, w = first.size
+            if h < self.crop[0] or w < self.crop[1]:
+                raise InputError(f"crop: expected [height, width] within the training frames, got "
+                                 f"{list(self.crop)!r} for frame {first.name!r} of {h}x{w} (HxW)")
         augment: list[Callable[[Sample], Sample]] = []
         if self.flip > 0:
             augment.append(HorizontalFlip(p=self.flip))

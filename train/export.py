@@ -22,6 +22,7 @@ and after.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any, Sequence
@@ -29,7 +30,8 @@ from typing import Any, Sequence
 import torch
 
 from crfdepth.checkpoints import load_model, read_trainer_checkpoint, save_weights
-from crfdepth.errors import InputError
+from crfdepth.errors import BAD_INPUT, InputError
+from crfdepth.io.file_errors import FileError
 from train.calibrate import calibrate_std
 
 
@@ -77,8 +79,37 @@ def calibrate(model, config: Path) -> dict[str, Any]:
     return record
 
 
+def same_file(a: Path, b: Path) -> bool:
+    """Whether paths ``a`` and ``b`` name one file: the same path once resolved (``./x``, ``d/../x``, a
+    symlink), or, both existing, the same inode (a hard link)."""
+    try:
+        if Path(a).resolve() == Path(b).resolve():
+            return True
+        return Path(a).exists() and Path(b).exists() and os.path.samefile(a, b)
+    except (OSError, RuntimeError):  # a symlink loop, an unreadable folder: not provably the same
+        return False
+
+
+def check_out(out: Path, inputs: dict[str, Path | None]) -> None:
+    """Refuse an ``--out`` that would replace one of the ``inputs`` (``{option name: path}``) it is written from,
+    or that is a folder."""
+    for name, path in inputs.items():
+        if path is not None and same_file(out, path):
+            raise InputError(f"--out: expected a file other than the {name} it is written from, got {out}, which "
+                             f"is {name} {path}; writing it would replace its input")
+    if out.is_dir():
+        raise InputError(f"--out: expected the path of a .json file to write, got {out}, which is a folder")
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line, ``train.export: error: --out: ...``, exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"train.export: error: {message.removeprefix('argument ')}\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
+    parser = _Parser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", type=Path, help="a Lightning .ckpt of the trainer")
     parser.add_argument("--out", type=Path, required=True, help="the weights file to write (.json)")
     parser.add_argument("--config", type=Path, default=None, help="the training YAML, stored verbatim")
@@ -91,6 +122,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="fit the std (predictive: its weights; posterior: its scale) to --config's training frames")
     args = parser.parse_args(argv)
     try:
+        check_out(args.out, {"checkpoint": args.checkpoint, "--config": args.config})
         if args.calibrate_std and args.config is None:
             raise InputError("--calibrate-std: needs --config (its data section names the training frames)")
         read_trainer_checkpoint(args.checkpoint, name="checkpoint")  # a bad file in one line, nothing of it run
@@ -109,7 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.note is not None:
             about["note"] = args.note
         out = save_weights(model, args.out, about)
-    except (InputError, FileNotFoundError) as exc:
+    except (*BAD_INPUT, FileError) as exc:
         print(f"train.export: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {out}: " + ", ".join(f"{k} {v:.4g}" for k, v in model.weights().items()))

@@ -24,7 +24,11 @@ from typing import Any
 
 from crfdepth.errors import InputError
 
-__all__ = ["check_checkpoint_values", "check_trainer_values", "parser_message", "section_message", "trainer_message", "unknown_option"]
+__all__ = ["SUBCOMMANDS", "check_checkpoint_values", "check_fit_length", "check_seed", "check_trainer_values", "parser_message", "section_message", "trainer_message", "unknown_option"]
+
+#: The subcommands of ``python -m train`` (Lightning's ``test`` and ``predict`` are not offered: the module has
+#: no test or predict step; ``validate`` scores a checkpoint on any data set).
+SUBCOMMANDS = ("fit", "validate")
 
 # jsonargparse's names of types -> words
 _TYPE_WORDS = {
@@ -147,10 +151,14 @@ def parser_message(text: str, known: Iterable[str] = (), subcommand: str | None 
         return f"subcommand: expected one of {', '.join(match.group(1).split(','))}, got none"
     match = re.match(r"argument subcommand: invalid choice: '(.*)' \(choose from (.*)\)", text)
     if match:
-        return f"subcommand: expected one of {match.group(2)}, got {match.group(1)!r}"
-    match = re.match(r"argument ([\w/-]+): expected one argument", text)
+        hint = (" (python -m train has no test or predict: validate scores a checkpoint on a data set, "
+                "--data.val_layout / --data.val_root name it)" if match.group(1) in ("test", "predict") else "")
+        return f"subcommand: expected one of {match.group(2)}, got {match.group(1)!r}{hint}"
+    match = re.match(r"argument ([\w./-]+): expected one argument", text)
     if match:
-        return f"{match.group(1).split('/')[-1]}: expected a value, got none"
+        name = match.group(1).split('/')[-1]
+        return (f"{name}: expected a value, got none (a value that starts with '-' reads as an option: give it as "
+                f"{name}=VALUE)")
     match = re.match(r"Problems parsing config\s*:?\s*(.*)", text, flags=re.S)
     if match:
         return f"--config: expected a YAML file or YAML text, got one that does not parse ({' '.join(match.group(1).split())})"
@@ -221,6 +229,32 @@ _CHECKPOINT_VALUES = {
     "every_n_train_steps": (lambda v: _integer(v) and v >= 0, "an integer >= 0 (0: off) or null"),
     "every_n_epochs": (lambda v: _integer(v) and v >= 0, "an integer >= 0 (0: off) or null"),
 }
+
+
+#: ``--seed_everything``'s range: Lightning's ``seed_everything`` (numpy's seeds) takes [0, 2**32 - 1].
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(seed: Any) -> None:
+    """Refuse a ``--seed_everything`` Lightning's ``seed_everything`` would refuse with a traceback (-1, a
+    20-digit number).
+
+    Raises:
+        InputError: ``--seed_everything: expected true, false or an integer in [0, 4294967295], got -1``.
+    """
+    if seed is None or isinstance(seed, bool) or (_integer(seed) and 0 <= seed <= MAX_SEED):
+        return
+    raise InputError(f"--seed_everything: expected true (a random seed), false (none) or an integer in "
+                     f"[0, {MAX_SEED}], got {seed!r}")
+
+
+def check_fit_length(trainer: Mapping[str, Any]) -> None:
+    """Refuse a ``fit`` that would train nothing: ``--trainer.max_epochs 0`` or ``--trainer.max_steps 0`` (Lightning
+    stops before the first step without a word, and the run's checkpoint is the untrained model)."""
+    for name, meaning in (("max_epochs", "epochs"), ("max_steps", "optimiser steps")):
+        if trainer.get(name) == 0 and not isinstance(trainer.get(name), bool):
+            raise InputError(f"--trainer.{name}: expected an integer >= 1 (or -1: no limit) for fit, got 0 (a fit of "
+                             f"0 {meaning} trains nothing)")
 
 
 def check_checkpoint_values(checkpoint: Mapping[str, Any]) -> None:

@@ -32,6 +32,7 @@ import copy
 import dataclasses
 import difflib
 import logging
+import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
@@ -61,6 +62,11 @@ PARAMETERS = {
 
 #: The default of ``CRFDepthModule(crf=...)``: all defaults (frozen, so one instance serves every module).
 DEFAULT_CRF = CRFConfig()
+
+
+def _finite(value: Any) -> bool:
+    """A finite int or float (not a bool): nan and inf pass no range check below."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _did_you_mean(name: str, known) -> str:
@@ -226,15 +232,14 @@ class CRFDepthModule(pl.LightningModule):
             raise InputError(f"exclude_inputs: expected true or false, got {exclude_inputs!r}")
         if loss not in ("l2", "l1", "huber"):
             raise InputError(f"loss: expected 'l2', 'l1' or 'huber', got {loss!r}")
-        if isinstance(huber_delta, bool) or not isinstance(huber_delta, (int, float)) or not huber_delta > 0:
+        if not _finite(huber_delta) or not huber_delta > 0:
             raise InputError(f"huber_delta: expected a number of metres > 0, got {huber_delta!r}")
-        if not isinstance(nll_weight, (int, float)) or nll_weight < 0:
+        if not _finite(nll_weight) or nll_weight < 0:
             raise InputError(f"nll_weight: expected a number >= 0, got {nll_weight!r}")
-        if isinstance(photometric_weight, bool) or not isinstance(photometric_weight, (int, float)) \
-                or not photometric_weight >= 0:
+        if not _finite(photometric_weight) or photometric_weight < 0:
             raise InputError(f"photometric_weight: expected a number >= 0, got {photometric_weight!r}")
         for name, value in (("lr", lr), ("head_lr", head_lr)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+            if not _finite(value) or value <= 0:
                 raise InputError(f"{name}: expected a learning rate > 0, got {value!r}")
         unknown = set(freeze or ()) - set(PARAMETERS)
         if unknown:

@@ -24,7 +24,7 @@ from crfdepth.config import FLAT, GROUPS, CRFConfig, is_group, plain_data
 from crfdepth.errors import InputError
 from train.module import build_model
 
-__all__ = ["OptionError", "check_accelerator", "check_crf", "check_model_options", "grouped_args", "grouped_crf", "plain"]
+__all__ = ["OptionError", "check_accelerator", "check_output_folders", "check_crf", "check_model_options", "grouped_args", "grouped_crf", "plain"]
 
 
 class OptionError(InputError):
@@ -87,6 +87,26 @@ def check_accelerator(trainer: Mapping[str, Any]) -> None:
         raise InputError(
             f"--trainer.accelerator: expected a device this machine has, got {accelerator!r} without Apple's "
             "Metal backend (torch.backends.mps.is_available() is False); likely fix: --trainer.accelerator cpu")
+
+
+def check_output_folders(config: Mapping[str, Any]) -> None:
+    """Refuse an output folder of the run that is an existing file (``--trainer.default_root_dir``,
+    ``--checkpoint.dirpath``, the logger's ``save_dir``): Lightning would fail on its first write, after
+    training, with a traceback; or replace a file the user gave as input.
+
+    Raises:
+        InputError: ``--checkpoint.dirpath: expected a folder to write into, got x.ckpt, which is a file``.
+    """
+    def get(section: Any, key: str) -> Any:  # a parsed section is a jsonargparse Namespace or a dict
+        return section.get(key) if section is not None and hasattr(section, "get") else None
+
+    trainer, checkpoint = get(config, "trainer"), get(config, "checkpoint")
+    candidates = [("--trainer.default_root_dir", get(trainer, "default_root_dir")),
+                  ("--checkpoint.dirpath", get(checkpoint, "dirpath")),
+                  ("--trainer.logger.init_args.save_dir", get(get(get(trainer, "logger"), "init_args"), "save_dir"))]
+    for name, value in candidates:
+        if isinstance(value, (str, os.PathLike)) and str(value) and os.path.exists(value) and not os.path.isdir(value):
+            raise InputError(f"{name}: expected a folder to write into, got {os.fspath(value)}, which is a file")
 
 
 def plain(value: Any) -> Any:
