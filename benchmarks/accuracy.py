@@ -36,33 +36,38 @@ if str(HERE) not in sys.path:
 
 from accuracy_parts import evaluation, methods, protocols, report
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 DEFAULT_ROOT = HERE.parent.parent / "shared" / "data" / "kitti"
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = sa.ScriptParser(prog="accuracy.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT, help="KITTI root (default: %(default)s)")
     parser.add_argument("--protocols", nargs="+", choices=list(protocols.PROTOCOLS), default=list(protocols.PROTOCOLS))
     parser.add_argument("--methods", nargs="+", choices=list(methods.METHODS), default=list(methods.METHODS))
-    parser.add_argument("--max-frames", type=int, default=None, help="frames per group (evenly spaced); default all")
-    parser.add_argument("--fit-epochs", type=int, default=None,
+    parser.add_argument("--max-frames", type=sa.count(1), default=None, help="frames per group (evenly spaced); default all")
+    parser.add_argument("--fit-epochs", type=sa.count(1), default=None,
                         help="epochs of each learned-weight fit (default: the recipe's, configs/kitti_weights.yaml)")
-    parser.add_argument("--fit-frames", type=int, default=None, help="frames per group of each fit; default all")
+    parser.add_argument("--fit-frames", type=sa.count(1), default=None, help="frames per group of each fit; default all")
     parser.add_argument("--learn-ablations", action="store_true",
                         help="protocol a: also the Table 1 ablations with weights learned per configuration by the "
                              "shipped recipe (5 more fits)")
-    parser.add_argument("--fractions", type=float, nargs="+", default=[0.2, 0.4, 0.6, 0.8, 1.0])
-    parser.add_argument("--subsample-frames", type=int, default=None, help="frames per group of the sub-sampling "
+    parser.add_argument("--fractions", type=sa.share(include_one=True, meaning="share of the LiDAR points"), nargs="+", default=[0.2, 0.4, 0.6, 0.8, 1.0])
+    parser.add_argument("--subsample-frames", type=sa.count(1), default=None, help="frames per group of the sub-sampling "
                         "study (default: --max-frames)")
     parser.add_argument("--no-subsample", action="store_true", help="skip the sub-sampling study")
-    parser.add_argument("--posterior-samples", type=int, default=8,
+    parser.add_argument("--posterior-samples", type=sa.count(1, 4096), default=8,
                         help="samples of the posterior-only std (the model default is 32; 8 keeps the run short)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--device", type=sa.device, default="cpu")
+    parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=1, help="torch CPU threads")
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 frame per group, 1 fit epoch on "
                         "1 frame per group, fractions 0.5 and 1.0")
-    parser.add_argument("--out-dir", type=Path, default=Path("accuracy_results"))
-    parser.add_argument("--targets-root", type=Path, default=None,
+    parser.add_argument("--out-dir", type=sa.out_folder, default=Path("accuracy_results"))
+    parser.add_argument("--targets-root", type=sa.out_folder, default=None,
                         help="camera-view targets of protocols q/q22 (the --out-dir of crfdepth targets); made there "
                              "when missing (default: <out-dir>/targets)")
     args = parser.parse_args(argv)
@@ -124,4 +129,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "accuracy.py"))

@@ -53,6 +53,11 @@ from crfdepth.errors import InputError  # noqa: E402
 from crfdepth.model import CRFDepth  # noqa: E402
 from crfdepth.potentials.head import PotentialHead  # noqa: E402
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 DEFAULT_ROOT = ROOT.parent / "shared" / "data" / "kitti"
 SHIPPED_STRUCTURE = {"structure": {"mode": "pixel", "variable": "log"}, "gate": {"enabled": True}}
 
@@ -272,7 +277,7 @@ def table(rows: list[dict], folds: Sequence[str]) -> list[str]:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="crossval.py", description=__doc__.split("\n\n")[0])
+    parser = sa.ScriptParser(prog="crossval.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES), metavar="RECIPE",
                         help=f"recipes to cross-validate (default all: {', '.join(RECIPES)})")
     parser.add_argument("--folds", nargs="+", default=list(FOLDS), metavar="FOLD",
@@ -280,10 +285,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--score", nargs="+", metavar="FOLD",
                         help="score only these of --folds (each still trained on all the other folds of --folds): "
                              "to spread one cross-validation over several machines; default all")
-    parser.add_argument("--epochs", type=int, default=4, help="training epochs per fold (default 4)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu", help="torch device of training and scoring (default cpu)")
-    parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes per fold (default 0)")
+    parser.add_argument("--epochs", type=sa.count(1), default=4, help="training epochs per fold (default 4)")
+    parser.add_argument("--seed", type=sa.seed, default=0)
+    parser.add_argument("--device", type=sa.device, default="cpu", help="torch device of training and scoring (default cpu)")
+    parser.add_argument("--workers", type=sa.count(0, sa.MAX_WORKERS), default=0, help="DataLoader worker processes per fold (default 0)")
     parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT)
     args = parser.parse_args(argv)
     if args.epochs < 1:
@@ -316,4 +321,4 @@ def main(argv: Sequence[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "crossval.py"))

@@ -21,9 +21,10 @@ and one JSON line. ``tests/test_layer.py`` runs a short version and asserts (a) 
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +34,11 @@ from crfdepth.data.synthetic import make_scene
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.layer import CRFRefine
 from crfdepth.metrics import average_metrics, depth_metrics
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 
 def make_batch(seeds, height: int = 88, width: int = 304, beams: int = 16) -> dict[str, torch.Tensor]:
@@ -163,12 +169,12 @@ def run(steps: int = 150, train_scenes: int = 16, test_scenes: int = 8, *, seed:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--train-scenes", type=int, default=16)
-    parser.add_argument("--test-scenes", type=int, default=8)
-    parser.add_argument("--beams", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=0)
+    parser = sa.ScriptParser(prog="layer_example.py", description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=sa.count(1), default=150)
+    parser.add_argument("--train-scenes", type=sa.count(1, 10000), default=16)
+    parser.add_argument("--test-scenes", type=sa.count(1, 10000), default=8)
+    parser.add_argument("--beams", type=sa.count(1, 128, "LiDAR beams"), default=16)
+    parser.add_argument("--seed", type=sa.seed, default=0)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     r = run(args.steps, args.train_scenes, args.test_scenes, seed=args.seed, beams=args.beams)
@@ -185,4 +191,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "layer_example.py"))

@@ -55,7 +55,6 @@ minutes on a CPU), so stdout stays the table and the JSON.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
@@ -71,6 +70,11 @@ from crfdepth.errors import InputError
 from crfdepth.metrics import depth_metrics
 from crfdepth.model import CRFDepth
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 STAGES = ("fill", "slic", "graph", "normals", "potentials", "solve", "painting", "refine")
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
 TARGET_TOTAL_S = 0.5
@@ -82,7 +86,10 @@ def load_frame(root: Path, index: int, device: str) -> dict:
     """(1, 3, H, W) image, (1, 1, H, W) sparse and target (metres, 0 = none), (3, 3) K, name."""
     try:
         folder = root / "depth_selection" if (root / "depth_selection").is_dir() else root
-        s = KittiValSelection(folder)[index]
+        frames = KittiValSelection(folder)
+        if not 0 <= index < len(frames):  # outside the try's fallback: a bad --frame is an error, not a synthetic scene
+            raise IndexError(f"--frame: expected an index in [0, {len(frames) - 1}] (the frames of {folder}), got {index}")
+        s = frames[index]
         image, sparse, target, K, name = s.image, s.sparse, s.target, s.K, s.name
     except (FileNotFoundError, InputError) as err:
         print(f"note: no KITTI val_selection_cropped frame under {root} ({err}); "
@@ -91,6 +98,14 @@ def load_frame(root: Path, index: int, device: str) -> dict:
         image, sparse, target, K, name = t["image"], t["sparse"], t["target"], t["K"], "synthetic-seed0"
     return dict(image=image[None].float().to(device), sparse=sparse[None].float().to(device),
                 target=target[None].float().to(device), K=K.float().to(device), name=name)
+
+
+def checked_frame(root: Path, index: int, device: str) -> dict:
+    """:func:`load_frame`, a ``--frame`` beyond the folder's frames an :class:`InputError`."""
+    try:
+        return load_frame(root, index, device)
+    except IndexError as err:
+        raise InputError(str(err)) from None
 
 
 def sync(device: str) -> None:
@@ -273,20 +288,20 @@ def print_verdicts(rows: list[dict]) -> None:
         print(line)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT,
+def main(argv=None) -> None:
+    parser = sa.ScriptParser(prog="model.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kitti-root", type=sa.folder("the KITTI sample folder"), default=DEFAULT_ROOT,
                         help="KITTI root holding depth_selection/val_selection_cropped (default: %(default)s)")
-    parser.add_argument("--frame", type=int, default=0, help="index of the val_selection_cropped frame")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--superpixels", type=int, nargs="+", default=[1200, 2400, 5500])
+    parser.add_argument("--frame", type=sa.count(0), default=0, help="index of the val_selection_cropped frame")
+    parser.add_argument("--device", type=sa.device, default="cpu")
+    parser.add_argument("--repeats", type=sa.count(1), default=5)
+    parser.add_argument("--superpixels", type=sa.count(1, 10**6, "superpixels per frame"), nargs="+", default=[1200, 2400, 5500])
     parser.add_argument("--skip-pixel", action="store_true", help="leave out pixel mode (and its parts)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats: expected >= 1, got {args.repeats}")
     torch.set_num_threads(2)
-    f = load_frame(args.kitti_root, args.frame, args.device)
+    f = checked_frame(args.kitti_root, args.frame, args.device)
     configs = [("superpixel", n, refine) for n in args.superpixels for refine in (False, True)]
     if not args.skip_pixel:
         configs.append(("pixel", None, None))
@@ -310,4 +325,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "model.py"))

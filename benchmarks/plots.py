@@ -27,6 +27,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 METHODS = {"ipbasic": "IP-Basic", "hand-set": "hand-set weights", "learned": "learned weights (shipped)"}
 GAUSSIAN = {1: 0.683, 2: 0.954}  # share of a Gaussian within 1 and 2 std
 
@@ -156,10 +161,10 @@ def plot_std(table: dict[str, dict[str, dict]], path: Path) -> None:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="plots.py", description=__doc__.split("\n\n")[0])
+    parser = sa.ScriptParser(prog="plots.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--accuracy", type=Path, required=True, help="results.jsonl of benchmarks/accuracy.py")
     parser.add_argument("--speed", type=Path, required=True, help="the output (or JSON line) of benchmarks/speed.py")
-    parser.add_argument("--out-dir", type=Path, default=Path("docs/results/plots"))
+    parser.add_argument("--out-dir", type=sa.out_folder, default=Path("docs/results/plots"))
     return parser.parse_args(argv)
 
 
@@ -184,4 +189,4 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "plots.py"))

@@ -26,6 +26,11 @@ if str(ROOT) not in sys.path:
 
 from crfdepth.data.synthetic import make_scene, write_selection_folder  # noqa: E402
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 
 def write_frames(root: Path, count: int, size: tuple[int, int], distinct: int = 20) -> Path:
     """``count`` frames in the val_selection_cropped layout; ``distinct`` scenes repeated (rendering is the slow
@@ -51,11 +56,11 @@ def peak_rss_of_run(folder: Path, out: Path, devices: int, workers: int) -> tupl
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, nargs="+", default=[10, 1000])
-    parser.add_argument("--size", type=int, nargs=2, default=[64, 208], metavar=("H", "W"))
-    parser.add_argument("--devices", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=0)
+    parser = sa.ScriptParser(prog="scale.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=sa.count(1, 10**6), nargs="+", default=[10, 1000])
+    parser.add_argument("--size", type=sa.count(8, 8192, "pixels"), nargs=2, default=[64, 208], metavar=("H", "W"))
+    parser.add_argument("--devices", type=sa.count(1, 64), default=1)
+    parser.add_argument("--workers", type=sa.count(0, sa.MAX_WORKERS), default=0)
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -80,4 +85,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(sa.run_script(main, "scale.py"))

@@ -20,11 +20,12 @@ one JSON line per system.
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing as mp
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -32,6 +33,11 @@ import scipy.sparse.linalg as spla
 import torch
 
 from crfdepth.linalg import grid_edge_index, solve_grid_laplacian, solve_laplacian
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 RTOL = 1e-6
 EPS = 1e-3
@@ -238,16 +244,16 @@ def run(kind: str, dtype_name: str, device: str, repeats: int, unrolled_cap: int
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv=None) -> None:
+    parser = sa.ScriptParser(prog="solver.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--systems", nargs="+", default=["superpixel", "pixel"])
-    parser.add_argument("--unrolled-cap", type=int, default=300,
+    parser.add_argument("--device", type=sa.device, default="cpu")
+    parser.add_argument("--repeats", type=sa.count(1), default=5)
+    parser.add_argument("--systems", nargs="+", default=["superpixel", "pixel"], choices=["superpixel", "pixel"])
+    parser.add_argument("--unrolled-cap", type=sa.count(1, 100000), default=300,
                         help="most CG iterations to unroll (unrolling thousands of pixel-grid "
                              "iterations needs tens of GB); the JSON says how many were used")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(2)
     rows = [run(k, args.dtype, args.device, args.repeats, args.unrolled_cap) for k in args.systems]
     head = ("system", "nodes", "fwd_s", "bwd_s", "iters", "rel_residual", "scipy_cg_s", "spsolve_s",
@@ -266,4 +272,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "solver.py"))

@@ -42,7 +42,6 @@ the batch. Prints a table, the verdicts, then one JSON line with everything.
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing as mp
 import statistics
@@ -59,6 +58,11 @@ from crfdepth.data.synthetic import make_scene
 from crfdepth.errors import InputError
 from crfdepth.fill.ip_basic import ip_basic_fill
 from crfdepth.model import CRFDepth
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
 CONFIGS = ("default", "pixel", "superpixel", "no-refine", "ip-basic")
@@ -310,26 +314,33 @@ def verdicts(rows: list[dict], batch_row: dict | None) -> dict:
     return out
 
 
+def frame_size(text: str) -> tuple[int, int]:
+    """``--large``: WIDTHxHEIGHT, each an integer in [8, 20000] pixels."""
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(v) for v in parts) if len(parts) == 2 else (0, 0)
+    except ValueError:
+        width = height = 0
+    if not (8 <= width <= 20000 and 8 <= height <= 20000):
+        raise sa.argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 4000x3000, each in [8, 20000] pixels, "
+                                            f"got {text!r}")
+    return width, height
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--device", default="cpu", help="cpu or cuda[:k]")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--large", default="4000x3000", help="WIDTHxHEIGHT of the large frame")
+    parser = sa.ScriptParser(prog="speed.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", type=sa.device, default="cpu", help="cpu or cuda[:k]")
+    parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=2, help="torch CPU threads")
+    parser.add_argument("--repeats", type=sa.count(1), default=5)
+    parser.add_argument("--large", type=frame_size, default="4000x3000", help="WIDTHxHEIGHT of the large frame")
     parser.add_argument("--skip-large", action="store_true")
-    parser.add_argument("--batch", type=int, default=8, help="frames per forward for the CUDA throughput row")
-    parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT)
+    parser.add_argument("--batch", type=sa.count(1, 1024), default=8, help="frames per forward for the CUDA throughput row")
+    parser.add_argument("--kitti-root", type=sa.folder("the KITTI sample folder"), default=DEFAULT_ROOT)
     parser.add_argument("--solvers", action="store_true",
                         help="also time each pixel-grid solve with the Jacobi and multigrid preconditioners and 'auto'")
     args = parser.parse_args(argv)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        print("error: --device cuda: no CUDA device is available here", file=sys.stderr)
-        return 2
-    try:
-        width, height = (int(v) for v in args.large.lower().split("x"))
-    except ValueError:
-        print(f"error: --large: expected WIDTHxHEIGHT such as 4000x3000, got {args.large!r}", file=sys.stderr)
-        return 2
+    width, height = args.large
+    args.large = f"{width}x{height}"
     torch.set_num_threads(args.threads)
     frame = load_frame("kitti", args.kitti_root, (height, width))
     rows = measure_small(frame, args.device, args.repeats)
@@ -365,4 +376,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(sa.run_script(main, "speed.py"))

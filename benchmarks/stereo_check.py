@@ -33,8 +33,8 @@ Prints a table and one JSON line.
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -51,6 +51,11 @@ from crfdepth.io.kitti import read_rgb, read_velodyne
 from crfdepth.sequences.odometry import lidar_odometry_with_fallback
 from crfdepth.sequences.stereo import baseline_from_projections, stereo_check
 from crfdepth.sequences.targets import accumulate, camera_view_targets
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_KITTI = REPO.parent / "shared" / "data" / "kitti"
@@ -242,12 +247,12 @@ def measure_kitti(root: Path, pictures: Path | None = None, frames: list[int] | 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
-    parser.add_argument("--size", type=int, nargs=2, default=(176, 608), metavar=("HEIGHT", "WIDTH"))
+    parser = sa.ScriptParser(prog="stereo_check.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=sa.seed, nargs="*", default=[0, 1, 2])
+    parser.add_argument("--size", type=sa.count(64, 4096, "pixels"), nargs=2, default=(176, 608), metavar=("HEIGHT", "WIDTH"))
     parser.add_argument("--kitti", type=Path, default=DEFAULT_KITTI, help="the KITTI sample root ('' to skip)")
-    parser.add_argument("--pictures", type=Path, default=None)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--pictures", type=sa.out_folder, default=None)
+    parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=1)
     args = parser.parse_args(argv)
     kitti = args.kitti if str(args.kitti) not in ("", ".") else None
     if kitti is not None and not (kitti / "stereo" / "2011_09_26" / DRIVE).is_dir():
@@ -276,4 +281,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(sa.run_script(main, "stereo_check.py"))

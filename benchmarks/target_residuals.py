@@ -31,7 +31,6 @@ against their annotation, for contrast (no support count there: ``far_support1``
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from dataclasses import asdict, dataclass
@@ -53,6 +52,11 @@ if str(HERE) not in sys.path:
     sys.path.append(str(HERE))
 
 from accuracy_parts.methods import method_config  # noqa: E402
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 REPO = HERE.parent
 DEFAULT_RAW = REPO.parent / "shared" / "data" / "kitti" / "sequences"
@@ -150,19 +154,21 @@ def measure_annotated(root: Path, weights: str, top: float = 0.01, far_m: float 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = sa.ScriptParser(prog="target_residuals.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--raw-root", type=Path, default=DEFAULT_RAW)
-    parser.add_argument("--targets-root", type=Path, default=Path("targets"))
-    parser.add_argument("--frames", type=int, nargs=2, default=(0, 46), metavar=("FIRST", "LAST"))
-    parser.add_argument("--every", type=int, default=9)
+    parser.add_argument("--targets-root", type=sa.out_folder, default=Path("targets"))
+    parser.add_argument("--frames", type=sa.count(0), nargs=2, default=(0, 46), metavar=("FIRST", "LAST"))
+    parser.add_argument("--every", type=sa.count(1), default=9)
     parser.add_argument("--weights", default="handset")
-    parser.add_argument("--top", type=float, default=0.01)
-    parser.add_argument("--far", type=float, default=3.0)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--val-selection", type=Path, default=None)
+    parser.add_argument("--top", type=sa.share(meaning="share of the target pixels"), default=0.01)
+    parser.add_argument("--far", type=sa.positive("metres"), default=3.0)
+    parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=2)
+    parser.add_argument("--val-selection", type=sa.folder("a val_selection_cropped folder"), default=None)
     args = parser.parse_args(argv)
     if not args.raw_root.is_dir():
         parser.error(f"--raw-root: expected a folder of KITTI raw drives (<date>/<drive>_sync), got {args.raw_root}")
+    if args.frames[0] > args.frames[1]:
+        parser.error(f"--frames: expected FIRST <= LAST, got {args.frames[0]} {args.frames[1]}")
     if args.every < 1:
         parser.error(f"--every: expected a positive integer, got {args.every}")
     if not 0 < args.top < 1:
@@ -176,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.val_selection is not None:
             rows += measure_annotated(args.val_selection, args.weights, args.top, args.far)
     except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"target_residuals.py: error: {error}", file=sys.stderr)
         return 2
     print(f"weights {args.weights}; top = {args.top:.0%} of the target pixels; far = off by more than {args.far} m")
     print(f"{'frame':60s} {'pixels':>7s} {'rmse mm':>8s} {'mae mm':>7s} {'top share':>9s} {'far':>6s} "
@@ -190,4 +196,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(sa.run_script(main, "target_residuals.py"))

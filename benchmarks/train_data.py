@@ -34,7 +34,6 @@ one JSON line per case.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import statistics
@@ -46,6 +45,11 @@ from typing import Any
 
 import torch
 import yaml
+
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = REPO / "configs" / "kitti_weights.yaml"
@@ -144,21 +148,21 @@ def print_table(rows: list[dict[str, Any]]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="trainer config (its data: and model:)")
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the KITTI folder (raw/, object/, ...)")
-    parser.add_argument("--workers", type=int, nargs="+", default=[0, 2, 4], help="DataLoader num_workers cases")
-    parser.add_argument("--frames", type=int, default=48, help="frames per loader case")
-    parser.add_argument("--steps", type=int, default=5, help="timed training steps (after one warm-up)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads of the main process")
+    parser = sa.ScriptParser(prog="train_data.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", type=sa.file("a trainer config (YAML)"), default=DEFAULT_CONFIG, help="trainer config (its data: and model:)")
+    parser.add_argument("--data", type=sa.folder("the KITTI folder (raw/, object/, ...)"), default=DEFAULT_DATA, help="the KITTI folder (raw/, object/, ...)")
+    parser.add_argument("--workers", type=sa.count(0, sa.MAX_WORKERS), nargs="+", default=[0, 2, 4], help="DataLoader num_workers cases")
+    parser.add_argument("--frames", type=sa.count(2), default=48, help="frames per loader case")
+    parser.add_argument("--steps", type=sa.count(1), default=5, help="timed training steps (after one warm-up)")
+    parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=2, help="torch threads of the main process")
     args = parser.parse_args(argv)
     if args.frames < 2 or args.steps < 1 or any(w < 0 for w in args.workers):
-        print("error: --frames: expected >= 2, --steps >= 1, --workers >= 0", file=sys.stderr)
+        print("train_data.py: error: --frames: expected >= 2, --steps >= 1, --workers >= 0", file=sys.stderr)
         return 2
     try:
         config = yaml.safe_load(args.config.read_text()) or {}
     except (OSError, yaml.YAMLError) as err:
-        print(f"error: --config: cannot read {args.config}: {err}", file=sys.stderr)
+        print(f"train_data.py: error: --config: cannot read {args.config}: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     sys.path.insert(0, str(REPO))  # the train package lives beside crfdepth, not in it
     torch.set_num_threads(args.threads)
@@ -173,4 +177,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(sa.run_script(main, "train_data.py"))

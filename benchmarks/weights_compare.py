@@ -40,6 +40,11 @@ from crfdepth.checkpoints import load_model  # noqa: E402
 from crfdepth.errors import InputError  # noqa: E402
 from crfdepth.model import CRFDepth  # noqa: E402
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's path (the tests) has not
+    sys.path.append(str(Path(__file__).resolve().parent))
+
+import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+
 DEFAULT_ROOT = ROOT.parent / "shared" / "data" / "kitti"
 SCANS = [("raw", "raw"), ("object", "object/training"), ("raw", "stereo")]
 PROTOCOLS = {
@@ -90,7 +95,7 @@ def table(result: dict, names: Sequence[str]) -> list[str]:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="weights_compare.py", description=__doc__.split("\n\n")[0])
+    parser = sa.ScriptParser(prog="weights_compare.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", nargs="+", default=[f"shipped={ROOT / 'crfdepth/weights/kitti.json'}"],
                         metavar="NAME=FILE", help="weights files to compare, each named (default: the shipped file)")
     parser.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=list(PROTOCOLS))
@@ -124,4 +129,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(sa.run_script(main, "weights_compare.py"))
