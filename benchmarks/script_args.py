@@ -114,28 +114,28 @@ def device(text: str) -> str:
     return text
 
 
-def folder(what: str) -> Callable[[str], Path]:
-    """An existing folder (``what`` it should hold, for the message)."""
+def _existing(what: str, *, is_folder: bool) -> Callable[[str], Path]:
+    """An existing folder (``is_folder``) or readable file; ``what`` it should be, for the message."""
     def parse(text: str) -> Path:
         path = Path(text)
-        if not text or not path.is_dir():
-            why = "which is a file" if path.is_file() else "no such folder"
+        if not text or not (path.is_dir() if is_folder else path.is_file()):
+            other = path.is_file() if is_folder else path.is_dir()
+            why = ("which is a file" if is_folder else "which is a folder") if other else \
+                ("no such folder" if is_folder else "no such file")
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} ({why})")
         return path
 
     return parse
+
+
+def folder(what: str) -> Callable[[str], Path]:
+    """An existing folder (``what`` it should hold, for the message)."""
+    return _existing(what, is_folder=True)
 
 
 def file(what: str) -> Callable[[str], Path]:
     """An existing, readable file (``what`` it should be, for the message)."""
-    def parse(text: str) -> Path:
-        path = Path(text)
-        if not text or not path.is_file():
-            why = "which is a folder" if path.is_dir() else "no such file"
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} ({why})")
-        return path
-
-    return parse
+    return _existing(what, is_folder=False)
 
 
 def out_folder(text: str) -> Path:
