@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from crfdepth.checkpoints import load_pretrained
-from crfdepth.checks import check_frames, check_has_data
+from crfdepth.checks import check_flag, check_frames, check_has_data
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
@@ -180,19 +180,17 @@ def complete_depth(image, *, sparse=None, points=None, T_cam_lidar=None, K=None,
             the model's ``memory_limit_gb``), refused before anything is converted; an
             allocator failure in the forward is turned into the same kind of error.
     """
+    return_std, trust_transform, trust_units = (check_flag(name, value) for name, value in (
+        ("return_std", return_std), ("trust_transform", trust_transform), ("trust_units", trust_units)))
     known = _image_size(image)
     if known is None:  # not an image of an accepted layout: refused here, naming image
         image_to_numpy(image)
     model = _model_on(model, device)
     # size and memory from the shape alone, before any conversion allocates
     check_frame_size("image", *known)
-    check_model_memory(model, 1, *known, bool(return_std))
+    check_model_memory(model, 1, *known, return_std)
     rgb, is_tensor, out_device = image_to_numpy(image)
     size = rgb.shape[:2]
-    if not isinstance(trust_transform, bool):
-        raise InputError(f"trust_transform: expected True or False, got {trust_transform!r}")
-    if not isinstance(trust_units, bool):
-        raise InputError(f"trust_units: expected True or False, got {trust_units!r}")
     calibration = _calibration(calibration, K, T_cam_lidar, distortion, points, size)
     if (sparse is None) == (points is None):
         raise InputError(f"sparse / points: expected exactly one of them (a sparse depth map or a point cloud), "

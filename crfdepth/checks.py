@@ -16,8 +16,8 @@ import torch
 
 from crfdepth.errors import InputError
 
-__all__ = [ "MAX_RETURN_DEPTH_M", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
-           "check_depth_frames", "check_depth_values", "check_frames", "check_has_data",
+__all__ = ["MAX_RETURN_DEPTH_M", "MIN_RETURN_DEPTH_M", "RIGID_TOLERANCE", "check_choice",
+           "check_depth_frames", "check_depth_values", "check_flag", "check_frames", "check_has_data",
            "check_map", "check_number", "check_return_depths", "check_rigid", "check_scalar_tensor", "describe",
            "nonfinite", "to_numpy"]
 
@@ -316,3 +316,10 @@ def check_rigid(T: object, what: str = "T_cam_lidar", tolerance: float = RIGID_T
         raise InputError(f"{what}: expected a rotation part with determinant +1, got {np.linalg.det(R):.3g} (a "
                          f"reflection): an axis is flipped; check the axis conventions of both frames")
     return T
+
+
+def check_flag(name: str, value: object) -> bool:
+    """A yes/no argument: a ``bool`` (numpy's too), never a string or a number read as true (``"no"`` is truthy)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name}: expected True or False, got {value!r}")
+    return bool(value)

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from crfdepth.checks import check_map, check_scalar_tensor, describe
+from crfdepth.checks import check_flag, check_map, check_scalar_tensor, describe
 from crfdepth.config import check_std_samples
 from crfdepth.errors import InputError
 from crfdepth.layer_inputs import check_anchored, check_labels, check_not_empty, check_projection
@@ -181,7 +181,7 @@ def crf_refine(
     """
     check_map("depth", depth, None, 1)
     check_not_empty(depth)
-    if return_std:
+    if check_flag("return_std", return_std):
         check_std_samples(std_samples)
     check_map("confidence", confidence, depth, 1, nonneg=True)
     check_map("features", features, depth, None)

@@ -21,7 +21,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from crfdepth.checks import check_frames
+from crfdepth.checks import check_flag, check_frames
 from crfdepth.config import POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
@@ -285,6 +285,7 @@ class CRFDepth(ConstrainedWeights):
         Always run eagerly, also inside ``torch.compile``: the checks read values on the host (numpy, ``float``),
         which dynamo would trace as tensor code and guard on (under ``torch.inference_mode()`` those guards failed
         with dynamo's internal "This is a bug" error)."""
+        check_flag("return_std", return_std)
         image, sparse, K = widen(image), widen(sparse), widen(K)
         if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
             # Size and memory first, from the shape alone: the checks below allocate per pixel.

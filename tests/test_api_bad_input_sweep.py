@@ -19,7 +19,7 @@ from crfdepth.errors import InputError
 from crfdepth.inputs import points_to_sparse
 from crfdepth.intrinsics import IntrinsicsWarning, check_intrinsics
 from crfdepth.io.calibration import RigCalibration
-from crfdepth.layer import CRFRefine
+from crfdepth.layer import CRFRefine, crf_refine
 from crfdepth.model import CRFDepth
 from crfdepth.plausibility import PlausibilityWarning, UpsideDownWarning, check_sparse_plausible
 
@@ -308,3 +308,21 @@ def test_sparse_maps_in_centimetres_and_millimetres_get_their_own_advice(scene, 
         with pytest.raises(InputError) as err:
             check_sparse_plausible("sparse", scene.sparse * factor, K)
         assert str(err.value).splitlines()[0].split("; ")[1] == f"that looks like {advice}"
+
+
+@pytest.mark.parametrize("name", ["return_std", "trust_transform", "trust_units"])
+def test_a_flag_that_is_not_a_bool_is_refused_by_name(name):
+    """A string is truthy whatever it says: return_std="no" must not run the std."""
+    scene = make_scene(seed=0)
+    with pytest.raises(InputError) as info:
+        complete_depth(scene.image, sparse=scene.sparse, K=scene.K, **{name: "no"})
+    assert str(info.value) == f"{name}: expected True or False, got 'no'"
+
+
+def test_forward_and_the_layer_refuse_a_return_std_that_is_not_a_bool():
+    tensors = make_scene(seed=0).to_tensors()
+    with pytest.raises(InputError, match=r"^return_std: expected True or False, got 1$"):
+        CRFDepth()(tensors["image"][None], tensors["sparse"][None], tensors["K"][None], return_std=1)
+    depth = torch.ones(1, 1, 4, 4)
+    with pytest.raises(InputError, match=r"^return_std: expected True or False, got 'yes'$"):
+        crf_refine(depth, depth, torch.zeros(1, 3, 4, 4), torch.zeros(2, 3), return_std="yes")
