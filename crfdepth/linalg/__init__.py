@@ -1,6 +1,7 @@
 """Sparse SPD solves for graph-Laplacian systems, differentiable by implicit adjoints."""
 
-from crfdepth.linalg.adjoint import SolveInfo, SolverSettings, solve_system
+from crfdepth.linalg.adjoint import solve_system
+from crfdepth.linalg.diagnostics import SolveInfo, SolverSettings
 from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.linalg.solve import solve_grid_laplacian, solve_laplacian, solver_settings
 from crfdepth.linalg.system import System

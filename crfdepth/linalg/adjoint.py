@@ -10,72 +10,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from dataclasses import dataclass, field
 
 import torch
 
 from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
+from crfdepth.linalg.diagnostics import SolveInfo, SolverSettings, report_nonconvergence
 from crfdepth.linalg.multigrid import GridMultigrid
-from crfdepth.linalg.nonconvergence import report_nonconvergence
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
 from crfdepth.linalg.system import System
 from crfdepth.precision import HALF, autocast_off, full_dtype
 
 _METHODS = {"cg": conjugate_gradient, "cgs": conjugate_gradient_squared}
-
-@dataclass
-class SolveInfo:
-    """Diagnostics of one batched solve; tensors have one entry per graph (G,).
-
-    Attributes:
-        method: "cg" or "cgs".
-        iterations: int64 iterations taken per graph (over all restarts).
-        rel_residual: ``||b - A x|| / ||b||`` per graph, recomputed from the returned x
-            (0 for a graph with ``b = 0``).
-        converged: ``rel_residual <= rtol`` and x finite, per graph (never True for NaN/inf).
-        rtol: the tolerance asked for.
-        adjoint: diagnostics of the adjoint solve, filled in when backward runs.
-    """
-
-    method: str
-    iterations: torch.Tensor
-    rel_residual: torch.Tensor
-    converged: torch.Tensor
-    rtol: float
-    adjoint: "SolveInfo | None" = field(default=None, repr=False)
-
-    def summary(self) -> str:
-        return (f"{self.method}: iterations {self.iterations.tolist()}, relative residual "
-                f"{[f'{r:.2e}' for r in self.rel_residual.tolist()]} (rtol {self.rtol:g}), "
-                f"converged {self.converged.tolist()}")
-
-
-# Forward tolerance of a solve that will be differentiated (docs/design.md section 4). The
-# shipped model's gradients (L1 loss, adjoint at rtol 1e-5) against tight-tolerance ones,
-# worst parameter, float64, forward rtol 1e-5 / 1e-7 / 1e-8 / 1e-9: 18% / 0.7% / 0.03% /
-# 0.02% on the real KITTI val frame, 210% / 4.6% / 0.5% / 0.05% on the synthetic scene.
-# The pixel-grid weights shipped later (data confidence 2802, 1/z unknown, fitted normals)
-# needed more: log_sigma_d 3.7% off at 1e-8, 0.12% at 1e-10 (tests/test_gradients_real.py).
-GRAD_RTOL = 1e-10
-
-
-@dataclass
-class SolverSettings:
-    """Checked solve settings (:func:`crfdepth.linalg.solver_settings` documents them)."""
-
-    method: str
-    rtol: float
-    max_iter: int | None
-    check_every: int
-    on_nonconvergence: str
-    restarts: int = 3
-    grad_rtol: float = GRAD_RTOL
-    preconditioner: str = "auto"
-    singular_hint: str = ""
-    """What the caller's user can change when the system turns out numerically singular (a solve
-    that gives NaN/inf or a residual larger than ``||b||``), said in the user's own argument names;
-    empty: a generic sentence about ``d``."""
-
 
 # ----------------------------------------------------------------------------------------
 # the solve proper

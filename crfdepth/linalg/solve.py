@@ -19,7 +19,8 @@ import torch
 
 from crfdepth.config import check_solver
 from crfdepth.errors import InputError
-from crfdepth.linalg.adjoint import GRAD_RTOL, SolveInfo, SolverSettings, solve_system
+from crfdepth.linalg.adjoint import solve_system
+from crfdepth.linalg.diagnostics import GRAD_RTOL, SolveInfo, SolverSettings
 from crfdepth.linalg.system import System
 from crfdepth.precision import full_precision
 

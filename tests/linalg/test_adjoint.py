@@ -12,7 +12,7 @@ import torch
 
 from crfdepth.errors import InputError
 from crfdepth.linalg import solve_grid_laplacian, solver_settings
-from crfdepth.linalg.adjoint import GRAD_RTOL
+from crfdepth.linalg.diagnostics import GRAD_RTOL
 
 F64 = torch.float64
 
