@@ -14,7 +14,12 @@ Configurations (each without and with the std, ``return_std=True``):
 - ``pixel``: ``CRFDepth(mode="pixel")``, the constructor's potentials on the pixel grid;
 - ``superpixel``: ``CRFDepth()``, 5500 SLIC segments at 1216 x 352 (scaled with the area) and the pixel refinement;
 - ``no-refine``: ``CRFDepth(refine=False)``, the paper's piecewise-constant painting;
-- ``ip-basic``: :func:`crfdepth.fill.ip_basic.ip_basic_fill`, the classical fill of the accuracy benchmark.
+- ``ip-basic``: :func:`crfdepth.fill.ip_basic.ip_basic_fill`, crfdepth's torch port of the classical fill
+  (the accuracy benchmark's);
+- ``ip-basic-opencv``: IP-Basic's original algorithm in OpenCV (``benchmarks/ip_basic_opencv.py``:
+  Ku et al. 2018, ``fill_in_fast`` with extrapolation and the Gaussian blur), always on the CPU
+  with ``--threads`` OpenCV threads: the reference every row's "x IP-Basic" ratio is taken
+  against (row time / this row's time at the same frame size).
 
 Per configuration and frame: the model's per-stage times (``CRFOutput.timings``: on CUDA
 each stage is synchronised), the total (median over ``--repeats`` forwards, run
@@ -30,7 +35,13 @@ solve of the default and the superpixel model (captured from a forward on each f
 timed alone with the Jacobi and multigrid preconditioners and "auto" (iterations, and the
 fastest of ``--repeats`` runs; one on the large frame).
 
-Verdicts (issue 15): default <= 100 ms per 1216 x 352 frame and <= 20x the classical fill;
+Also the stage split of the default model on the 1216 x 352 frame (median over ``--repeats``
+forwards): LiDAR evidence (fill and gate), grid potentials, grid system, CG, output, and the
+rest (input checks and glue), timed by wrapping the stage functions that
+``crfdepth.inference.pixel`` calls (its module attributes, patched here and restored after).
+
+Verdicts (issue 15): default <= 100 ms per 1216 x 352 frame and <= 20x the classical fill
+(IP-Basic's OpenCV original; the torch port when that row is missing);
 moonshot <= 25 ms; peak memory at the large size <= 8 GB for every configuration (or the
 model refuses it up front, which is reported as ``refused``); on CUDA >= 100 frames/s at
 the batch. Prints a table, the verdicts, then one JSON line with everything.
@@ -51,6 +62,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import torch
 
 from crfdepth.data.kitti import KittiValSelection
@@ -63,17 +75,23 @@ if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's
     sys.path.append(str(Path(__file__).resolve().parent))
 
 import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
+from ip_basic_opencv import ip_basic_opencv_fill  # noqa: E402  (benchmarks/ip_basic_opencv.py: the original's OpenCV steps)
 
 DEFAULT_ROOT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
-CONFIGS = ("default", "pixel", "superpixel", "no-refine", "ip-basic")
+CONFIGS = ("default", "pixel", "superpixel", "no-refine", "ip-basic", "ip-basic-opencv")
+CLASSICAL = ("ip-basic", "ip-basic-opencv")  # no model, no std
+REFERENCE = "ip-basic-opencv"  # the "x IP-Basic" ratios' denominator
+# The default model's stage split: (key, label) in the order of a forward.
+SPLIT = (("checks", "input checks"), ("evidence", "lidar evidence (fill and gate)"), ("potentials", "grid potentials"),
+         ("system", "grid system"), ("cg", "CG solve"), ("output", "output"), ("rest", "rest"))
 STAGES = ("fill", "slic", "graph", "normals", "potentials", "solve", "painting", "refine", "uncertainty")
 TARGET_MS, MOONSHOT_MS, TARGET_VS_CLASSICAL = 100.0, 25.0, 20.0
 TARGET_LARGE_GB, TARGET_GPU_FPS = 8.0, 100.0
 
 
 def make_model(name: str, device: str) -> CRFDepth | None:
-    """The configuration's model in eval mode on ``device`` (None for the classical fill)."""
-    if name == "ip-basic":
+    """The configuration's model in eval mode on ``device`` (None for the classical fills)."""
+    if name in CLASSICAL:
         return None
     model = {"default": lambda: CRFDepth.from_pretrained("kitti"), "pixel": lambda: CRFDepth(mode="pixel"),
              "superpixel": lambda: CRFDepth(), "no-refine": lambda: CRFDepth(refine=False)}[name]()
@@ -101,12 +119,16 @@ def sync(device: str) -> None:
 
 
 def run_once(name: str, model: CRFDepth | None, frame: dict, std: bool, device: str) -> tuple[float, dict, list]:
-    """Seconds of one forward (or one classical fill), its stage timings and CG iterations."""
+    """Seconds of one forward (or one classical fill), its stage timings and CG iterations.
+
+    ``ip-basic-opencv`` runs on the CPU whatever ``device`` is: its input is moved there before the clock starts.
+    """
+    sparse = frame["sparse"].cpu() if name == "ip-basic-opencv" else frame["sparse"]
     sync(device)
     start = time.perf_counter()
     with torch.no_grad():
         if model is None:
-            ip_basic_fill(frame["sparse"])
+            (ip_basic_opencv_fill if name == "ip-basic-opencv" else ip_basic_fill)(sparse)
             out = None
         else:
             out = model(frame["image"], frame["sparse"], frame["K"], return_std=std)
@@ -134,6 +156,7 @@ def _status_bytes(key: str) -> int:
 def _memory_child(name: str, path: str, std: bool, threads: int, queue) -> None:
     """In a fresh process: one forward, then the growth of the resident set over it (bytes)."""
     torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
     frame = torch.load(path)
     model = make_model(name, "cpu")
     # A forward on a corner of the frame first: libraries and kernels load lazily on first use.
@@ -179,7 +202,7 @@ def cuda_memory(name: str, model: CRFDepth | None, frame: dict, std: bool, devic
 
 def measure_small(frame: dict, device: str, repeats: int) -> list[dict]:
     """Round-robin timing of every (configuration, std) pair on the 1216 x 352 frame."""
-    pairs = [(n, s) for n in CONFIGS for s in ((False,) if n == "ip-basic" else (False, True))]
+    pairs = [(n, s) for n in CONFIGS for s in ((False,) if n in CLASSICAL else (False, True))]
     models = {n: make_model(n, device) for n in CONFIGS}
     f = on_device(frame, device)
     for n, s in pairs:
@@ -205,7 +228,7 @@ def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None
         path = str(Path(tmp) / "frame.pt")
         torch.save(frame, path)
         for row in rows:
-            if device == "cpu":
+            if device == "cpu" or row["config"] == "ip-basic-opencv":  # OpenCV's fill allocates on the CPU
                 got = cpu_memory(row["config"], path, row["std"], threads)
             else:
                 got = cuda_memory(row["config"], make_model(row["config"], device), on_device(frame, device),
@@ -219,6 +242,67 @@ def add_memory(rows: list[dict], frame: dict, device: str, threads: int) -> None
             if "seconds" not in row:  # the large frame: its one run is this one
                 row.update(seconds=got.get("seconds"), stages={k: v for k, v in got.get("stages", {}).items() if v > 0},
                            iterations=got.get("iterations"), fps=1 / got["seconds"] if got.get("seconds") else None)
+
+
+def add_ratios(rows: list[dict]) -> None:
+    """Every row's time over the ``ip-basic-opencv`` row's at the same frame size (``vs_ip_basic``; None without it)."""
+    reference = {tuple(r["size"]): r.get("seconds") for r in rows if r["config"] == REFERENCE}
+    for row in rows:
+        ref = reference.get(tuple(row["size"]))
+        row["vs_ip_basic"] = row["seconds"] / ref if ref and row.get("seconds") else None
+
+
+def stage_split(frame: dict, device: str, repeats: int) -> dict:
+    """Seconds per stage of the default model's forward on ``frame`` (depth only), median over ``repeats``.
+
+    The stages are the functions ``crfdepth.inference.pixel`` calls (``evidence``, ``grid_potentials``,
+    ``grid_system``, ``solve_system``, ``pixel_count_uncertainty`` and ``CRFOutput``: output) and the model's
+    ``_checked_inputs`` (checks), each wrapped with a clock (synchronised on CUDA) for these forwards only;
+    ``rest`` is the forward's time outside them, ``total`` the forward's. One warm-up forward first.
+    """
+    import crfdepth.inference.pixel as pixel
+
+    model, f = make_model("default", device), on_device(frame, device)
+    wrapped = {"evidence": "evidence", "grid_potentials": "potentials", "grid_system": "system",
+               "solve_system": "cg", "pixel_count_uncertainty": "output", "CRFOutput": "output"}
+    spent: dict[str, float] = {}
+
+    def timed(fn, key):
+        def call(*args, **kwargs):
+            sync(device)
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                sync(device)
+                spent[key] = spent.get(key, 0.0) + time.perf_counter() - start
+        return call
+
+    originals = {name: getattr(pixel, name) for name in wrapped}
+    for name, key in wrapped.items():
+        setattr(pixel, name, timed(originals[name], key))
+    model._checked_inputs = timed(model._checked_inputs, "checks")  # the instance's, not the class's
+    runs = []
+    try:
+        for k in range(repeats + 1):
+            spent.clear()
+            seconds = run_once("default", model, f, False, device)[0]
+            if k:  # the first is the warm-up
+                runs.append(dict(spent, total=seconds, rest=seconds - sum(spent.values())))
+    finally:
+        for name, fn in originals.items():
+            setattr(pixel, name, fn)
+    if not runs[-1].get("cg") or not runs[-1].get("evidence"):
+        raise RuntimeError(f"the stage split timed {sorted(runs[-1])}: the default forward no longer calls "
+                           "evidence and solve_system through crfdepth.inference.pixel")
+    return {key: statistics.median(r.get(key, 0.0) for r in runs) for key, _ in SPLIT + (("total", ""),)}
+
+
+def print_split(split: dict, frame: dict, repeats: int) -> None:
+    h, w = frame["image"].shape[-2:]
+    print(f"stage split of the default model, {w}x{h}, median of {repeats}: " + ", ".join(
+        f"{label} {1000 * split[key]:.1f} ms ({100 * split[key] / split['total']:.0f}%)" for key, label in SPLIT)
+        + f"; total {1000 * split['total']:.1f} ms")
 
 
 def measure_solvers(frame: dict, device: str, repeats: int) -> list[dict]:
@@ -282,13 +366,14 @@ def _cell(v, scale=1000.0, digits=0) -> str:
 
 def print_table(rows: list[dict]) -> None:
     stages = [s for s in STAGES if any(s in r.get("stages", {}) for r in rows)]
-    head = ["size", "config", "std"] + [s[:8] for s in stages] + ["total ms", "fps", "peak MB", "B/px", "iterations"]
-    widths = [10, 10, 5] + [8] * len(stages) + [9, 7, 8, 6, 14]
+    head = (["size", "config", "std"] + [s[:8] for s in stages]
+            + ["total ms", "x IP-Basic", "fps", "peak MB", "B/px", "iterations"])
+    widths = [10, 15, 5] + [8] * len(stages) + [9, 10, 7, 8, 6, 14]
     print("  ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
     for r in rows:
         cells = [f"{r['size'][1]}x{r['size'][0]}", r["config"], "yes" if r["std"] else "no"]
         cells += [_cell(r.get("stages", {}).get(s)) for s in stages]
-        cells += [_cell(r.get("seconds"), digits=1), _cell(r.get("fps"), 1, 1),
+        cells += [_cell(r.get("seconds"), digits=1), _cell(r.get("vs_ip_basic"), 1, 1), _cell(r.get("fps"), 1, 1),
                   _cell(r.get("peak_bytes"), 1e-6), _cell(r.get("bytes_per_pixel"), 1),
                   "refused" if r.get("refused") else "failed" if r.get("failed") else str(r.get("iterations") or "-")]
         print("  ".join(f"{c:>{w}}" for c, w in zip(cells, widths)))
@@ -296,12 +381,15 @@ def print_table(rows: list[dict]) -> None:
 
 def verdicts(rows: list[dict], batch_row: dict | None) -> dict:
     small = {(r["config"], r["std"]): r for r in rows if r["size"] == [352, 1216]}
-    default, classical = small.get(("default", False)), small.get(("ip-basic", False))
+    default = small.get(("default", False))
+    # The classical fill is IP-Basic's OpenCV original; crfdepth's torch port (7x slower on the CPU) only without it.
+    classical = small.get((REFERENCE, False)) or small.get(("ip-basic", False))
     out = {}
     if default and classical:
         ms, ratio = 1000 * default["seconds"], default["seconds"] / classical["seconds"]
         out["default_ms"] = dict(value=ms, target=TARGET_MS, met=ms <= TARGET_MS)
-        out["default_vs_classical"] = dict(value=ratio, target=TARGET_VS_CLASSICAL, met=ratio <= TARGET_VS_CLASSICAL)
+        out["default_vs_classical"] = dict(value=ratio, target=TARGET_VS_CLASSICAL, met=ratio <= TARGET_VS_CLASSICAL,
+                                           classical=classical["config"])
         out["moonshot_ms"] = dict(value=ms, target=MOONSHOT_MS, met=ms <= MOONSHOT_MS)
     large = [r for r in rows if r["size"] != [352, 1216]]
     if large:
@@ -342,6 +430,7 @@ def main(argv: list[str] | None = None) -> int:
     width, height = args.large
     args.large = f"{width}x{height}"
     torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)  # the OpenCV row's threads: the same as torch's
     frame = load_frame("kitti", args.kitti_root, (height, width))
     rows = measure_small(frame, args.device, args.repeats)
     add_memory(rows, frame, args.device, args.threads)
@@ -351,27 +440,31 @@ def main(argv: list[str] | None = None) -> int:
         run_once("default", model, f, False, args.device)
         seconds = statistics.median(run_once("default", model, f, False, args.device)[0] for _ in range(args.repeats))
         batch_row = dict(config="default", std=False, batch=args.batch, seconds=seconds, fps=args.batch / seconds)
+    split = stage_split(frame, args.device, args.repeats)
     solvers = measure_solvers(frame, args.device, args.repeats) if args.solvers else []
     if not args.skip_large:
         large = load_frame("large", args.kitti_root, (height, width))
         big = [dict(config=n, std=s, size=[height, width])
-               for n in CONFIGS for s in ((False,) if n == "ip-basic" else (False, True))]
+               for n in CONFIGS for s in ((False,) if n in CLASSICAL else (False, True))]
         add_memory(big, large, args.device, args.threads)
         rows += big
         if args.solvers:
             solvers += measure_solvers(large, args.device, 1)
+    add_ratios(rows)
     print(f"device {args.device}" + (f" ({torch.cuda.get_device_name(args.device)})" if batch_row else "")
           + f", {args.threads} threads, frame {frame['name']}")
     print_table(rows)
+    print_split(split, frame, args.repeats)
     if solvers:
         print_solvers(solvers)
     if batch_row:
         print(f"default at batch {args.batch}: {batch_row['fps']:.1f} frames/s")
     v = verdicts(rows, batch_row)
     for key, item in v.items():
-        print(f"{key}: {item['value']:.3g} (target {item['target']:g}): {'met' if item['met'] else 'MISSED'}")
+        against = f" against {item['classical']}" if "classical" in item else ""
+        print(f"{key}: {item['value']:.3g}{against} (target {item['target']:g}): {'met' if item['met'] else 'MISSED'}")
     print(json.dumps(dict(device=args.device, threads=args.threads, frame=frame["name"], rows=rows, solvers=solvers, batch=batch_row,
-                          verdicts=v, torch=torch.__version__)))
+                          stage_split=split, reference=REFERENCE, verdicts=v, torch=torch.__version__, opencv=cv2.__version__)))
     return 0
 
 

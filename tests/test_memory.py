@@ -63,11 +63,12 @@ def test_speed_benchmark_measures_every_configuration_within_the_estimates(tmp_p
     report = json.loads(result.stdout.strip().splitlines()[-1])
     rows = report["rows"]
     assert {(r["config"], r["std"]) for r in rows} == {
-        (c, s) for c in ("default", "pixel", "superpixel", "no-refine") for s in (False, True)} | {("ip-basic", False)}
-    assert len(rows) == 18  # nine at 1216x352, nine at 640x480
+        (c, s) for c in ("default", "pixel", "superpixel", "no-refine") for s in (False, True)} | {
+        ("ip-basic", False), ("ip-basic-opencv", False)}
+    assert len(rows) == 20  # ten at 1216x352, ten at 640x480
     for r in rows:
         assert r["seconds"] > 0 and r["fps"] > 0 and r["peak_bytes"] > 0, r
-        if r["config"] != "ip-basic":
+        if r["config"] not in ("ip-basic", "ip-basic-opencv"):
             mode = "pixel" if r["config"] in ("default", "pixel") else "superpixel"
             pixels = r["size"][0] * r["size"][1]
             assert r["peak_bytes"] <= estimate_bytes(mode, pixels, r["std"], "predictive"), r
