@@ -265,26 +265,19 @@ class CRFDepth(ConstrainedWeights):
                 device has available; size and memory are checked from the shape alone,
                 before anything is allocated.
         """
+        if torch.compiler.is_compiling():  # inside torch.compile: the CRF runs eagerly (_eager_forward)
+            return _eager_forward(self, image, sparse, K, return_std)
+        return self._forward(image, sparse, K, return_std)
+
+    def _forward(self, image, sparse, K, return_std: bool) -> CRFOutput:
+        """:meth:`forward`: the inputs checked, then the model's pipeline (``crfdepth.inference.PIPELINES``) with
+        autocast off (the CRF in full precision, :mod:`crfdepth.precision`)."""
         image, sparse, K = self._checked_inputs(image, sparse, K, return_std)
-        return self._pipeline(image, sparse, K, return_std)
-
-    @torch.compiler.disable
-    def _pipeline(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, return_std: bool) -> CRFOutput:
-        """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs, with autocast off.
-
-        Always run eagerly, also inside ``torch.compile``: its numpy steps (superpixels, the nearest fill, the
-        solver's bookkeeping) made dynamo fail with an internal "Guard failed on the same frame it was created.
-        This is a bug" error under ``torch.no_grad()`` and ``torch.inference_mode()`` (torch 2.13)."""
-        with autocast_off(sparse):  # the CRF in full precision (crfdepth.precision)
+        with autocast_off(sparse):
             return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
 
-    @torch.compiler.disable
     def _checked_inputs(self, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``.
-
-        Always run eagerly, also inside ``torch.compile``: the checks read values on the host (numpy, ``float``),
-        which dynamo would trace as tensor code and guard on (under ``torch.inference_mode()`` those guards failed
-        with dynamo's internal "This is a bug" error)."""
+        """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``."""
         check_flag("return_std", return_std)
         image, sparse, K = widen(image), widen(sparse), widen(K)
         if isinstance(sparse, torch.Tensor) and sparse.dim() == 4 and sparse.is_floating_point():
@@ -298,5 +291,12 @@ class CRFDepth(ConstrainedWeights):
         check_batch_intrinsics(K, tuple(sparse.shape[2:]), batched)
         return image.to(sparse.dtype), sparse, K.to(sparse.dtype)
 
+
+# CRFDepth._forward kept out of torch.compile's graphs: the checks read values on the host (numpy, float) and the
+# pipeline holds numpy steps (superpixels, the nearest fill, the solver's bookkeeping) and data-dependent loops,
+# which made dynamo fail with an internal "Guard failed ... This is a bug" error under torch.no_grad() and
+# torch.inference_mode() (torch 2.13). torch._disable_dynamo is torch.compiler.disable that imports dynamo (about
+# 1 s) at its first call, which only a compiled forward makes, instead of when this module is imported.
+_eager_forward = getattr(torch, "_disable_dynamo", torch.compiler.disable)(CRFDepth._forward)
 
 __all__ = ["CRFDepth", "CRFOutput", "POTENTIALS", "energy"]

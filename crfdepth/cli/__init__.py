@@ -37,7 +37,6 @@ from collections.abc import Iterator
 from types import ModuleType
 
 from crfdepth._version import __version__
-from crfdepth.cli.file_errors import error_message
 from crfdepth.errors import ConvergenceError, InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
@@ -116,7 +115,12 @@ def add_command(subparsers: argparse._SubParsersAction, module: ModuleType) -> a
     return parser
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The ``crfdepth`` parser with the sub-commands ``commands`` (names, e.g. ``("complete",)``; default all).
+
+    Only the modules of ``commands`` are imported (:func:`main` imports the chosen one alone: importing them all
+    costs seconds of torch, kornia, scipy and more); each sub-parser is the same whichever others are there.
+    """
     parser = _Parser(
         prog="crfdepth",
         description="Dense depth from a camera image and sparse LiDAR with a learnable CRF.",
@@ -126,9 +130,29 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     parser.commands = {}  # name -> its parser, for refuse_unknown
     for name in _COMMANDS:
-        command = add_command(subparsers, importlib.import_module(name))
-        parser.commands[command.prog.rpartition(" ")[2]] = command
+        if commands is None or name.rpartition(".")[2] in commands:
+            command = add_command(subparsers, importlib.import_module(name))
+            parser.commands[command.prog.rpartition(" ")[2]] = command
     return parser
+
+
+def _commands_needed(argv: list[str]) -> tuple[str, ...] | None:
+    """The sub-commands :func:`main` must build to parse ``argv`` as the full parser would (None: all of them).
+
+    The options before the command take no value, so the first argument that is not an option names it: that one
+    sub-command alone, unless a help option before it asks for the list of all. Without a command, ``--version``
+    alone needs none (``crfdepth --version`` imports no sub-command, nor torch)."""
+    names = {name.rpartition(".")[2] for name in _COMMANDS}
+    for arg in argv:
+        if arg == "--" or (arg.startswith("--") and "--help".startswith(arg.partition("=")[0]) and len(arg) > 2):
+            return None
+        if arg.startswith("-") and not arg.startswith("--") and "h" in arg:  # -h, -vh
+            return None
+        if not arg.startswith("-"):
+            return (arg,) if arg in names else None
+        if arg.startswith("--vers") and "--version".startswith(arg):
+            return ()  # argparse prints the version and exits here, before any command
+    return None
 
 
 def refuse_unknown(parser: argparse.ArgumentParser, args: argparse.Namespace, unknown: list[str]) -> None:
@@ -163,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     command = None
     try:
-        parser = build_parser()
         argv = [str(a) for a in (sys.argv[1:] if argv is None else argv)]
+        parser = build_parser(_commands_needed(argv))
         args, unknown = parser.parse_known_args(argv)
         if unknown:
             refuse_unknown(parser, args, unknown)
@@ -183,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
             with warnings_as_lines(command):
                 return int(args.func(args) or 0)
         except (InputError, OSError) as exc:  # bad input, or a file that cannot be read or written
+            from crfdepth.cli.file_errors import error_message  # imports crfdepth.io: not for --help / --version
+
             print(f"crfdepth {command}: error: {error_message(exc, argv)}", file=sys.stderr)
             return 2
         except ConvergenceError as exc:  # a model whose solver settings say on_nonconvergence="raise"

@@ -64,7 +64,7 @@ def test_ctrl_c_exits_130_with_one_line(main, monkeypatch, capsys, tmp_path):
 
 
 def test_ctrl_c_while_building_the_parser(monkeypatch, capsys):
-    def interrupted():
+    def interrupted(*commands):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli, "build_parser", interrupted)
