@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from crfdepth.cli.arguments import MAX_SEED, MAX_WORKERS, fraction, int_at_least
+from crfdepth.cli.arguments import MAX_SEED, MAX_WORKERS, OneLineParser, fraction, int_at_least
 from crfdepth.errors import BAD_INPUT
 from crfdepth.io.file_errors import FileError
 
@@ -35,8 +35,9 @@ __all__ = ["MAX_THREADS", "MAX_WORKERS", "ScriptParser", "count", "device", "fil
 MAX_THREADS = 1024
 
 
-class ScriptParser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line, ``<prog>: error: --option: ...``, exit status 2.
+class ScriptParser(OneLineParser):
+    """crfdepth's :class:`~crfdepth.cli.arguments.OneLineParser` (one-line usage errors, exit status 2, choices in the
+    project's words), whose other usage errors are told in the project's form too (:func:`_words`).
 
     ``prog`` is the script's file name (``accuracy.py``), as the scripts are run: ``python benchmarks/<prog>``.
     """
@@ -48,9 +49,6 @@ class ScriptParser(argparse.ArgumentParser):
 def _words(message: str) -> str:
     """argparse's usage error in the project's form, ``--option: expected ..., got ...``."""
     message = " ".join(message.split()).removeprefix("argument ")
-    match = re.fullmatch(r"([^:]+): invalid choice: (.*) \(choose from (.*)\)", message)
-    if match:
-        return f"{match.group(1)}: expected one of {match.group(3)}, got {match.group(2)}"
     match = re.fullmatch(r"the following arguments are required: (.*)", message)
     if match:
         return f"{match.group(1)}: expected a value, got none (required)"

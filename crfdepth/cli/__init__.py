@@ -37,6 +37,7 @@ from collections.abc import Iterator
 from types import ModuleType
 
 from crfdepth._version import __version__
+from crfdepth.cli.arguments import OneLineParser
 from crfdepth.errors import ConvergenceError, InputError
 
 # Sub-command modules, in the order ``crfdepth --help`` lists them.
@@ -58,20 +59,6 @@ def _first_line(exc: BaseException) -> str:
     """The first line of ``exc``'s message (a traceback-free summary)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else ""
-
-
-class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line naming the option (exit status 2).
-
-    argparse prefixes the flag with ``argument``; the line reads
-    ``crfdepth project: error: --keep-every-ring: expected ...`` like the messages of
-    :class:`~crfdepth.errors.InputError`. Sub-parsers are of this class too.
-    """
-
-    def error(self, message: str):
-        if message.startswith("argument "):
-            message = message[len("argument "):]
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 @contextlib.contextmanager
@@ -121,7 +108,7 @@ def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentPa
     Only the modules of ``commands`` are imported (:func:`main` imports the chosen one alone: importing them all
     costs seconds of torch, kornia, scipy and more); each sub-parser is the same whichever others are there.
     """
-    parser = _Parser(
+    parser = OneLineParser(
         prog="crfdepth",
         description="Dense depth from a camera image and sparse LiDAR with a learnable CRF.",
     )

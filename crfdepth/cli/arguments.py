@@ -14,9 +14,26 @@ import numpy as np
 
 from crfdepth.errors import BAD_INPUT  # what crfdepth.cli.main reports as bad input (one line, exit status 2)
 
-__all__ = ["BAD_INPUT", "MAX_COUNT", "MAX_DEVICES", "MAX_RINGS", "MAX_SEED", "MAX_WORKERS", "STRATEGIES", "VisRange",
+__all__ = ["BAD_INPUT", "MAX_COUNT", "OneLineParser", "MAX_DEVICES", "MAX_RINGS", "MAX_SEED", "MAX_WORKERS", "STRATEGIES", "VisRange",
            "add_batch_arguments", "add_rerun_argument", "add_topic_arguments", "fraction", "int_at_least",
            "positive_number", "seed_type", "vis_range_type"]
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line naming the option, exit status 2:
+    ``<prog>: error: --strategy: expected one of 'auto', 'spawn', 'ddp', got 'fsdp'``, like the messages of
+    :class:`~crfdepth.errors.InputError`. A value outside an option's choices is told in these words, not
+    argparse's (whose format changes between Python releases); argparse's ``argument`` prefix is dropped.
+    Sub-parsers made from one are of its class too. The ``crfdepth`` commands and the benchmark scripts use it.
+    """
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message.removeprefix('argument ')}\n")
+
+    def _check_value(self, action: argparse.Action, value: object) -> None:
+        if action.choices is not None and value not in action.choices:
+            raise argparse.ArgumentError(action, f"expected one of {', '.join(map(repr, action.choices))}, "
+                                                 f"got {value!r}")
+
 
 MAX_COUNT = 2**31 - 1
 """Largest value of an integer option without a bound of its own (a count of frames, a window): the largest C

@@ -374,7 +374,7 @@ BAD_INPUT = {
     "missing data folder": (lambda val, tmp: ["--layout", "val_selection", "--data", tmp / "nowhere"],
                             ["dataset folder does not exist", "nowhere"]),
     "no data folder": (lambda val, tmp: ["--layout", "val_selection"], ["--data: a dataset folder is needed"]),
-    "unknown layout": (lambda val, tmp: ["--layout", "kitti", "--data", val], ["invalid choice: 'kitti'"]),
+    "unknown layout": (lambda val, tmp: ["--layout", "kitti", "--data", val], ["got 'kitti'"]),
     "folder of another layout": (lambda val, tmp: ["--layout", "val_selection", "--data",
                                                    val.parents[1] / "depth_completion"],
                                  ["does not match the KittiValSelection layout"]),

@@ -81,7 +81,7 @@ def test_usage_errors_are_one_line_naming_the_option(main, capsys):
     assert err.startswith("crfdepth project: error: the following arguments are required: --calib")
     with pytest.raises(SystemExit):
         main(["project", "--camera", "7"])
-    assert capsys.readouterr().err.startswith("crfdepth project: error: --camera: invalid choice: ")
+    assert capsys.readouterr().err.startswith("crfdepth project: error: --camera: expected one of ")
 
 
 def test_an_unknown_option_is_refused_by_its_command_naming_the_closest(main, capsys):
