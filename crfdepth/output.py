@@ -33,7 +33,9 @@ class CRFOutput:
         ptr: (B + 1,) node offsets of the frames in ``node_depth``.
         graphs: per-frame :class:`~crfdepth.superpixels.graph.SuperpixelGraph` (superpixel mode) or None.
         terms: the :class:`~crfdepth.potentials.energy.EnergyTerms` of the last graph solve, for
-            :func:`crfdepth.potentials.energy.energy`.
+            :func:`crfdepth.potentials.energy.energy`. Built at first access: in pixel mode their edge
+            list (two int64 indices per edge) costs about 6 ms per 1216x352 frame, a tenth of a forward
+            that seldom needs it; the model stores the pixel grid's maps and the property flattens them.
         info: diagnostics of every solve, in order.
         timings: wall-clock seconds per stage (``fill``, ``slic``, ``graph``, ``normals``,
             ``potentials``, ``solve``, ``painting``, ``refine``, ``uncertainty``; those that
@@ -50,10 +52,16 @@ class CRFOutput:
     node_std: torch.Tensor | None
     ptr: torch.Tensor
     graphs: list[SuperpixelGraph] | None
-    terms: EnergyTerms
+    _terms: EnergyTerms | Callable[[], EnergyTerms] | None = field(repr=False)
     info: list[SolveInfo] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     std_features: torch.Tensor | None = None
+
+    @property
+    def terms(self) -> EnergyTerms | None:
+        if callable(self._terms):
+            self._terms = self._terms()
+        return self._terms
 
 
 class Stages:

@@ -85,5 +85,5 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
                                                system_conditional_variance(system)[:, None])
             node_std = std.reshape(-1)
     return CRFOutput(depth, std, pixel_count_uncertainty(sparse), depth.reshape(-1), node_std,
-                     torch.arange(bsz + 1, device=sparse.device) * (h * w), None, t.energy_terms(), infos,
+                     torch.arange(bsz + 1, device=sparse.device) * (h * w), None, t.energy_terms, infos,
                      stage.seconds, features)

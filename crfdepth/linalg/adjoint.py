@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from crfdepth.linalg.cg import conjugate_gradient, conjugate_gradient_squared
+from crfdepth.linalg.cg import KrylovResult, conjugate_gradient, conjugate_gradient_squared
 from crfdepth.linalg.diagnostics import SolveInfo, SolverSettings, report_nonconvergence
 from crfdepth.linalg.multigrid import GridMultigrid
 from crfdepth.linalg.operators import EdgeGraph, PixelGrid
@@ -58,21 +58,72 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     budget = max_iter
     extra = {} if precondition is None else {"precondition": precondition}
     check_every = settings.check_every if precondition is None else 1
+    native = _native_kernels(scaled_matvec, c, settings, precondition)
     for attempt in range(settings.restarts + 1):
-        with torch.inference_mode():  # skips autograd bookkeeping on every operation
-            y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, check_every, **extra)
-        y = y.clone()  # a normal tensor again, usable by autograd
+        if native is not None:  # the same iteration in three fused passes (crfdepth.native)
+            y, res, rel = _native_cg(native, scaled_matvec.grid_weights, c, y, diag_rows, settings, budget, check_every)
+        else:
+            with torch.inference_mode():  # skips autograd bookkeeping on every operation
+                y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, check_every, **extra)
+            y = y.clone()  # a normal tensor again, usable by autograd
+            # True residual of the original system: r = D^1/2 (c - M y).
+            true_res = torch.linalg.vector_norm((c - scaled_matvec(y)) / s, dim=1)
+            rel = torch.where(b_norm > 0, true_res / b_norm.clamp_min(torch.finfo(b_norm.dtype).tiny),
+                              torch.zeros_like(true_res))
         total += res.iterations
-        # True residual of the original system: r = D^1/2 (c - M y).
-        true_res = torch.linalg.vector_norm((c - scaled_matvec(y)) / s, dim=1)
-        rel = torch.where(b_norm > 0, true_res / b_norm.clamp_min(torch.finfo(b_norm.dtype).tiny),
-                          torch.zeros_like(true_res))
         converged = (rel <= settings.rtol) & torch.isfinite(y).all(dim=1)
         budget = max_iter - int(total.max())
         if bool(converged.all()) or budget <= 0 or not bool(res.converged.any()):
             break
     x_rows = y * s * scale
     return x_rows, SolveInfo(settings.method, total, rel, converged, settings.rtol)
+
+
+def _native_kernels(scaled_matvec, c: torch.Tensor, settings: SolverSettings, precondition, grid: bool = False):
+    """The compiled kernels (:mod:`crfdepth.native`) where they can run this solve: Jacobi CG on a pixel
+    grid (``grid``, or an operator with ``grid_weights``), float32 or float64 on the CPU; else None
+    (the eager loop, the reference)."""
+    weights = getattr(scaled_matvec, "grid_weights", None)
+    if not (grid or weights is not None) or precondition is not None or settings.method != "cg":
+        return None
+    if c.device.type != "cpu" or c.dtype not in (torch.float32, torch.float64):
+        return None
+    if weights is not None and any(w.dtype != c.dtype for w in weights):
+        return None
+    from crfdepth.native import kernels
+
+    return kernels()
+
+
+def _native_solve(structure, system: System, x0: torch.Tensor | None, settings: SolverSettings):
+    """``(x, SolveInfo)`` of an undifferentiated Jacobi-CG pixel-grid solve by the compiled kernels
+    (:mod:`crfdepth.native`: the scaling, the iterations and the true residual in a few fused passes),
+    or None where they cannot run it (then the eager path does, the reference)."""
+    if not isinstance(structure, PixelGrid) or _use_multigrid(structure, settings, False):
+        return None
+    tensors = (system.diagonal, system.rhs, *system.weights) + (() if x0 is None else (x0,))
+    if settings.method != "cg" or any(t.device.type != "cpu" or t.dtype != system.rhs.dtype for t in tensors):
+        return None
+    native = _native_kernels(lambda: None, system.rhs, settings, None, grid=True)
+    if native is None:
+        return None
+    max_iter = settings.max_iter if settings.max_iter is not None else _default_max_iter(structure.height * structure.width)
+    x, stats = native.grid_solve(*(t.contiguous() for t in tensors[:4]), None if x0 is None else x0.contiguous(),
+                                 float(settings.rtol), int(max_iter), int(settings.check_every), int(settings.restarts))
+    rel = stats[:, 1].to(system.rhs.dtype)
+    converged = (rel <= settings.rtol) & (stats[:, 2] > 0)
+    return x, SolveInfo(settings.method, stats[:, 0].long(), rel, converged, settings.rtol)
+
+
+def _native_cg(native, weights, c, y, diag_rows, settings: SolverSettings, budget: int, check_every: int):
+    """``(y, KrylovResult, true relative residual)`` of the compiled CG, as the eager loop gives them."""
+    start_zero = y is None
+    y = torch.zeros_like(c) if start_zero else y.contiguous().clone()
+    out = native.grid_cg(*(w.contiguous() for w in weights), c.contiguous(), diag_rows.contiguous(), y,
+                         float(settings.rtol), int(budget), int(check_every), start_zero).to(c.dtype)
+    iterations, recurrence, rel = out[:, 0].long(), out[:, 1], out[:, 2]
+    converged = (recurrence <= settings.rtol) & torch.isfinite(recurrence) & torch.isfinite(y).all(dim=1)
+    return y, KrylovResult(iterations, recurrence, converged), rel
 
 
 def _power_of_two_scale(rows: torch.Tensor) -> torch.Tensor:
@@ -295,6 +346,10 @@ def solve_system(system: System, x0: torch.Tensor | None, settings: SolverSettin
             x = _LaplacianSolve.apply(structure, settings, box, None if x0 is None else x0.detach(), *tensors)
             return x, box[0]
         with torch.no_grad():
+            solved = _native_solve(structure, system, x0, settings)
+            if solved is not None:
+                report_nonconvergence(solved[1], settings, "solve")
+                return solved
             matvec, s_rows, diag_rows, precondition = _scaled_operator(structure, settings, False, system.diagonal,
                                                                        list(system.weights))
             x_rows, info = _krylov_solve(structure, matvec, s_rows, diag_rows, structure.to_rows(system.rhs),

@@ -193,6 +193,7 @@ class PixelGrid:
             out[:, 1:, :].addcmul_(wv, y[:, :-1, :], value=-1.0)
             return out.view(self.batch, -1)
 
+        matvec.grid_weights = (wh, wv)  # the scaled weights, for the fused CG passes (crfdepth.native)
         return matvec
 
     @staticmethod

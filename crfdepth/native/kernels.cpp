@@ -1,0 +1,454 @@
+// Fused CPU kernels of crfdepth (docs/design.md section 4b). Each function does in one pass over
+// memory what the eager path (crfdepth/linalg/cg.py, crfdepth/fill/nearest.py) does in several
+// torch kernels; the eager path is the reference the tests compare against.
+//
+// Built on first use by torch.utils.cpp_extension.load (crfdepth/native/__init__.py). Threads:
+// at::parallel_for, i.e. torch's intra-op pool and torch.get_num_threads().
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+namespace {
+
+constexpr int64_t kGrain = 16;  // rows per task at least
+
+// Partial sums of row blocks, added in block order: the result does not depend on the thread count.
+// The lambdas below copy their pointers into __restrict__ locals: through captured references the
+// compiler must assume every store may change a pointer, and does not vectorise.
+template <typename F>
+double sum_over_rows(int64_t rows, F&& row_sum) {
+  std::vector<double> partial(rows, 0.0);
+  at::parallel_for(0, rows, kGrain, [&](int64_t begin, int64_t end) {
+    for (int64_t r = begin; r < end; ++r) partial[r] = row_sum(r);
+  });
+  double total = 0.0;
+  for (double v : partial) total += v;
+  return total;
+}
+
+constexpr int64_t kChunk = 4096;  // entries per block of the element-wise passes
+
+// One pass over an H x W grid applying M = I - W' (scaled weights wh (H, W-1), wv (H-1, W)) to p,
+// row by row: emit(e, v) receives (M p)_e at flat index e, stores what it needs and returns a term of
+// the sum this returns (summed in T within a row, in double over rows).
+template <typename T, typename Emit>
+double stencil_pass(const T* p_, const T* wh_, const T* wv_, int64_t h, int64_t w, Emit emit) {
+  return sum_over_rows(h, [=](int64_t i) {
+    const T* __restrict__ pr = p_ + i * w;
+    const T* __restrict__ whr = wh_ + i * (w - 1);
+    const T* __restrict__ down = i + 1 < h ? p_ + (i + 1) * w : nullptr;
+    const T* __restrict__ wd = i + 1 < h ? wv_ + i * w : nullptr;
+    const T* __restrict__ up = i > 0 ? p_ + (i - 1) * w : nullptr;
+    const T* __restrict__ wu = i > 0 ? wv_ + (i - 1) * w : nullptr;
+    const int64_t row = i * w;
+    auto edge = [&](int64_t j) {  // a pixel with a neighbour missing
+      T v = pr[j];
+      if (j + 1 < w) v -= whr[j] * pr[j + 1];
+      if (j > 0) v -= whr[j - 1] * pr[j - 1];
+      if (down) v -= wd[j] * down[j];
+      if (up) v -= wu[j] * up[j];
+      return emit(row + j, v);
+    };
+    T acc = edge(0);
+    if (w > 1) acc += edge(w - 1);
+    if (down && up) {
+#pragma omp simd reduction(+ : acc)
+      for (int64_t j = 1; j < w - 1; ++j)
+        acc += emit(row + j, pr[j] - whr[j] * pr[j + 1] - whr[j - 1] * pr[j - 1] - wd[j] * down[j] - wu[j] * up[j]);
+    } else {
+      for (int64_t j = 1; j < w - 1; ++j) acc += edge(j);
+    }
+    return static_cast<double>(acc);
+  });
+}
+
+// q = M p and p . q.
+template <typename T>
+double grid_matvec_dot_one(const T* p, const T* wh, const T* wv, T* q, int64_t h, int64_t w) {
+  return stencil_pass<T>(p, wh, wv, h, w, [=](int64_t e, T v) { q[e] = v; return v * p[e]; });
+}
+
+// r = c - M y and sum D r^2.
+template <typename T>
+double residual_one(const T* y, const T* wh, const T* wv, const T* c, const T* dw, T* r, int64_t h, int64_t w) {
+  return stencil_pass<T>(y, wh, wv, h, w, [=](int64_t e, T v) {
+    const T t = c[e] - v;
+    r[e] = t;
+    return dw[e] * t * t;
+  });
+}
+
+// y += alpha p, r -= alpha q over n entries; returns r . r after the update.
+template <typename T>
+double update_one(T* y_, T* r_, const T* p_, const T* q_, T alpha, int64_t n) {
+  return sum_over_rows((n + kChunk - 1) / kChunk, [=](int64_t b) {
+    T* __restrict__ y = y_;
+    T* __restrict__ r = r_;
+    const T* __restrict__ p = p_;
+    const T* __restrict__ q = q_;
+    const int64_t lo = b * kChunk, hi = std::min(n, lo + kChunk);
+    T acc = 0;
+#pragma omp simd reduction(+ : acc)
+    for (int64_t k = lo; k < hi; ++k) {
+      y[k] += alpha * p[k];
+      const T v = r[k] - alpha * q[k];
+      r[k] = v;
+      acc += v * v;
+    }
+    return static_cast<double>(acc);
+  });
+}
+
+// p = r + beta p over n entries.
+template <typename T>
+void direction_one(T* p_, const T* r_, T beta, int64_t n) {
+  at::parallel_for(0, n, kChunk, [=](int64_t lo, int64_t hi) {
+    T* __restrict__ p = p_;
+    const T* __restrict__ r = r_;
+#pragma omp simd
+    for (int64_t k = lo; k < hi; ++k) p[k] = r[k] + beta * p[k];
+  });
+}
+
+// sum_k a_k b_k over n entries.
+template <typename T>
+double dot_sum(const T* a_, const T* b_, int64_t n) {
+  return sum_over_rows((n + kChunk - 1) / kChunk, [=](int64_t blk) {
+    const T* __restrict__ a = a_;
+    const T* __restrict__ b = b_;
+    const int64_t lo = blk * kChunk, hi = std::min(n, lo + kChunk);
+    T acc = 0;
+#pragma omp simd reduction(+ : acc)
+    for (int64_t k = lo; k < hi; ++k) acc += a[k] * b[k];
+    return static_cast<double>(acc);
+  });
+}
+
+// sum_k d_k a_k^2 over n entries (a norm weighted by D).
+template <typename T>
+double weighted_squares(const T* d_, const T* a_, int64_t n) {
+  return sum_over_rows((n + kChunk - 1) / kChunk, [=](int64_t blk) {
+    const T* __restrict__ d = d_;
+    const T* __restrict__ a = a_;
+    const int64_t lo = blk * kChunk, hi = std::min(n, lo + kChunk);
+    T acc = 0;
+#pragma omp simd reduction(+ : acc)
+    for (int64_t k = lo; k < hi; ++k) acc += d[k] * a[k] * a[k];
+    return static_cast<double>(acc);
+  });
+}
+
+void check_rows(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.device().is_cpu() && t.is_contiguous(), name, ": expected a contiguous CPU tensor");
+}
+
+}  // namespace
+
+// Jacobi-preconditioned CG on G pixel grids, in the scaled form of crfdepth/linalg/cg.py: solves
+// M y = c with M = I - W' (scaled weights wh, wv), y holding the start and receiving the result; the
+// convergence test every check_every iterations is sqrt(sum D r^2) <= rtol sqrt(sum D c^2) on the
+// recurrence's residual, as the eager loop's. Three passes per iteration. Returns (G, 3) float64:
+// iterations, the recurrence's relative residual at the last check, and the true relative residual
+// of the result, sqrt(sum D (c - M y)^2) / sqrt(sum D c^2).
+template <typename T>
+void grid_cg_one(const T* wh, const T* wv, const T* c, const T* dw, T* y, T* r, T* p, T* q, int64_t h, int64_t w,
+                 double rtol, int64_t max_iter, int64_t check_every, bool start_zero, double* out) {
+  const int64_t n = h * w;
+  const double tiny = std::numeric_limits<double>::min();
+  double res = 0.0;
+  if (start_zero) {
+    std::fill(y, y + n, T(0));
+    std::copy(c, c + n, r);
+    res = std::sqrt(weighted_squares<T>(dw, r, n));
+  } else {
+    res = std::sqrt(residual_one<T>(y, wh, wv, c, dw, r, h, w));
+  }
+  const double b_norm = std::sqrt(weighted_squares<T>(dw, c, n));
+  const double threshold = rtol * b_norm;
+  auto relative = [&](double v) {  // NaN when the norm of b is (a broken, numerically singular system)
+    return b_norm > 0 ? v / std::max(b_norm, tiny) : (std::isnan(b_norm) ? b_norm : 0.0);
+  };
+  int64_t iterations = 0;
+  double rel = relative(res);
+  if (res > threshold && std::isfinite(res) && max_iter > 0) {
+    std::copy(r, r + n, p);
+    double rz = dot_sum<T>(r, r, n);
+    for (int64_t it = 1; it <= max_iter; ++it) {
+      const double pq = grid_matvec_dot_one<T>(p, wh, wv, q, h, w);
+      const double alpha = rz / std::max(pq, tiny);
+      const double rr = update_one<T>(y, r, p, q, static_cast<T>(alpha), n);
+      if (it % check_every == 0 || it == max_iter) {
+        res = std::sqrt(weighted_squares<T>(dw, r, n));
+        rel = relative(res);
+        iterations = it;
+        if (!(res > threshold) || !std::isfinite(res)) break;
+      }
+      const double beta = rr / std::max(rz, tiny);
+      rz = rr;
+      direction_one<T>(p, r, static_cast<T>(beta), n);
+    }
+  }
+  const double true_res = std::sqrt(residual_one<T>(y, wh, wv, c, dw, q, h, w));  // in q: r is the recurrence's
+  out[0] = static_cast<double>(iterations);
+  out[1] = rel;
+  out[2] = relative(true_res);
+}
+
+// (G, H, W-1) wh, (G, H-1, W) wv, (G, H*W) c, residual weights dw, start y (in place: the result);
+// start_zero: ignore y's values and start from 0.
+torch::Tensor grid_cg(torch::Tensor wh, torch::Tensor wv, torch::Tensor c, torch::Tensor dw, torch::Tensor y,
+                      double rtol, int64_t max_iter, int64_t check_every, bool start_zero) {
+  for (auto* t : {&wh, &wv, &c, &dw, &y}) check_rows(*t, "grid_cg");
+  const int64_t g = wh.size(0), h = wh.size(1), w = wh.size(2) + 1;
+  auto out = torch::empty({g, 3}, c.options().dtype(torch::kFloat64));
+  auto r = torch::empty_like(c), p = torch::empty_like(c), q = torch::empty_like(c);
+  AT_DISPATCH_FLOATING_TYPES(c.scalar_type(), "grid_cg", [&] {
+    for (int64_t k = 0; k < g; ++k) {
+      const int64_t o = k * h * w;
+      grid_cg_one<scalar_t>(wh.data_ptr<scalar_t>() + k * h * (w - 1), wv.data_ptr<scalar_t>() + k * (h - 1) * w,
+                            c.data_ptr<scalar_t>() + o, dw.data_ptr<scalar_t>() + o, y.data_ptr<scalar_t>() + o,
+                            r.data_ptr<scalar_t>() + o, p.data_ptr<scalar_t>() + o, q.data_ptr<scalar_t>() + o, h, w,
+                            rtol, max_iter, check_every, start_zero, out.data_ptr<double>() + 3 * k);
+    }
+  });
+  return out;
+}
+
+// One grid of grid_solve (outside the dispatch macro: a #pragma cannot stand in a macro's argument).
+template <typename T>
+void grid_solve_one(const T* dk, const T* bk, const T* whk, const T* wvk, const T* x0k, T* xk, T* sv, T* dwv, T* cv,
+                    T* yv, T* whs_k, T* wvs_k, T* r, T* p, T* q, int64_t h, int64_t w, double rtol, int64_t max_iter,
+                    int64_t check_every, int64_t restarts, double* st) {
+  const bool warm = x0k != nullptr;
+  const int64_t n = h * w;
+  // D = d + degree, s = D^-1/2, and the largest |b_i| of each row
+  std::vector<double> peaks(h, 0.0);
+  at::parallel_for(0, h, kGrain, [=, &peaks](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      const T* __restrict__ di = dk + i * w;
+      const T* __restrict__ bi = bk + i * w;
+      const T* __restrict__ whr = whk + i * (w - 1);
+      T* __restrict__ deg = dwv + i * w;
+      T* __restrict__ si = sv + i * w;
+      T row_peak = 0;
+      for (int64_t j = 0; j < w; ++j) deg[j] = di[j];
+      for (int64_t j = 0; j < w - 1; ++j) deg[j] += whr[j];
+      for (int64_t j = 1; j < w; ++j) deg[j] += whr[j - 1];
+      if (i + 1 < h) {
+        const T* __restrict__ wd = wvk + i * w;
+        for (int64_t j = 0; j < w; ++j) deg[j] += wd[j];
+      }
+      if (i > 0) {
+        const T* __restrict__ wu = wvk + (i - 1) * w;
+        for (int64_t j = 0; j < w; ++j) deg[j] += wu[j];
+      }
+      for (int64_t j = 0; j < w; ++j) {
+        si[j] = T(1) / std::sqrt(deg[j]);
+        row_peak = std::max(row_peak, std::abs(bi[j]));
+      }
+      peaks[i] = static_cast<double>(row_peak);
+    }
+  });
+  const double peak = *std::max_element(peaks.begin(), peaks.end());
+  if (peak == 0.0) {  // b = 0: x = 0 exactly
+    std::fill(xk, xk + n, T(0));
+    st[2] = 1.0;
+    return;
+  }
+  int exponent = 0;
+  std::frexp(peak, &exponent);
+  const double scale = std::ldexp(1.0, exponent);  // dividing by it is exact
+  const T inv_scale = static_cast<T>(1.0 / scale);
+  // the scaled weights, right-hand side and start
+  at::parallel_for(0, h, kGrain, [=](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      const T* __restrict__ si = sv + i * w;
+      const T* __restrict__ whr = whk + i * (w - 1);
+      T* __restrict__ out_h = whs_k + i * (w - 1);
+#pragma omp simd
+      for (int64_t j = 0; j < w - 1; ++j) out_h[j] = whr[j] * si[j] * si[j + 1];
+      if (i + 1 < h) {
+        const T* __restrict__ sd = sv + (i + 1) * w;
+        const T* __restrict__ wd = wvk + i * w;
+        T* __restrict__ out_v = wvs_k + i * w;
+#pragma omp simd
+        for (int64_t j = 0; j < w; ++j) out_v[j] = wd[j] * si[j] * sd[j];
+      }
+      const T* __restrict__ bi = bk + i * w;
+      T* __restrict__ ci = cv + i * w;
+#pragma omp simd
+      for (int64_t j = 0; j < w; ++j) ci[j] = (bi[j] * inv_scale) * si[j];
+      if (x0k != nullptr) {
+        const T* __restrict__ xi = x0k + i * w;
+        T* __restrict__ yi = yv + i * w;
+#pragma omp simd
+        for (int64_t j = 0; j < w; ++j) yi[j] = (xi[j] * inv_scale) / si[j];
+      }
+    }
+  });
+  int64_t total = 0;
+  double out[3] = {0.0, 0.0, 0.0};
+  bool start_zero = !warm;
+  for (int64_t attempt = 0; attempt <= restarts; ++attempt) {
+    grid_cg_one<T>(whs_k, wvs_k, cv, dwv, yv, r, p, q, h, w, rtol,
+                   max_iter - total, check_every, start_zero, out);
+    start_zero = false;
+    total += static_cast<int64_t>(out[0]);
+    const bool recurrence_met = out[1] <= rtol && std::isfinite(out[1]);
+    if (out[2] <= rtol || total >= max_iter || !recurrence_met) break;
+  }
+  // x = D^-1/2 y, scaled back; is it finite?
+  const T t_scale = static_cast<T>(scale);
+  std::vector<char> finite(h, 1);
+  at::parallel_for(0, h, kGrain, [=, &finite](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      const T* __restrict__ yi = yv + i * w;
+      const T* __restrict__ si = sv + i * w;
+      T* __restrict__ xi = xk + i * w;
+      T bad = 0;
+#pragma omp simd reduction(+ : bad)
+      for (int64_t j = 0; j < w; ++j) {
+        const T v = yi[j] * si[j] * t_scale;
+        xi[j] = v;
+        bad += v - v;  // NaN where v is NaN or infinite, else 0
+      }
+      finite[i] = bad == 0;
+    }
+  });
+  st[0] = static_cast<double>(total);
+  st[1] = out[2];
+  st[2] = std::all_of(finite.begin(), finite.end(), [](char f) { return f != 0; }) ? 1.0 : 0.0;
+}
+
+// The whole undifferentiated solve of (diag(d) + L(wh, wv)) x = b on G pixel grids, as
+// crfdepth/linalg/adjoint.py's _krylov_solve does it in torch: b scaled by the power of two above its
+// largest |b_i| (exact), the Jacobi scaling M = D^-1/2 A D^-1/2 with D = d + degree, grid_cg_one,
+// restarts from the true residual, and x = D^-1/2 y scaled back. Two passes before the iterations
+// and one after, instead of about twenty. x0 may be undefined (start from 0). Returns x and (G, 3)
+// float64: iterations, the true relative residual ||b - A x|| / ||b||, and 1 where x is finite.
+std::vector<torch::Tensor> grid_solve(torch::Tensor d, torch::Tensor b, torch::Tensor wh, torch::Tensor wv,
+                                      c10::optional<torch::Tensor> x0, double rtol, int64_t max_iter,
+                                      int64_t check_every, int64_t restarts) {
+  for (auto* t : {&d, &b, &wh, &wv}) check_rows(*t, "grid_solve");
+  const int64_t g = b.size(0), h = b.size(1), w = b.size(2), n = h * w;
+  const bool warm = x0.has_value() && x0->defined();
+  if (warm) check_rows(*x0, "grid_solve");
+  auto x = torch::empty_like(b);
+  auto stats = torch::zeros({g, 3}, b.options().dtype(torch::kFloat64));
+  auto whs = torch::empty_like(wh), wvs = torch::empty_like(wv);
+  auto s = torch::empty({h, w}, b.options()), dw = torch::empty({n}, b.options()), c = torch::empty({n}, b.options());
+  auto y = torch::empty({n}, b.options()), r = torch::empty({n}, b.options()), p = torch::empty({n}, b.options()),
+       q = torch::empty({n}, b.options());
+  AT_DISPATCH_FLOATING_TYPES(b.scalar_type(), "grid_solve", [&] {
+    using T = scalar_t;
+    for (int64_t k = 0; k < g; ++k) {
+      grid_solve_one<T>(d.data_ptr<T>() + k * n, b.data_ptr<T>() + k * n, wh.data_ptr<T>() + k * h * (w - 1),
+                        wv.data_ptr<T>() + k * (h - 1) * w, warm ? x0->data_ptr<T>() + k * n : nullptr,
+                        x.data_ptr<T>() + k * n, s.data_ptr<T>(), dw.data_ptr<T>(), c.data_ptr<T>(), y.data_ptr<T>(),
+                        whs.data_ptr<T>() + k * h * (w - 1), wvs.data_ptr<T>() + k * (h - 1) * w, r.data_ptr<T>(),
+                        p.data_ptr<T>(), q.data_ptr<T>(), h, w, rtol, max_iter, check_every, restarts,
+                        stats.data_ptr<double>() + 3 * k);
+    }
+  });
+  return {x, stats};
+}
+
+// The nearest valid pixel of every pixel of (B, H, W) bool frames, exactly (Euclidean), in linear
+// time: a pass down each column (nearest valid row), then along each row the lower envelope of
+// the parabolas s^2 + g(x + s)^2 (Felzenszwalb and Huttenlocher 2012). Returns the flat index
+// row * W + col of that pixel (-1 in a frame without one) and the squared distance, both int64.
+std::vector<torch::Tensor> nearest_valid(torch::Tensor valid) {
+  TORCH_CHECK(valid.device().is_cpu() && valid.is_contiguous() && valid.scalar_type() == torch::kBool,
+              "nearest_valid: expected a contiguous CPU bool tensor");
+  const int64_t b = valid.size(0), h = valid.size(1), w = valid.size(2);
+  const int64_t big = (h + w) * (h + w) + 1;
+  auto index = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));
+  auto squared = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));
+  auto row_of = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));  // nearest valid row of the column
+  const bool* v = valid.data_ptr<bool>();
+  int64_t* idx = index.data_ptr<int64_t>();
+  int64_t* sq = squared.data_ptr<int64_t>();
+  int64_t* rows = row_of.data_ptr<int64_t>();
+  for (int64_t f = 0; f < b; ++f) {
+    const bool* vf = v + f * h * w;
+    int64_t* rf = rows + f * h * w;
+    int64_t* sf = sq + f * h * w;
+    int64_t* xf = idx + f * h * w;
+    // Column pass: g^2 (in sf) and the row it comes from (in rf, -1: none).
+    at::parallel_for(0, w, 64, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        int64_t last = -1;
+        for (int64_t r = 0; r < h; ++r) {
+          if (vf[r * w + c]) last = r;
+          rf[r * w + c] = last;
+        }
+        last = -1;
+        for (int64_t r = h - 1; r >= 0; --r) {
+          if (vf[r * w + c]) last = r;
+          const int64_t above = rf[r * w + c];
+          const int64_t du = above >= 0 ? (r - above) * (r - above) : big;
+          const int64_t dd = last >= 0 ? (last - r) * (last - r) : big;
+          // ties: the row above, as the eager path
+          const bool take_up = du <= dd;
+          rf[r * w + c] = take_up ? above : last;
+          sf[r * w + c] = take_up ? du : dd;
+        }
+      }
+    });
+    // Row pass: lower envelope of the parabolas q -> (x - q)^2 + g^2(q) over columns q with g < big.
+    at::parallel_for(0, h, kGrain, [&](int64_t r0, int64_t r1) {
+      std::vector<int64_t> site(w), gval(w), out_sq(w), out_col(w);
+      std::vector<double> bound(w + 1);
+      for (int64_t r = r0; r < r1; ++r) {
+        int64_t* g = sf + r * w;
+        int64_t* rr = rf + r * w;
+        int64_t k = -1;
+        for (int64_t q = 0; q < w; ++q) {
+          if (g[q] >= big) continue;
+          const double fq = static_cast<double>(g[q]) + static_cast<double>(q) * q;
+          double s = 0.0;
+          while (k >= 0) {
+            const int64_t p = site[k];
+            s = (fq - (static_cast<double>(gval[k]) + static_cast<double>(p) * p)) / (2.0 * (q - p));
+            if (s <= bound[k]) --k; else break;
+          }
+          ++k;
+          site[k] = q;
+          gval[k] = g[q];
+          bound[k] = k == 0 ? -std::numeric_limits<double>::infinity() : s;
+          bound[k + 1] = std::numeric_limits<double>::infinity();
+        }
+        if (k < 0) {  // no valid pixel in the frame reaches this row (the frame has none)
+          for (int64_t x = 0; x < w; ++x) { out_sq[x] = big; out_col[x] = -1; }
+        } else {
+          int64_t j = 0;
+          for (int64_t x = 0; x < w; ++x) {
+            while (bound[j + 1] < static_cast<double>(x)) ++j;
+            const int64_t dx = x - site[j];
+            out_sq[x] = dx * dx + gval[j];
+            out_col[x] = site[j];
+          }
+        }
+        int64_t* xi = xf + r * w;
+        for (int64_t x = 0; x < w; ++x) {
+          const int64_t c = out_col[x];
+          xi[x] = c < 0 ? -1 : rr[c] * w + c;
+          g[x] = out_sq[x];
+        }
+      }
+    });
+  }
+  return {index, squared};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("grid_cg", &grid_cg, "Jacobi-preconditioned CG on pixel grids, scaled form");
+  m.def("grid_solve", &grid_solve, "the whole Jacobi-preconditioned CG solve on pixel grids");
+  m.def("nearest_valid", &nearest_valid, "exact nearest valid pixel and squared distance");
+}
