@@ -7,25 +7,57 @@ builds one by layout name. Sub-modules: :mod:`~crfdepth.data.kitti`,
 :mod:`~crfdepth.data.example` (the own-sensor example files).
 """
 
-from crfdepth.data.factory import LAYOUTS, build_dataset
-from crfdepth.data.kitti import (
-    KittiDepthCompletion,
-    KittiDrive,
-    KittiRawScans,
-    KittiTestCompletion,
-    KittiValSelection,
-    open_completion_folder,
-)
-from crfdepth.data.sample import Batch, Sample, collate_samples
-from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
-from crfdepth.data.transforms import (
-    BottomCenterCrop,
-    Compose,
-    HorizontalFlip,
-    RandomCrop,
-    RandomThinning,
-    SubsampleSparse,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from crfdepth.data.factory import LAYOUTS, build_dataset
+    from crfdepth.data.kitti import (
+        KittiDepthCompletion,
+        KittiDrive,
+        KittiRawScans,
+        KittiTestCompletion,
+        KittiValSelection,
+        open_completion_folder,
+    )
+    from crfdepth.data.sample import Batch, Sample, collate_samples
+    from crfdepth.data.synthetic import EVAL_MAX_DEPTH_M, SyntheticScene, SyntheticScenes, make_scene
+    from crfdepth.data.transforms import (
+        BottomCenterCrop,
+        Compose,
+        HorizontalFlip,
+        RandomCrop,
+        RandomThinning,
+        SubsampleSparse,
+    )
+
+# Where each name lives, imported at its first use (PEP 562): a command that needs only the Sample record
+# (crfdepth.data.sample) does not import every dataset, and with them kornia and SciPy.
+_LAZY = {
+    **dict.fromkeys(["LAYOUTS", "build_dataset"], "crfdepth.data.factory"),
+    **dict.fromkeys(["KittiDepthCompletion", "KittiDrive", "KittiRawScans", "KittiTestCompletion", "KittiValSelection",
+                     "open_completion_folder"], "crfdepth.data.kitti"),
+    **dict.fromkeys(["Batch", "Sample", "collate_samples"], "crfdepth.data.sample"),
+    **dict.fromkeys(["EVAL_MAX_DEPTH_M", "SyntheticScene", "SyntheticScenes", "make_scene"], "crfdepth.data.synthetic"),
+    **dict.fromkeys(["BottomCenterCrop", "Compose", "HorizontalFlip", "RandomCrop", "RandomThinning", "SubsampleSparse"],
+                    "crfdepth.data.transforms"),
+}
+
+
+def __getattr__(name: str):
+    """The name ``name`` of :data:`_LAZY`, imported from its module at first use and kept here."""
+    if name not in _LAZY:
+        raise AttributeError(f"module 'crfdepth.data' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "EVAL_MAX_DEPTH_M",

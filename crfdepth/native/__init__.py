@@ -35,7 +35,7 @@ __all__ = ["kernels", "enabled", "cache_dir", "eager"]
 
 log = logging.getLogger("crfdepth")
 
-_SOURCE = Path(__file__).with_name("kernels.cpp")
+_SOURCES = sorted(Path(__file__).parent.glob("*.cpp"))  # kernels.cpp holds the module definition
 _OFF = ("0", "off", "false", "no")
 _state: dict[str, ModuleType | None] = {}
 _eager_depth = [0]  # > 0 inside `with eager():`
@@ -60,7 +60,7 @@ def _vector_flags() -> list[str]:
 
 
 def _build_key() -> tuple[str, str]:
-    source = _SOURCE.read_bytes() + " ".join(_vector_flags()).encode()
+    source = b"".join(path.read_bytes() for path in _SOURCES) + " ".join(_vector_flags()).encode()
     digest = hashlib.sha256(source + torch.__version__.encode() + sys.version.encode()).hexdigest()[:12]
     tag = f"torch{torch.__version__.replace('+', '_')}-py{sys.version_info[0]}{sys.version_info[1]}-{digest}"
     return f"crfdepth_kernels_{digest}", tag
@@ -89,7 +89,7 @@ def _compile(name: str, target: Path) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(fd)
-    command = [compiler, "-O3", *_vector_flags(), "-shared", "-fPIC", "-std=c++17", "-fopenmp", "-w", str(_SOURCE), "-o", tmp,
+    command = [compiler, "-O3", *_vector_flags(), "-shared", "-fPIC", "-std=c++17", "-fopenmp", "-w", *map(str, _SOURCES), "-o", tmp,
                f"-I{include}", f"-I{include / 'torch' / 'csrc' / 'api' / 'include'}", f"-I{python_include}",
                f"-D_GLIBCXX_USE_CXX11_ABI={abi}", f"-DTORCH_EXTENSION_NAME={name}", "-DTORCH_API_INCLUDE_EXTENSION_H",
                f"-L{lib}", "-lc10", "-ltorch", "-ltorch_cpu", "-ltorch_python", f"-Wl,-rpath,{lib}"]

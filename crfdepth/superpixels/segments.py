@@ -12,7 +12,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-from skimage.segmentation import relabel_sequential, slic
 
 from crfdepth.checks import check_choice, describe
 from crfdepth.errors import InputError
@@ -178,6 +177,8 @@ def slic_segments(
             convert2lab=convert2lab,
         )
     rgb = tensor.detach().to("cpu", torch.float32).permute(1, 2, 0).contiguous().numpy()
+    from skimage.segmentation import relabel_sequential, slic  # at first use: SciPy's import is 0.2 s
+
     segments = slic(
         rgb,
         n_segments=n_segments,

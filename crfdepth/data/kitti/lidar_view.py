@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 from crfdepth.errors import InputError
 
@@ -61,6 +60,8 @@ def lift_to_velodyne(v: np.ndarray, u: np.ndarray, depth: np.ndarray, calib: Cal
 def _fill(target: np.ndarray, radius: float) -> np.ndarray:
     """``target`` with each empty pixel within ``radius`` pixels of an annotated one given that one's depth."""
     empty = target <= 0
+    from scipy.ndimage import distance_transform_edt  # at first use: SciPy's import is 0.1 s
+
     distance, (iv, iu) = distance_transform_edt(empty, return_indices=True)
     return np.where(distance <= radius, target[iv, iu], 0.0)
 
