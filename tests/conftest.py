@@ -7,6 +7,15 @@ import numpy as np
 import pytest
 
 
+@pytest.fixture(scope="session", autouse=True)
+def native_kernels_built():
+    """crfdepth's compiled kernels built (or found missing) once, before any test: the first build takes about
+    25 s and logs one line, which must not land in the output of whichever test happens to be first."""
+    from crfdepth import native
+
+    native.kernels()
+
+
 @pytest.fixture(scope="session")
 def kitti_root() -> Path:
     """The real KITTI sample frames, ``../shared/data/kitti`` next to the repository."""

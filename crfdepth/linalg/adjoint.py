@@ -59,9 +59,17 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     extra = {} if precondition is None else {"precondition": precondition}
     check_every = settings.check_every if precondition is None else 1
     native = _native_kernels(scaled_matvec, c, settings, precondition)
+    native_mg = None
+    if precondition is not None:  # the multigrid V-cycle and CG fused (crfdepth/native/multigrid.cpp)
+        from crfdepth.linalg import multigrid
+
+        native_mg = multigrid.native_kernels(precondition, scaled_matvec, c)
     for attempt in range(settings.restarts + 1):
         if native is not None:  # the same iteration in three fused passes (crfdepth.native)
             y, res, rel = _native_cg(native, scaled_matvec.grid_weights, c, y, diag_rows, settings, budget, check_every)
+        elif native_mg is not None:
+            y, res, rel = multigrid.native_cg(native_mg, precondition, scaled_matvec.grid_weights, c, y, diag_rows,
+                                              settings.rtol, budget)
         else:
             with torch.inference_mode():  # skips autograd bookkeeping on every operation
                 y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, check_every, **extra)
@@ -320,6 +328,7 @@ def _scaled_multigrid(cycle: GridMultigrid, sqrt_diag_rows: torch.Tensor):
     def precondition(r_rows: torch.Tensor) -> torch.Tensor:
         return sqrt_diag_rows * cycle((sqrt_diag_rows * r_rows).view(shape)).reshape(r_rows.shape)
 
+    precondition.multigrid = (cycle, sqrt_diag_rows)  # for the compiled loop (multigrid.native_kernels)
     return precondition
 
 

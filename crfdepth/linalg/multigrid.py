@@ -18,12 +18,19 @@ On the KITTI val frame's refinement system (1216 x 352, float64, one CPU thread)
 the CG iterations of the differentiated forward solve (rtol 1e-8, warm start) from 200 to
 21 and of the adjoint (rtol 1e-5, zero start) from 216 to 25; one iteration costs about
 four Jacobi-CG iterations (two grid products per cycle, plus the coarse levels).
+
+Where the compiled kernels run (:mod:`crfdepth.native`, float32 / float64 on the CPU), the whole preconditioned CG
+runs in crfdepth/native/multigrid.cpp (:func:`native_cg`: three fused passes an iteration instead of about a hundred
+torch kernels, about 4x faster on 2 threads at 320 x 896); the levels built here are its input, and this eager cycle
+remains the reference.
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+
+from crfdepth.linalg.cg import KrylovResult
 
 OMEGA = 0.8  # Jacobi damping; 0.6 and 1.0 took more CG iterations on the KITTI frame (1.0: 3.5x)
 COARSEST_NODES = 512  # per image: the coarsest level is solved by a dense (n, n) inverse
@@ -34,11 +41,18 @@ def _factors(height: int, width: int) -> tuple[int, int]:
 
 
 def _block_sum(t: torch.Tensor, fh: int, fw: int) -> torch.Tensor:
-    """(B, H, W) -> (B, ceil(H / fh), ceil(W / fw)) sums over fh x fw blocks (zero padding)."""
+    """(B, H, W) -> (B, ceil(H / fh), ceil(W / fw)) sums over fh x fw blocks (zero padding): rows, then columns
+    (strided adds, as :meth:`_Level.restrict`; several times faster than a sum over the block's dims)."""
     b, h, w = t.shape
     h2, w2 = -(-h // fh), -(-w // fw)
-    t = F.pad(t, (0, w2 * fw - w, 0, h2 * fh - h))
-    return t.view(b, h2, fh, w2, fw).sum((2, 4))
+    t = F.pad(t, (0, w2 * fw - w, 0, h2 * fh - h)).contiguous()
+    if fh == 2:
+        t = t.view(b, h2, 2 * w2 * fw)
+        t = t[:, :, :w2 * fw] + t[:, :, w2 * fw:]
+    if fw == 2:
+        t = t.reshape(b, h2, w2, 2)
+        t = t[..., 0] + t[..., 1]
+    return t.reshape(b, h2, w2)
 
 
 def coarsen(d: torch.Tensor, weight_h: torch.Tensor, weight_v: torch.Tensor):
@@ -134,6 +148,7 @@ class GridMultigrid:
             d, weight_h, weight_v = coarsen(d, weight_h, weight_v)
             self.levels.append(_Level(d, weight_h, weight_v))
         self.coarse_inverse = self._dense_inverse(self.levels[-1])
+        self._native: tuple[list[torch.Tensor], torch.Tensor] | None = None  # native_levels(), built once
 
     @staticmethod
     def _dense_inverse(level: _Level) -> torch.Tensor:
@@ -169,3 +184,47 @@ class GridMultigrid:
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
         return self._cycle(0, r)
+
+    def native_levels(self) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The compiled V-cycle's arguments (crfdepth/native/multigrid.cpp): ``[diag, omega / diag, weight_h,
+        weight_v]`` of every level below the finest (which runs in the scaled form of CG), contiguous, and the
+        coarsest level's (B, n, n) float64 inverse."""
+        if self._native is None:
+            tensors = [t.contiguous() for level in self.levels[1:]
+                       for t in (level.diag, level.jacobi, level.weight_h, level.weight_v)]
+            self._native = (tensors, self.coarse_inverse.contiguous())
+        return self._native
+
+
+def native_kernels(precondition, scaled_matvec, c: torch.Tensor):
+    """The compiled kernels (:mod:`crfdepth.native`) where they can run CG preconditioned by ``precondition``: the
+    V-cycle of ``adjoint._scaled_multigrid`` (its ``multigrid`` attribute) on a pixel grid's scaled operator,
+    float32 or float64 tensors on the CPU; else None (the eager loop, the reference)."""
+    state = getattr(precondition, "multigrid", None)
+    weights = getattr(scaled_matvec, "grid_weights", None)
+    if state is None or weights is None or c.device.type != "cpu" or c.dtype not in (torch.float32, torch.float64):
+        return None
+    cycle, sqrt_diag_rows = state
+    levels, inverse = cycle.native_levels()
+    tensors = (*weights, sqrt_diag_rows, *levels)
+    if any(t.dtype != c.dtype or t.device.type != "cpu" for t in tensors) or inverse.dtype != torch.float64:
+        return None
+    from crfdepth.native import kernels
+
+    return kernels()
+
+
+def native_cg(native, precondition, weights, c: torch.Tensor, y: torch.Tensor | None, diag_rows: torch.Tensor,
+              rtol: float, budget: int):
+    """``(y, KrylovResult, true relative residual)`` of the compiled multigrid-preconditioned CG (a convergence
+    check after every iteration), as the eager loop gives them; ``y`` None: from zero."""
+    cycle, sqrt_diag_rows = precondition.multigrid
+    levels, inverse = cycle.native_levels()
+    start_zero = y is None
+    y = torch.zeros_like(c) if start_zero else y.contiguous().clone()
+    out = native.grid_mg_cg(*(w.contiguous() for w in weights), c.contiguous(), diag_rows.contiguous(),
+                            sqrt_diag_rows.contiguous(), y, levels, inverse, OMEGA, float(rtol), int(budget),
+                            start_zero).to(c.dtype)
+    iterations, recurrence, rel = out[:, 0].long(), out[:, 1], out[:, 2]
+    converged = (recurrence <= rtol) & torch.isfinite(recurrence) & torch.isfinite(y).all(dim=1)
+    return y, KrylovResult(iterations, recurrence, converged), rel

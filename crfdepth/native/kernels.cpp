@@ -380,24 +380,34 @@ std::vector<torch::Tensor> nearest_valid(torch::Tensor valid) {
     int64_t* rf = rows + f * h * w;
     int64_t* sf = sq + f * h * w;
     int64_t* xf = idx + f * h * w;
-    // Column pass: g^2 (in sf) and the row it comes from (in rf, -1: none).
-    at::parallel_for(0, w, 64, [&](int64_t c0, int64_t c1) {
-      for (int64_t c = c0; c < c1; ++c) {
-        int64_t last = -1;
-        for (int64_t r = 0; r < h; ++r) {
-          if (vf[r * w + c]) last = r;
-          rf[r * w + c] = last;
+    // Column pass: g^2 (in sf) and the row it comes from (in rf, -1: none), row after row over a block
+    // of columns (memory in order; the inner loops vectorise).
+    at::parallel_for(0, w, 256, [=](int64_t c0, int64_t c1) {
+      std::vector<int64_t> last(c1 - c0, -1);
+      int64_t* __restrict__ lv = last.data();
+      for (int64_t r = 0; r < h; ++r) {
+        const bool* __restrict__ vr = vf + r * w + c0;
+        int64_t* __restrict__ rr = rf + r * w + c0;
+#pragma omp simd
+        for (int64_t c = 0; c < c1 - c0; ++c) {
+          lv[c] = vr[c] ? r : lv[c];
+          rr[c] = lv[c];
         }
-        last = -1;
-        for (int64_t r = h - 1; r >= 0; --r) {
-          if (vf[r * w + c]) last = r;
-          const int64_t above = rf[r * w + c];
+      }
+      std::fill(last.begin(), last.end(), -1);
+      for (int64_t r = h - 1; r >= 0; --r) {
+        const bool* __restrict__ vr = vf + r * w + c0;
+        int64_t* __restrict__ rr = rf + r * w + c0;
+        int64_t* __restrict__ sr = sf + r * w + c0;
+#pragma omp simd
+        for (int64_t c = 0; c < c1 - c0; ++c) {
+          lv[c] = vr[c] ? r : lv[c];
+          const int64_t above = rr[c], below = lv[c];
           const int64_t du = above >= 0 ? (r - above) * (r - above) : big;
-          const int64_t dd = last >= 0 ? (last - r) * (last - r) : big;
-          // ties: the row above, as the eager path
-          const bool take_up = du <= dd;
-          rf[r * w + c] = take_up ? above : last;
-          sf[r * w + c] = take_up ? du : dd;
+          const int64_t dd = below >= 0 ? (below - r) * (below - r) : big;
+          const bool take_up = du <= dd;  // ties: the row above, as the eager path and SciPy
+          rr[c] = take_up ? above : below;
+          sr[c] = take_up ? du : dd;
         }
       }
     });
@@ -447,7 +457,11 @@ std::vector<torch::Tensor> nearest_valid(torch::Tensor valid) {
   return {index, squared};
 }
 
+void register_multigrid(pybind11::module& m);
+void register_potentials(pybind11::module& m);
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  register_multigrid(m);
+  register_potentials(m);
   m.def("grid_cg", &grid_cg, "Jacobi-preconditioned CG on pixel grids, scaled form");
   m.def("grid_solve", &grid_solve, "the whole Jacobi-preconditioned CG solve on pixel grids");
   m.def("nearest_valid", &nearest_valid, "exact nearest valid pixel and squared distance");

@@ -296,6 +296,20 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         w = w * gate[:, 0]
     if factors is not None:
         w = w * factors[0][:, 0]
+    fused = _fused_affinities(image, K, geometry, weights)
+    if fused is not None:
+        colour, normal, distance = fused
+    else:
+        colour, normal, distance = _affinities(image, K, geometry, weights)
+    return GridTerms(alpha=weights.alpha, beta=weights.beta, gamma=weights.gamma, delta=weights.delta, eps=eps,
+                     z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
+                     colour=colour, normal=normal, distance=distance,
+                     edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
+
+
+def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights
+                ) -> tuple[Pair, Pair | None, Pair | None]:
+    """The colour, normal and 3D-distance :data:`Pair` of :func:`grid_potentials` (None: off), in torch."""
     colour = tuple(gaussian_affinity(q, weights.sigma_d) for q in grid_pairs(image, "squared_distance"))
     normal = distance = None
     if geometry is not None:
@@ -305,10 +319,34 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         if weights.delta is not None:
             points = camera_points(geometry[:, 0], K)
             distance = tuple(gaussian_affinity(q, weights.sigma_p) for q in grid_pairs(points, "squared_distance"))
-    return GridTerms(alpha=weights.alpha, beta=weights.beta, gamma=weights.gamma, delta=weights.delta, eps=eps,
-                     z=to_unknown(s, variable), prior=to_unknown(prior[:, 0], variable), w=w,
-                     colour=colour, normal=normal, distance=distance,
-                     edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
+    return colour, normal, distance
+
+
+def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights
+                      ) -> tuple[Pair, Pair | None, Pair | None] | None:
+    """:func:`_affinities` by the compiled kernels (:mod:`crfdepth.native`: the normals and all three
+    affinities in four passes instead of about sixty torch kernels) where they can compute them: no
+    gradient needed, CPU tensors of one dtype, H, W >= 2; else None (torch computes them, the reference)."""
+    tensors = [image, K, weights.sigma_d, weights.sigma_n, weights.sigma_p] + ([] if geometry is None else [geometry])
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return None
+    if any(t.device.type != "cpu" for t in tensors) or image.dtype not in (torch.float32, torch.float64):
+        return None
+    if min(image.shape[-2:]) < 2 or (geometry is not None and geometry.dtype != image.dtype):
+        return None
+    from crfdepth.native import kernels
+
+    native = kernels()
+    if native is None:
+        return None
+    normal_on = geometry is not None and weights.gamma is not None
+    distance_on = geometry is not None and weights.delta is not None
+    depth = image.new_empty(0) if geometry is None else geometry[:, 0].contiguous()
+    sigmas = [float(sigma.detach()) ** 2 for sigma in (weights.sigma_d, weights.sigma_n, weights.sigma_p)]
+    ch, cv, nh, nv, dh, dv = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, normal_on, distance_on)
+    for exponent in (ch, cv, nh, nv, dh, dv):
+        exponent.exp_()
+    return (ch, cv), ((nh, nv) if normal_on else None), ((dh, dv) if distance_on else None)
 
 
 def grid_system(t: GridTerms) -> System:

@@ -263,7 +263,6 @@ def _at(p: _Patches, other_grey, b, u, r, disparity) -> torch.Tensor:
     x = (u[:, None].to(o.dtype) - disparity[:, None] + o[None]).clamp(0, w - 1)  # (n, w)
     out = torch.empty(len(u), dtype=other_grey.dtype, device=u.device)
     from kornia.geometry.transform import remap  # at first use: kornia's import is 0.2 s
-
     for frame in torch.unique(b).tolist():
         sel = torch.nonzero(b == frame).flatten()
         n = len(sel)

@@ -1,0 +1,70 @@
+"""The compiled affinities (crfdepth.native, potentials.cpp) against grid_potentials' torch path, their reference."""
+
+import pytest
+import torch
+
+from crfdepth import native
+from crfdepth.data.synthetic import make_scene
+from crfdepth.fill.nearest import nearest_fill
+from crfdepth.model import CRFDepth
+from crfdepth.potentials import energy
+
+
+@pytest.fixture(scope="module")
+def kernels():
+    module = native.kernels()
+    if module is None:
+        pytest.skip("crfdepth's compiled kernels cannot be built here (see the logged reason)")
+    return module
+
+
+def _frames(dtype, batch: int = 2, size: tuple[int, int] = (48, 64)):
+    scenes = [make_scene(seed, *size).to_tensors() for seed in range(batch)]
+    image = torch.stack([s["image"] for s in scenes]).to(dtype)
+    sparse = torch.stack([s["sparse"] for s in scenes]).to(dtype)
+    K = torch.stack([s["K"] for s in scenes]).to(dtype)
+    K[1, 0, 1] = 0.7  # a skewed camera in the batch
+    geometry = nearest_fill(sparse)
+    geometry[0, 0, 5:9, 10:14] = 0.0  # pixels without depth: no normal there
+    return image, K, geometry
+
+
+@pytest.mark.parametrize("dtype, atol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("size", [(48, 64), (2, 9), (7, 2), (2, 2)])
+def test_compiled_affinities_equal_the_torch_ones(kernels, dtype, atol, size):
+    image, K, geometry = _frames(dtype, size=size)
+    weights = CRFDepth.from_pretrained("kitti").to(dtype).potential_weights()
+    with torch.no_grad():
+        fused = energy._fused_affinities(image, K, geometry, weights)
+        reference = energy._affinities(image, K, geometry, weights)
+        first_round = energy._fused_affinities(image, K, None, weights)
+    assert fused is not None and first_round is not None and first_round[1] is None and first_round[2] is None
+    for got, want in zip(fused, reference):
+        for a, b in zip(got, want):
+            assert a.shape == b.shape and a.dtype == b.dtype
+            torch.testing.assert_close(a, b, atol=atol, rtol=0)
+    torch.testing.assert_close(first_round[0][0], reference[0][0], atol=atol, rtol=0)
+
+
+def test_with_gradients_the_torch_path_runs(kernels):
+    image, K, geometry = _frames(torch.float64)
+    weights = CRFDepth.from_pretrained("kitti").double().potential_weights()
+    geometry.requires_grad_(True)
+    assert energy._fused_affinities(image, K, geometry, weights) is None  # the training path: differentiable
+    with torch.no_grad():
+        assert energy._fused_affinities(image, K, geometry, weights) is not None
+
+
+def test_the_model_gives_the_same_depth_with_and_without_the_kernels(kernels):
+    scene = make_scene(3).to_tensors()
+    image, sparse, K = scene["image"][None], scene["sparse"][None], scene["K"][None]
+    model = CRFDepth.from_pretrained("kitti").eval()
+    with torch.inference_mode():
+        fast = model(image, sparse, K, return_std=True)
+        with native.eager():
+            reference = model(image, sparse, K, return_std=True)
+    # both stop their CG at rtol 1e-5 with sums in another order: the same answer to a few millimetres
+    difference = (fast.depth - reference.depth).abs()
+    assert float(difference.max()) < 0.05 and float(difference.quantile(0.99)) < 0.005
+    assert float((fast.std / reference.std - 1).abs().max()) < 0.01
+    assert [int(i.iterations) for i in fast.info] == pytest.approx([int(i.iterations) for i in reference.info], abs=8)
