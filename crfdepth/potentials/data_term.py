@@ -15,9 +15,9 @@ import torch
 
 from crfdepth.config import PRIORS
 from crfdepth.fill.ip_basic import ip_basic_fill
-from crfdepth.fill.nearest import nearest_fill
+from crfdepth.fill.nearest import trusted_nearest_fill
 from crfdepth.potentials.energy import Variable, to_unknown
-from crfdepth.potentials.occlusion import gate_or_fallback
+from crfdepth.potentials.occlusion import trusted_gate
 
 __all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
 
@@ -41,9 +41,9 @@ def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor]
     """
     g, kept = None, sparse
     if gate is not None:
-        g = gate_or_fallback(sparse, gate[0], gate[1], window=window).gate
+        g = trusted_gate(sparse, gate[0], gate[1], window).gate  # sparse checked by the model
         kept = torch.where(g.detach() >= 0.5, sparse, torch.zeros_like(sparse))
-    fill = nearest_fill(kept) if prior == "nearest" else ip_basic_fill(kept)
+    fill = trusted_nearest_fill(kept) if prior == "nearest" else ip_basic_fill(kept)
     return g, kept, fill
 
 

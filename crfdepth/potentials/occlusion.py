@@ -214,6 +214,11 @@ def occlusion_gate(sparse: torch.Tensor, threshold, softness, *,
     window = _check_window(window)
     t = check_scalar_tensor("threshold", threshold, sparse, positive=True, ref_name="sparse")
     s = check_scalar_tensor("softness", softness, sparse, positive=True, ref_name="sparse")
+    return _soft_gate(sparse, t, s, window)
+
+
+def _soft_gate(sparse: torch.Tensor, t: torch.Tensor, s: torch.Tensor, window: int) -> torch.Tensor:
+    """:func:`occlusion_gate` of checked arguments."""
     r = _residual(sparse, window).flatten()
     at = torch.nonzero(sparse.detach().flatten() > 0).flatten()  # the returns; 1 elsewhere
     g = torch.exp(F.logsigmoid((t - r[at]) / s) - F.logsigmoid(t / s))
@@ -249,11 +254,22 @@ def gate_or_fallback(sparse: torch.Tensor, threshold, softness, *, window: int =
     """
     gate = occlusion_gate(sparse, threshold, softness, window=window)
     min_kept_share = float(check_number("min_kept_share", min_kept_share, low=0.0, high=1.0))
+    if weight is not None:
+        weight = check_map("weight", weight, ref=sparse, channels=1, ref_name="sparse", nonneg=True)
+    return _with_fallback(sparse, gate, weight, min_kept_share)
+
+
+def trusted_gate(sparse: torch.Tensor, threshold, softness, window: int) -> GateResult:
+    """:func:`gate_or_fallback` of arguments the caller has checked (the model's: its checked input and its
+    own positive parameters), without checking them again (two passes over the map less per frame)."""
+    t, s = (torch.as_tensor(v, dtype=sparse.dtype, device=sparse.device) for v in (threshold, softness))
+    return _with_fallback(sparse, _soft_gate(sparse, t, s, window), None, MIN_KEPT_SHARE)
+
+
+def _with_fallback(sparse: torch.Tensor, gate: torch.Tensor, weight: torch.Tensor | None,
+                   min_kept_share: float) -> GateResult:
     valid = (sparse.detach() > 0).to(gate.dtype)
-    if weight is None:
-        w = valid
-    else:
-        w = check_map("weight", weight, ref=sparse, channels=1, ref_name="sparse", nonneg=True).detach() * valid
+    w = valid if weight is None else weight.detach() * valid
     full = w.sum(dim=(1, 2, 3))
     kept = (w * gate.detach()).sum(dim=(1, 2, 3))
     fell = (full > 0) & (kept < min_kept_share * full)
@@ -263,6 +279,6 @@ def gate_or_fallback(sparse: torch.Tensor, threshold, softness, *, window: int =
                 f"occlusion gate: frame {b} would keep {float(kept[b]):.4g} of {float(full[b]):.4g} data weight "
                 f"({float(kept[b] / full[b]):.1%} < min_kept_share {min_kept_share:g}, "
                 f"{int(valid[b].sum())} returns); using gate 1 for this frame",
-                OcclusionFallbackWarning, stacklevel=2)
+                OcclusionFallbackWarning, stacklevel=3)
         gate = torch.where(fell.view(-1, 1, 1, 1), torch.ones_like(gate), gate)
     return GateResult(gate, fell)
