@@ -9,8 +9,8 @@ import pytest
 
 @pytest.fixture(scope="session", autouse=True)
 def native_kernels_built():
-    """crfdepth's compiled kernels built (or found missing) once, before any test: the first build takes about
-    25 s and logs one line, which must not land in the output of whichever test happens to be first."""
+    """crfdepth's compiled kernels built (or found missing) once, before any test: the first build takes up to a
+    minute and logs one line, which must not land in the output of whichever test happens to be first."""
     from crfdepth import native
 
     native.kernels()

@@ -8,7 +8,8 @@ loads them; a later process loads the cached library directly (no compiler, no b
 imported). Where nothing can be built (no compiler, no Python headers, another platform) the
 eager path runs and one log line says so.
 
-- First call: about 20 s of compiling, once per machine, torch release and source version.
+- First call: 25-60 s of compiling (three sources, one compiler process), once per machine, torch release and
+  source version.
 - Cache: ``$CRFDEPTH_CACHE`` or ``~/.cache/crfdepth``, under ``kernels/<torch>-<python>-<source hash>/``.
 - ``CRFDEPTH_NATIVE=0`` (or ``off``, ``false``, ``no``) turns them off: the eager path only.
 """
@@ -115,7 +116,7 @@ def _build_or_load() -> ModuleType | None:
     target = cache_dir() / tag / f"{name}.so"
     try:
         if not target.exists():
-            log.warning("crfdepth: building its compiled CPU kernels once (about 20 s) into %s", target.parent)
+            log.warning("crfdepth: building its compiled CPU kernels once (under a minute) into %s", target.parent)
             _compile(name, target)
         return _load(name, target)
     except Exception as err:  # any failure to build or load: the eager path is always there
