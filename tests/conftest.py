@@ -16,6 +16,17 @@ def native_kernels_built():
     native.kernels()
 
 
+@pytest.fixture
+def kernels():
+    """crfdepth's compiled kernels, or a skip where they cannot be built here (the reason is logged)."""
+    from crfdepth import native
+
+    module = native.kernels()
+    if module is None:
+        pytest.skip("crfdepth's compiled kernels cannot be built here (see the logged reason)")
+    return module
+
+
 @pytest.fixture(scope="session")
 def kitti_root() -> Path:
     """The real KITTI sample frames, ``../shared/data/kitti`` next to the repository."""

@@ -62,15 +62,19 @@ def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
     if frames.device.type != "cpu":
         return fill_on_device(frames.detach()).reshape(sparse.shape)
     native = kernels()
-    if native is not None:  # the same exact search in one pass per axis (crfdepth.native)
-        return _native_fill(native, frames, sparse)
+    filled = None if native is None else _native_fill(native, frames, sparse)  # one pass per axis (crfdepth.native)
+    if filled is not None:
+        return filled
     host = frames.to("cpu").numpy()
     filled = np.stack([_fill_frame(frame) for frame in host])
     return torch.from_numpy(filled).to(device=sparse.device, dtype=sparse.dtype).reshape(sparse.shape)
 
 
-def _native_fill(native, frames: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
-    index, _ = native.nearest_valid((frames > 0).contiguous())
+def _native_fill(native, frames: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor | None:
+    found = native.nearest_valid((frames > 0).contiguous())
+    if found is None:  # the kernel failed (told in a warning)
+        return None
+    index, _ = found
     filled = torch.gather(frames.detach().flatten(1), 1, index.flatten(1))
     return filled.to(sparse.dtype).reshape(sparse.shape)
 
@@ -81,4 +85,5 @@ def trusted_nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
     native = kernels() if sparse.device.type == "cpu" else None
     if native is None or not bool((sparse > 0).flatten(1).any(1).all()):
         return nearest_fill(sparse)
-    return _native_fill(native, sparse[:, 0], sparse)
+    filled = _native_fill(native, sparse[:, 0], sparse)
+    return nearest_fill(sparse) if filled is None else filled

@@ -65,11 +65,14 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
 
         native_mg = multigrid.native_kernels(precondition, scaled_matvec, c)
     for attempt in range(settings.restarts + 1):
+        step = None  # (y, KrylovResult, relative residual) of a compiled loop; None: it failed or cannot run
         if native is not None:  # the same iteration in three fused passes (crfdepth.native)
-            y, res, rel = _native_cg(native, scaled_matvec.grid_weights, c, y, diag_rows, settings, budget, check_every)
+            step = _native_cg(native, scaled_matvec.grid_weights, c, y, diag_rows, settings, budget, check_every)
         elif native_mg is not None:
-            y, res, rel = multigrid.native_cg(native_mg, precondition, scaled_matvec.grid_weights, c, y, diag_rows,
-                                              settings.rtol, budget)
+            step = multigrid.native_cg(native_mg, precondition, scaled_matvec.grid_weights, c, y, diag_rows,
+                                       settings.rtol, budget)
+        if step is not None:
+            y, res, rel = step
         else:
             with torch.inference_mode():  # skips autograd bookkeeping on every operation
                 y, res = krylov(scaled_matvec, c, y, diag_rows, settings.rtol, budget, check_every, **extra)
@@ -87,16 +90,21 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     return x_rows, SolveInfo(settings.method, total, rel, converged, settings.rtol)
 
 
-def _native_kernels(scaled_matvec, c: torch.Tensor, settings: SolverSettings, precondition, grid: bool = False):
+def _native_kernels(scaled_matvec, c: torch.Tensor, settings: SolverSettings, precondition):
     """The compiled kernels (:mod:`crfdepth.native`) where they can run this solve: Jacobi CG on a pixel
-    grid (``grid``, or an operator with ``grid_weights``), float32 or float64 on the CPU; else None
-    (the eager loop, the reference)."""
+    grid's operator (its ``grid_weights``), float32 or float64 on the CPU; else None (the eager loop,
+    the reference)."""
     weights = getattr(scaled_matvec, "grid_weights", None)
-    if not (grid or weights is not None) or precondition is not None or settings.method != "cg":
+    if weights is None or precondition is not None or settings.method != "cg":
         return None
-    if c.device.type != "cpu" or c.dtype not in (torch.float32, torch.float64):
+    return _cpu_kernels(c, *weights)
+
+
+def _cpu_kernels(*tensors: torch.Tensor):
+    """The compiled kernels where ``tensors`` are CPU tensors of one dtype, float32 or float64; else None."""
+    if tensors[0].dtype not in (torch.float32, torch.float64):
         return None
-    if weights is not None and any(w.dtype != c.dtype for w in weights):
+    if any(t.device.type != "cpu" or t.dtype != tensors[0].dtype for t in tensors):
         return None
     from crfdepth.native import kernels
 
@@ -110,14 +118,15 @@ def _native_solve(structure, system: System, x0: torch.Tensor | None, settings: 
     if not isinstance(structure, PixelGrid) or _use_multigrid(structure, settings, False):
         return None
     tensors = (system.diagonal, system.rhs, *system.weights) + (() if x0 is None else (x0,))
-    if settings.method != "cg" or any(t.device.type != "cpu" or t.dtype != system.rhs.dtype for t in tensors):
-        return None
-    native = _native_kernels(lambda: None, system.rhs, settings, None, grid=True)
+    native = _cpu_kernels(system.rhs, *tensors) if settings.method == "cg" else None
     if native is None:
         return None
     max_iter = settings.max_iter if settings.max_iter is not None else _default_max_iter(structure.height * structure.width)
-    x, stats = native.grid_solve(*(t.contiguous() for t in tensors[:4]), None if x0 is None else x0.contiguous(),
-                                 float(settings.rtol), int(max_iter), int(settings.check_every), int(settings.restarts))
+    solved = native.grid_solve(*(t.contiguous() for t in tensors[:4]), None if x0 is None else x0.contiguous(),
+                               float(settings.rtol), int(max_iter), int(settings.check_every), int(settings.restarts))
+    if solved is None:  # the kernel failed (told in a warning): the eager path solves
+        return None
+    x, stats = solved
     rel = stats[:, 1].to(system.rhs.dtype)
     converged = (rel <= settings.rtol) & (stats[:, 2] > 0)
     return x, SolveInfo(settings.method, stats[:, 0].long(), rel, converged, settings.rtol)
@@ -128,7 +137,10 @@ def _native_cg(native, weights, c, y, diag_rows, settings: SolverSettings, budge
     start_zero = y is None
     y = torch.zeros_like(c) if start_zero else y.contiguous().clone()
     out = native.grid_cg(*(w.contiguous() for w in weights), c.contiguous(), diag_rows.contiguous(), y,
-                         float(settings.rtol), int(budget), int(check_every), start_zero).to(c.dtype)
+                         float(settings.rtol), int(budget), int(check_every), start_zero)
+    if out is None:  # the kernel failed (told in a warning): the eager loop runs from the same start
+        return None
+    out = out.to(c.dtype)
     iterations, recurrence, rel = out[:, 0].long(), out[:, 1], out[:, 2]
     converged = (recurrence <= settings.rtol) & torch.isfinite(recurrence) & torch.isfinite(y).all(dim=1)
     return y, KrylovResult(iterations, recurrence, converged), rel

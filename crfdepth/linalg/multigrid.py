@@ -224,7 +224,10 @@ def native_cg(native, precondition, weights, c: torch.Tensor, y: torch.Tensor | 
     y = torch.zeros_like(c) if start_zero else y.contiguous().clone()
     out = native.grid_mg_cg(*(w.contiguous() for w in weights), c.contiguous(), diag_rows.contiguous(),
                             sqrt_diag_rows.contiguous(), y, levels, inverse, OMEGA, float(rtol), int(budget),
-                            start_zero).to(c.dtype)
+                            start_zero)
+    if out is None:  # the kernel failed (told in a warning): the eager loop runs from the same start
+        return None
+    out = out.to(c.dtype)
     iterations, recurrence, rel = out[:, 0].long(), out[:, 1], out[:, 2]
     converged = (recurrence <= rtol) & torch.isfinite(recurrence) & torch.isfinite(y).all(dim=1)
     return y, KrylovResult(iterations, recurrence, converged), rel

@@ -27,6 +27,7 @@ import subprocess
 import sys
 import sysconfig
 import tempfile
+import warnings
 from pathlib import Path
 from types import ModuleType
 
@@ -135,11 +136,42 @@ def eager():
         _eager_depth[0] -= 1
 
 
-def kernels() -> ModuleType | None:
-    """The compiled kernels' module, built or loaded on the first call; None where they cannot be
-    had (then the eager path runs; the reason is logged once) and inside :func:`eager`."""
+class _Guarded:
+    """The kernels' module, each function of which returns None instead of raising: a kernel that fails at run
+    time (a bug, an unexpected input) is told in one warning, the kernels are off for the rest of the process, and
+    the caller runs the eager path (every caller treats None so)."""
+
+    def __init__(self, module: ModuleType) -> None:
+        self._module = module
+
+    def __repr__(self) -> str:
+        return f"<crfdepth.native kernels {self._module.__file__}>"
+
+    def __getattr__(self, name: str):
+        function = getattr(self._module, name)
+
+        def guarded(*args):
+            if _state.get("module") is not self:  # turned off after a failure: said once already
+                return None
+            try:
+                return function(*args)
+            except Exception as err:  # the eager path gives the answer; never a traceback from here
+                first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+                warnings.warn(f"crfdepth: the compiled kernel {name} failed ({first[:200]}); the eager torch path "
+                              "runs instead, for the rest of this process", RuntimeWarning, stacklevel=2)
+                _state["module"] = None
+                return None
+
+        return guarded
+
+
+def kernels() -> _Guarded | None:
+    """The compiled kernels (:class:`_Guarded`), built or loaded on the first call; None where they cannot be
+    had (then the eager path runs; the reason is logged once), after one failed at run time, and inside
+    :func:`eager`."""
     if _eager_depth[0]:
         return None
     if "module" not in _state:
-        _state["module"] = _build_or_load()
+        module = _build_or_load()
+        _state["module"] = None if module is None else _Guarded(module)
     return _state["module"]

@@ -343,7 +343,10 @@ def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tens
     distance_on = geometry is not None and weights.delta is not None
     depth = image.new_empty(0) if geometry is None else geometry[:, 0].contiguous()
     sigmas = [float(sigma.detach()) ** 2 for sigma in (weights.sigma_d, weights.sigma_n, weights.sigma_p)]
-    ch, cv, nh, nv, dh, dv = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, normal_on, distance_on)
+    exponents = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, normal_on, distance_on)
+    if exponents is None:  # the kernel failed (told in a warning): torch computes them
+        return None
+    ch, cv, nh, nv, dh, dv = exponents
     for exponent in (ch, cv, nh, nv, dh, dv):
         exponent.exp_()
     return (ch, cv), ((nh, nv) if normal_on else None), ((dh, dv) if distance_on else None)

@@ -18,14 +18,7 @@ from crfdepth import native
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.geometry.nearest import nearest_valid
 from crfdepth.linalg import solve_grid_laplacian
-
-
-@pytest.fixture(scope="module")
-def kernels():
-    module = native.kernels()
-    if module is None:
-        pytest.skip("crfdepth's compiled kernels cannot be built here (see the logged reason)")
-    return module
+from tests.grid_oracle import dense_grid_solution
 
 
 def _grid_system(seed: int, batch: int, h: int, w: int, dtype, anchored: float = 0.05):
@@ -37,29 +30,10 @@ def _grid_system(seed: int, batch: int, h: int, w: int, dtype, anchored: float =
     return b, d, wh, wv
 
 
-def _dense_solution(b, d, wh, wv):
-    """numpy's dense solve of (diag(d) + L) x = b, image by image (the oracle)."""
-    out = []
-    for k in range(b.shape[0]):
-        h, w = b.shape[1:]
-        n = h * w
-        a = np.diag(d[k].reshape(-1).double().numpy())
-        idx = np.arange(n).reshape(h, w)
-        for src, dst, weight in ((idx[:, :-1].ravel(), idx[:, 1:].ravel(), wh[k].reshape(-1)),
-                                 (idx[:-1, :].ravel(), idx[1:, :].ravel(), wv[k].reshape(-1))):
-            weight = weight.double().numpy()
-            np.add.at(a, (src, src), weight)
-            np.add.at(a, (dst, dst), weight)
-            np.add.at(a, (src, dst), -weight)
-            np.add.at(a, (dst, src), -weight)
-        out.append(np.linalg.solve(a, b[k].reshape(-1).double().numpy()).reshape(h, w))
-    return torch.from_numpy(np.stack(out))
-
-
 @pytest.mark.parametrize("seed, batch, h, w", [(0, 1, 17, 23), (1, 3, 9, 31), (2, 2, 1, 12), (3, 1, 14, 1), (4, 1, 2, 2)])
 def test_compiled_cg_solves_like_the_eager_loop(kernels, seed, batch, h, w):
     b, d, wh, wv = _grid_system(seed, batch, h, w, torch.float64)
-    oracle = _dense_solution(b, d, wh, wv)
+    oracle = dense_grid_solution(b, d, wh, wv)
     x_native, info_native = solve_grid_laplacian(b, d, wh, wv, rtol=1e-11, preconditioner="jacobi", max_iter=5000)
     with native.eager():
         x_eager, info_eager = solve_grid_laplacian(b, d, wh, wv, rtol=1e-11, preconditioner="jacobi", max_iter=5000)
@@ -81,7 +55,7 @@ def test_compiled_cg_in_float32_meets_the_tolerance_from_a_warm_start(kernels):
     assert x.dtype == torch.float32 and bool(info.converged.all())
     assert float(info.rel_residual.max()) <= 1e-5  # the true residual, recomputed after the loop
     assert (info.iterations - info_eager.iterations).abs().max() <= 8
-    oracle = _dense_solution(b, d, wh, wv).float()
+    oracle = dense_grid_solution(b, d, wh, wv).float()
     # both stop at rtol 1e-5: neither is much closer to the solution than the other
     err_native, err_eager = (x - oracle).abs().max(), (x_eager - oracle).abs().max()
     assert float(err_native) <= 2 * float(err_eager) + 1e-5
@@ -165,3 +139,32 @@ def test_without_the_kernels_the_eager_path_runs_and_says_so_once(tmp_path, env,
     else:
         assert len([line for line in lines if reason in line]) == 1, done.stderr
         assert not any(p.suffix == ".so" for p in (tmp_path / "cache").rglob("*"))  # no half-built library left
+
+
+def test_a_kernel_that_fails_at_run_time_gives_the_eager_answer_with_one_warning(monkeypatch):
+    """A compiled kernel that raises (here every one: a stand-in module) is told once, the kernels are off for the
+    rest of the process, and the model's answer is the eager path's."""
+    from crfdepth.data.synthetic import make_scene
+    from crfdepth.model import CRFDepth
+
+    class Broken:
+        __file__ = "broken.so"
+
+        def __getattr__(self, name):
+            def fail(*args):
+                raise RuntimeError(f"{name}: simulated failure")
+            return fail
+
+    scene = make_scene(1).to_tensors()
+    image, sparse, K = scene["image"][None], scene["sparse"][None], scene["K"][None]
+    model = CRFDepth.from_pretrained("kitti").eval()
+    with torch.inference_mode(), native.eager():
+        reference = model(image, sparse, K).depth
+    monkeypatch.setitem(native._state, "module", None)
+    monkeypatch.setitem(native._state, "module", native._Guarded(Broken()))
+    with pytest.warns(RuntimeWarning, match="compiled kernel .* failed") as caught, torch.inference_mode():
+        depth = model(image, sparse, K).depth
+        again = model(image, sparse, K).depth
+    assert len([w for w in caught if "compiled kernel" in str(w.message)]) == 1
+    assert native.kernels() is None
+    assert torch.equal(depth, reference) and torch.equal(again, reference)

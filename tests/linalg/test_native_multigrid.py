@@ -10,7 +10,6 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
@@ -20,17 +19,10 @@ from crfdepth.errors import ConvergenceWarning
 from crfdepth.linalg import solve_grid_laplacian
 from crfdepth.linalg.adjoint import _scaled_multigrid
 from crfdepth.linalg.operators import PixelGrid
+from tests.grid_oracle import dense_grid_solution
 
 F64 = torch.float64
 KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "kitti"
-
-
-@pytest.fixture(scope="module")
-def kernels():
-    module = native.kernels()
-    if module is None:
-        pytest.skip("crfdepth's compiled kernels cannot be built here (see the logged reason)")
-    return module
 
 
 @pytest.fixture
@@ -55,25 +47,6 @@ def grid_system(seed: int, batch: int, h: int, w: int, dtype=F64, anchored: floa
     wh = 10.0 ** (-decades * torch.rand(batch, h, w - 1, generator=g, dtype=dtype))
     wv = 10.0 ** (-decades * torch.rand(batch, h - 1, w, generator=g, dtype=dtype))
     return b, d, wh, wv
-
-
-def dense_solution(b, d, wh, wv) -> torch.Tensor:
-    """numpy's dense solve of (diag(d) + L) x = b, image by image (the oracle)."""
-    out = []
-    for k in range(b.shape[0]):
-        h, w = b.shape[1:]
-        n = h * w
-        a = np.diag(d[k].reshape(-1).double().numpy())
-        idx = np.arange(n).reshape(h, w)
-        for src, dst, weight in ((idx[:, :-1].ravel(), idx[:, 1:].ravel(), wh[k].reshape(-1)),
-                                 (idx[:-1, :].ravel(), idx[1:, :].ravel(), wv[k].reshape(-1))):
-            weight = weight.double().numpy()
-            np.add.at(a, (src, src), weight)
-            np.add.at(a, (dst, dst), weight)
-            np.add.at(a, (src, dst), -weight)
-            np.add.at(a, (dst, src), -weight)
-        out.append(np.linalg.solve(a, b[k].reshape(-1).double().numpy()).reshape(h, w))
-    return torch.from_numpy(np.stack(out))
 
 
 def both(*system, **kwargs):
@@ -111,7 +84,7 @@ def test_v_cycle_is_the_eager_one(kernels, size, coarsest, monkeypatch):
 def test_compiled_multigrid_solves_like_the_eager_loop(native_calls, seed, size, coarsest, monkeypatch):
     monkeypatch.setattr(multigrid, "COARSEST_NODES", coarsest)
     system = grid_system(seed, *size)
-    oracle = dense_solution(*system)
+    oracle = dense_grid_solution(*system)
     (x, info), (x_eager, info_eager) = both(*system, rtol=1e-11, max_iter=5000)
     assert native_calls
     scale = float(oracle.abs().max())
@@ -135,7 +108,7 @@ def test_compiled_multigrid_in_float32(native_calls):
     assert bool(info.converged.all()) and bool(info_eager.converged.all())
     assert float(info.rel_residual.max()) <= 1e-5  # the true residual, recomputed after the loop
     assert int((info.iterations - info_eager.iterations).abs().max()) <= 1, (info.summary(), info_eager.summary())
-    oracle = dense_solution(b, d, wh, wv).float()
+    oracle = dense_grid_solution(b, d, wh, wv).float()
     err, err_eager = float((x - oracle).abs().max()), float((x_eager - oracle).abs().max())
     assert err <= 2 * err_eager + 1e-6 * float(oracle.abs().max())
 
@@ -148,7 +121,7 @@ def test_batch_grids_converge_each_at_its_own_iteration(native_calls):
     (x, info), (x_eager, info_eager) = both(*batch, rtol=1e-10)
     assert len(set(info.iterations.tolist())) == 3, info.summary()
     assert int((info.iterations - info_eager.iterations).abs().max()) <= 1, (info.summary(), info_eager.summary())
-    oracle = dense_solution(*batch)
+    oracle = dense_grid_solution(*batch)
     for k, system in enumerate(systems):
         alone, alone_info = solve_grid_laplacian(*system, rtol=1e-10, preconditioner="multigrid")
         assert int(alone_info.iterations[0]) == int(info.iterations[k])

@@ -10,14 +10,6 @@ from crfdepth.model import CRFDepth
 from crfdepth.potentials import energy
 
 
-@pytest.fixture(scope="module")
-def kernels():
-    module = native.kernels()
-    if module is None:
-        pytest.skip("crfdepth's compiled kernels cannot be built here (see the logged reason)")
-    return module
-
-
 def _frames(dtype, batch: int = 2, size: tuple[int, int] = (48, 64)):
     scenes = [make_scene(seed, *size).to_tensors() for seed in range(batch)]
     image = torch.stack([s["image"] for s in scenes]).to(dtype)
