@@ -62,28 +62,33 @@ def nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
     if frames.device.type != "cpu":
         return fill_on_device(frames.detach()).reshape(sparse.shape)
     native = kernels()
-    filled = None if native is None else _native_fill(native, frames, sparse)  # one pass per axis (crfdepth.native)
-    if filled is not None:
-        return filled
+    found = None if native is None else _native_fill(native, frames, sparse)  # one pass per axis (crfdepth.native)
+    if found is not None:
+        return found[0]
     host = frames.to("cpu").numpy()
     filled = np.stack([_fill_frame(frame) for frame in host])
     return torch.from_numpy(filled).to(device=sparse.device, dtype=sparse.dtype).reshape(sparse.shape)
 
 
-def _native_fill(native, frames: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor | None:
-    found = native.nearest_valid((frames > 0).contiguous())
-    if found is None:  # the kernel failed (told in a warning)
+def _native_fill(native, frames: torch.Tensor, sparse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The fill and the distance to the nearest return (pixels), both shaped as ``sparse``; None if the kernel
+    failed (told in a warning)."""
+    found = native.nearest_fill(frames.detach().contiguous())
+    if found is None:
         return None
-    index, _ = found
-    filled = torch.gather(frames.detach().flatten(1), 1, index.flatten(1))
-    return filled.to(sparse.dtype).reshape(sparse.shape)
+    filled, distance = found
+    return filled.to(sparse.dtype).reshape(sparse.shape), distance.to(sparse.dtype).reshape(sparse.shape)
 
 
-def trusted_nearest_fill(sparse: torch.Tensor) -> torch.Tensor:
+def trusted_nearest_fill(sparse: torch.Tensor, *, with_distance: bool = False):
     """:func:`nearest_fill` of a (B, 1, H, W) map its caller has checked (the model's), without checking its
-    values again; a frame without a return still gets :func:`nearest_fill`'s error."""
+    values again; a frame without a return still gets :func:`nearest_fill`'s error.
+
+    ``with_distance``: return ``(fill, distance)``, the exact distance in pixels to the nearest return, which
+    the compiled search finds with the fill (None where the eager path ran)."""
     native = kernels() if sparse.device.type == "cpu" else None
-    if native is None or not bool((sparse > 0).flatten(1).any(1).all()):
-        return nearest_fill(sparse)
-    filled = _native_fill(native, sparse[:, 0], sparse)
-    return nearest_fill(sparse) if filled is None else filled
+    found = None
+    if native is not None and bool((sparse > 0).flatten(1).any(1).all()):
+        found = _native_fill(native, sparse[:, 0], sparse)
+    filled, distance = (nearest_fill(sparse), None) if found is None else found
+    return (filled, distance) if with_distance else filled

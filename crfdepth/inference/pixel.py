@@ -9,21 +9,22 @@ from __future__ import annotations
 
 import torch
 
-from crfdepth.linalg import SolveInfo, solve_system
+from crfdepth.linalg import SolveInfo, System, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
 from crfdepth.potentials.energy import GridTerms, grid_potentials, grid_system, std_in_metres, to_depth, to_unknown
 from crfdepth.potentials.robust import reweight
 from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
-from crfdepth.uncertainty.predictive import std_features
+from crfdepth.uncertainty.predictive import grid_std_compiled, std_features
 
 
-def evidence(model: torch.nn.Module, sparse: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-    """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b)."""
+def evidence(model: torch.nn.Module, sparse: torch.Tensor, *, with_distance: bool = False) -> tuple:
+    """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b);
+    ``with_distance``: and the distance to the nearest kept return where the fill found it (else None)."""
     settings = model.settings
     gate = (model.gate_threshold, model.gate_softness) if settings.gate.enabled else None
-    return lidar_evidence(sparse, gate, settings.gate.window, settings.structure.prior)
+    return lidar_evidence(sparse, gate, settings.gate.window, settings.structure.prior, with_distance=with_distance)
 
 
 def predictive_std(model: torch.nn.Module, depth, sparse, kept, gate, variance) -> tuple[torch.Tensor, torch.Tensor]:
@@ -35,11 +36,23 @@ def predictive_std(model: torch.nn.Module, depth, sparse, kept, gate, variance) 
     return model.std_head(features), features
 
 
+def grid_std(model: torch.nn.Module, depth, sparse, kept, gate, system, distance=None
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`predictive_std` of a pixel-grid solve's ``system``: one compiled pass on the CPU where the kernels
+    are built (:func:`crfdepth.uncertainty.predictive.grid_std_compiled`), the same numbers; ``distance``
+    from the fill if it found it."""
+    fused = grid_std_compiled(model.std_head, depth, sparse, kept, gate, distance, system.diagonal, *system.weights,
+                              model.settings.structure.variable)
+    if fused is not None:
+        return fused
+    return predictive_std(model, depth, sparse, kept, gate, system_conditional_variance(system)[:, None])
+
+
 def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
-                kept=None) -> tuple[torch.Tensor, GridTerms]:
+                kept=None) -> tuple[torch.Tensor, GridTerms, System]:
     """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
 
-    Returns the (B, 1, H, W) depth and the last round's potentials.
+    Returns the (B, 1, H, W) depth, the last round's potentials and the system they make (``grid_system``).
     """
     structure, on, irls = model.settings.structure, model.settings.potentials.on, model.settings.potentials.irls
     rounds, v, solver = 1, structure.variable, model.solve_settings
@@ -47,19 +60,22 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
     extra = dict(variable=v, gate=gate, factors=None if model.head is None else model.head(image, kept, prior))
     if geometry is None:
         t = grid_potentials(image, sparse, K, prior, eps, None, model.potential_weights(), **extra)
-        x, info = solve_system(grid_system(t), t.prior, solver)
+        system = grid_system(t)
+        x, info = solve_system(system, t.prior, solver)
         infos.append(info)
         if "normal" not in on and "distance" not in on:
-            return to_depth(x, v)[:, None], t
+            return to_depth(x, v)[:, None], t, system
         geometry, rounds = to_depth(x, v)[:, None], structure.rounds
     for _ in range(rounds):
         t = grid_potentials(image, sparse, K, prior, eps, geometry, model.potential_weights(), **extra)
-        x, info = solve_system(grid_system(t), to_unknown(geometry[:, 0], v), solver)
+        system = grid_system(t)
+        x, info = solve_system(system, to_unknown(geometry[:, 0], v), solver)
         infos.append(info)
         geometry = to_depth(x, v)[:, None]
     if irls:
         geometry, t = reweight(t, x, sparse, irls, model.irls_scale, v, solver, infos)
-    return geometry, t
+        system = grid_system(t)
+    return geometry, t, system
 
 
 def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
@@ -68,21 +84,19 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
     bsz, _, h, w = sparse.shape
     stage = Stages(sparse.device, model.progress)
     with stage("fill"):
-        gate, kept, fill = evidence(model, sparse)
+        gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     infos: list[SolveInfo] = []
     with stage("solve"):  # potentials, normals and solves of all rounds
-        depth, t = pixel_solve(model, image, sparse, K, fill, model.scales()[4], infos, gate=gate, kept=kept)
+        depth, t, system = pixel_solve(model, image, sparse, K, fill, model.scales()[4], infos, gate=gate, kept=kept)
     std = node_std = features = None
     if return_std:
         with stage("uncertainty"):
-            system = grid_system(t)
             settings = model.settings
             if settings.uncertainty.kind == "posterior":
                 std = posterior_std(system, model.std_scale, samples=settings.uncertainty.samples)[:, None]
                 std = std_in_metres(std, depth, settings.structure.variable)
             else:
-                std, features = predictive_std(model, depth, sparse, kept, gate,
-                                               system_conditional_variance(system)[:, None])
+                std, features = grid_std(model, depth, sparse, kept, gate, system, distance)
             node_std = std.reshape(-1)
     return CRFOutput(depth, std, pixel_count_uncertainty(sparse), depth.reshape(-1), node_std,
                      torch.arange(bsz + 1, device=sparse.device) * (h * w), None, t.energy_terms, infos,

@@ -15,7 +15,7 @@ from kornia.geometry.camera import unproject_points
 
 from crfdepth.geometry.node_normals import graph_normals
 from crfdepth.inference.nodes import Nodes, gather_nodes, gather_normals
-from crfdepth.inference.pixel import evidence, pixel_solve, predictive_std
+from crfdepth.inference.pixel import evidence, grid_std, pixel_solve, predictive_std
 from crfdepth.linalg import SolveInfo, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.energy import (
@@ -24,7 +24,6 @@ from crfdepth.potentials.energy import (
     data_confidence,
     distance_affinity,
     graph_system,
-    grid_system,
     normal_affinity,
     std_in_metres,
     to_depth,
@@ -75,7 +74,7 @@ def superpixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torc
     structure, on, solver = model.settings.structure, model.settings.potentials.on, model.solve_settings
     stage = Stages(sparse.device, model.progress)
     with stage("fill"):
-        gate, kept, fill = evidence(model, sparse)
+        gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     with stage("slic"):
         labels = slic_batch(image.detach(), model.segments_for(h, w))  # (B, H, W), the whole batch at once
     with stage("graph"):
@@ -106,7 +105,7 @@ def superpixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torc
         count_map = node_count_uncertainty(torch.cat([g.lidar_count for g in graphs]), sparse.dtype)[node_of_pixel][:, None]
     if structure.refine:
         with stage("refine"):
-            depth, grid = pixel_solve(model, image, sparse, K, depth, model.refine_prior * scales[5], infos,
+            depth, _, grid = pixel_solve(model, image, sparse, K, depth, model.refine_prior * scales[5], infos,
                                       geometry=depth, gate=gate, kept=kept)
     node_std = std = features = None
     if return_std:
@@ -119,9 +118,9 @@ def superpixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torc
                 std = node_std[node_of_pixel][:, None]
             else:
                 if structure.refine:  # the last solve is the refinement's pixel grid
-                    variance = system_conditional_variance(grid_system(grid))[:, None]
+                    std, features = grid_std(model, depth, sparse, kept, gate, grid, distance)
                 else:
                     variance = system_conditional_variance(system)[node_of_pixel][:, None]
-                std, features = predictive_std(model, depth, sparse, kept, gate, variance)
+                    std, features = predictive_std(model, depth, sparse, kept, gate, variance)
                 node_std = torch.cat([g.node_mean(std[i])[:, 0] for i, g in enumerate(graphs)])
     return CRFOutput(depth, std, count_map, x, node_std, nodes.ptr, graphs, terms, infos, stage.seconds, features)

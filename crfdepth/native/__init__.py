@@ -1,5 +1,5 @@
-"""Optional compiled CPU kernels: the CG iteration in three fused passes and the exact nearest-return
-search in linear time (docs/design.md section 4b).
+"""Optional compiled CPU kernels: the CG iteration in three fused passes, the affinities, the exact
+nearest-return search in linear time and the predictive std in two passes (docs/design.md section 4b).
 
 The eager torch path is the reference and always works; these kernels only do the same arithmetic
 in fewer passes over memory. :func:`kernels` builds them on first use with the C++ compiler that
@@ -8,7 +8,7 @@ loads them; a later process loads the cached library directly (no compiler, no b
 imported). Where nothing can be built (no compiler, no Python headers, another platform) the
 eager path runs and one log line says so.
 
-- First call: 25-60 s of compiling (three sources, one compiler process), once per machine, torch release and
+- First call: about 30 s of compiling (one translation unit), once per machine, torch release and
   source version.
 - Cache: ``$CRFDEPTH_CACHE`` or ``~/.cache/crfdepth``, under ``kernels/<torch>-<python>-<source hash>/``.
 - ``CRFDEPTH_NATIVE=0`` (or ``off``, ``false``, ``no``) turns them off: the eager path only.
@@ -37,7 +37,9 @@ __all__ = ["kernels", "enabled", "cache_dir", "eager"]
 
 log = logging.getLogger("crfdepth")
 
-_SOURCES = sorted(Path(__file__).parent.glob("*.cpp"))  # kernels.cpp holds the module definition
+_HERE = Path(__file__).parent
+_SOURCES = [_HERE / "kernels.cpp"]  # the one translation unit: the module, including the other kernels (*.h)
+_PARTS = sorted(_HERE.glob("*.h"))
 _OFF = ("0", "off", "false", "no")
 _state: dict[str, ModuleType | None] = {}
 _eager_depth = [0]  # > 0 inside `with eager():`
@@ -58,11 +60,13 @@ def _vector_flags() -> list[str]:
     """AVX2 and FMA where torch's own kernels found them on this CPU (``get_cpu_capability``); else the
     compiler's baseline, which runs on any CPU of the architecture."""
     capability = torch.backends.cpu.get_cpu_capability()
-    return ["-mavx2", "-mfma"] if capability in ("AVX2", "AVX512") else []
+    if capability in ("AVX2", "AVX512"):  # at::vec's AVX2 vectors (torch's SLEEF log and exp) in predictive_std.h
+        return ["-mavx2", "-mfma", "-DCPU_CAPABILITY=AVX2", "-DCPU_CAPABILITY_AVX2"]
+    return ["-DCPU_CAPABILITY=DEFAULT"]
 
 
 def _build_key() -> tuple[str, str]:
-    source = b"".join(path.read_bytes() for path in _SOURCES) + " ".join(_vector_flags()).encode()
+    source = b"".join(path.read_bytes() for path in [*_SOURCES, *_PARTS]) + " ".join(_vector_flags()).encode()
     digest = hashlib.sha256(source + torch.__version__.encode() + sys.version.encode()).hexdigest()[:12]
     tag = f"torch{torch.__version__.replace('+', '_')}-py{sys.version_info[0]}{sys.version_info[1]}-{digest}"
     return f"crfdepth_kernels_{digest}", tag

@@ -1,12 +1,19 @@
 // Fused CPU kernels of crfdepth (docs/design.md section 4b). Each function does in one pass over
-// memory what the eager path (crfdepth/linalg/cg.py, crfdepth/fill/nearest.py) does in several
+// memory what the eager path (crfdepth/linalg/cg.py) does in several
 // torch kernels; the eager path is the reference the tests compare against.
 //
-// Built on first use by torch.utils.cpp_extension.load (crfdepth/native/__init__.py). Threads:
+// Built on first use by crfdepth/native/__init__.py, as one translation unit with the parts it includes. Threads:
 // at::parallel_for, i.e. torch's intra-op pool and torch.get_num_threads().
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
+
+// The other kernels, each in its own namespace: one translation unit, so torch's headers are parsed once
+// (each further unit cost about 24 s of the first build).
+#include "multigrid.h"
+#include "nearest.h"
+#include "potentials.h"
+#include "predictive_std.h"
 
 #include <algorithm>
 #include <cmath>
@@ -359,110 +366,11 @@ std::vector<torch::Tensor> grid_solve(torch::Tensor d, torch::Tensor b, torch::T
   return {x, stats};
 }
 
-// The nearest valid pixel of every pixel of (B, H, W) bool frames, exactly (Euclidean), in linear
-// time: a pass down each column (nearest valid row), then along each row the lower envelope of
-// the parabolas s^2 + g(x + s)^2 (Felzenszwalb and Huttenlocher 2012). Returns the flat index
-// row * W + col of that pixel (-1 in a frame without one) and the squared distance, both int64.
-std::vector<torch::Tensor> nearest_valid(torch::Tensor valid) {
-  TORCH_CHECK(valid.device().is_cpu() && valid.is_contiguous() && valid.scalar_type() == torch::kBool,
-              "nearest_valid: expected a contiguous CPU bool tensor");
-  const int64_t b = valid.size(0), h = valid.size(1), w = valid.size(2);
-  const int64_t big = (h + w) * (h + w) + 1;
-  auto index = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));
-  auto squared = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));
-  auto row_of = torch::empty({b, h, w}, valid.options().dtype(torch::kInt64));  // nearest valid row of the column
-  const bool* v = valid.data_ptr<bool>();
-  int64_t* idx = index.data_ptr<int64_t>();
-  int64_t* sq = squared.data_ptr<int64_t>();
-  int64_t* rows = row_of.data_ptr<int64_t>();
-  for (int64_t f = 0; f < b; ++f) {
-    const bool* vf = v + f * h * w;
-    int64_t* rf = rows + f * h * w;
-    int64_t* sf = sq + f * h * w;
-    int64_t* xf = idx + f * h * w;
-    // Column pass: g^2 (in sf) and the row it comes from (in rf, -1: none), row after row over a block
-    // of columns (memory in order; the inner loops vectorise).
-    at::parallel_for(0, w, 256, [=](int64_t c0, int64_t c1) {
-      std::vector<int64_t> last(c1 - c0, -1);
-      int64_t* __restrict__ lv = last.data();
-      for (int64_t r = 0; r < h; ++r) {
-        const bool* __restrict__ vr = vf + r * w + c0;
-        int64_t* __restrict__ rr = rf + r * w + c0;
-#pragma omp simd
-        for (int64_t c = 0; c < c1 - c0; ++c) {
-          lv[c] = vr[c] ? r : lv[c];
-          rr[c] = lv[c];
-        }
-      }
-      std::fill(last.begin(), last.end(), -1);
-      for (int64_t r = h - 1; r >= 0; --r) {
-        const bool* __restrict__ vr = vf + r * w + c0;
-        int64_t* __restrict__ rr = rf + r * w + c0;
-        int64_t* __restrict__ sr = sf + r * w + c0;
-#pragma omp simd
-        for (int64_t c = 0; c < c1 - c0; ++c) {
-          lv[c] = vr[c] ? r : lv[c];
-          const int64_t above = rr[c], below = lv[c];
-          const int64_t du = above >= 0 ? (r - above) * (r - above) : big;
-          const int64_t dd = below >= 0 ? (below - r) * (below - r) : big;
-          const bool take_up = du <= dd;  // ties: the row above, as the eager path and SciPy
-          rr[c] = take_up ? above : below;
-          sr[c] = take_up ? du : dd;
-        }
-      }
-    });
-    // Row pass: lower envelope of the parabolas q -> (x - q)^2 + g^2(q) over columns q with g < big.
-    at::parallel_for(0, h, kGrain, [&](int64_t r0, int64_t r1) {
-      std::vector<int64_t> site(w), gval(w), out_sq(w), out_col(w);
-      std::vector<double> bound(w + 1);
-      for (int64_t r = r0; r < r1; ++r) {
-        int64_t* g = sf + r * w;
-        int64_t* rr = rf + r * w;
-        int64_t k = -1;
-        for (int64_t q = 0; q < w; ++q) {
-          if (g[q] >= big) continue;
-          const double fq = static_cast<double>(g[q]) + static_cast<double>(q) * q;
-          double s = 0.0;
-          while (k >= 0) {
-            const int64_t p = site[k];
-            s = (fq - (static_cast<double>(gval[k]) + static_cast<double>(p) * p)) / (2.0 * (q - p));
-            if (s <= bound[k]) --k; else break;
-          }
-          ++k;
-          site[k] = q;
-          gval[k] = g[q];
-          bound[k] = k == 0 ? -std::numeric_limits<double>::infinity() : s;
-          bound[k + 1] = std::numeric_limits<double>::infinity();
-        }
-        if (k < 0) {  // no valid pixel in the frame reaches this row (the frame has none)
-          for (int64_t x = 0; x < w; ++x) { out_sq[x] = big; out_col[x] = -1; }
-        } else {
-          int64_t j = 0;
-          for (int64_t x = 0; x < w; ++x) {
-            while (bound[j + 1] < static_cast<double>(x)) ++j;
-            const int64_t dx = x - site[j];
-            out_sq[x] = dx * dx + gval[j];
-            out_col[x] = site[j];
-          }
-        }
-        int64_t* xi = xf + r * w;
-        for (int64_t x = 0; x < w; ++x) {
-          const int64_t c = out_col[x];
-          xi[x] = c < 0 ? -1 : rr[c] * w + c;
-          g[x] = out_sq[x];
-        }
-      }
-    });
-  }
-  return {index, squared};
-}
-
-void register_multigrid(pybind11::module& m);
-void register_potentials(pybind11::module& m);
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  register_multigrid(m);
-  register_potentials(m);
+  crfdepth_multigrid::register_multigrid(m);
+  crfdepth_potentials::register_potentials(m);
+  crfdepth_nearest::register_nearest(m);
+  crfdepth_predictive_std::register_std(m);
   m.def("grid_cg", &grid_cg, "Jacobi-preconditioned CG on pixel grids, scaled form");
   m.def("grid_solve", &grid_solve, "the whole Jacobi-preconditioned CG solve on pixel grids");
-  m.def("nearest_valid", &nearest_valid, "exact nearest valid pixel and squared distance");
 }

@@ -25,8 +25,7 @@ __all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
 
 
 def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor] | None, window: int,
-                   prior: Literal["nearest", "ip_basic"]
-                   ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+                   prior: Literal["nearest", "ip_basic"], *, with_distance: bool = False) -> tuple:
     """``(gate, kept, fill)`` of a checked (B, 1, H, W) LiDAR map.
 
     Args:
@@ -34,17 +33,24 @@ def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor]
         gate: ``(threshold, softness)`` of the occlusion gate, or None for no gate.
         window: the gate's window (pixels).
         prior: which fill is ``x0``.
+        with_distance: also return the exact distance in pixels from each pixel to the nearest kept
+            return, where the compiled nearest search found it with the fill (else None).
 
     Returns:
         The (B, 1, H, W) gate (None without one; all ones in a frame it would empty, with a
-        warning), ``sparse`` without the returns the gate rejects, and the prior fill of those.
+        warning), ``sparse`` without the returns the gate rejects, and the prior fill of those
+        (then the distance, with ``with_distance``).
     """
     g, kept = None, sparse
     if gate is not None:
         g = trusted_gate(sparse, gate[0], gate[1], window).gate  # sparse checked by the model
         kept = torch.where(g.detach() >= 0.5, sparse, torch.zeros_like(sparse))
-    fill = trusted_nearest_fill(kept) if prior == "nearest" else ip_basic_fill(kept)
-    return g, kept, fill
+    distance = None
+    if prior == "nearest":
+        fill, distance = trusted_nearest_fill(kept, with_distance=True)
+    else:
+        fill = ip_basic_fill(kept)
+    return (g, kept, fill, distance) if with_distance else (g, kept, fill)
 
 
 def node_lidar(sparse: torch.Tensor, gate: torch.Tensor, labels: torch.Tensor, num_nodes: int,

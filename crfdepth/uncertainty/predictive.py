@@ -50,9 +50,10 @@ from crfdepth.config import DEFAULT_STD_TERMS, STD_TERMS, check_std_terms  # the
 from crfdepth.errors import InputError
 from crfdepth.geometry.nearest import nearest_valid
 from crfdepth.geometry.windows import window_max
+from crfdepth.native import kernels
 
 __all__ = ["DEFAULT_STD_TERMS", "RANGE_NOISE_M", "STD_TERMS", "PredictiveStd", "check_std_terms", "fit_std_terms",
-           "predictive_std", "std_features"]
+           "grid_std_compiled", "predictive_std", "std_features"]
 
 SIGNALS = STD_TERMS[1:]
 OFFSETS = {"depth": 0.0, "posterior": 1e-6, "distance": 1.0, "edge": 0.01, "gate": 0.01}
@@ -108,6 +109,45 @@ def std_features(depth: torch.Tensor, sparse: torch.Tensor, kept: torch.Tensor, 
             disagreement = window_max(behind, LIDAR_WINDOW)
         distance = return_distance(kept)
         return torch.cat([depth, conditional_variance.to(depth), distance, edge, disagreement], 1)
+
+
+_POWER = {"depth": 0, "log": 1, "inverse": 2}  # std_in_metres: std_z = z^power std of the unknown
+
+
+def grid_std_compiled(head: "PredictiveStd", depth: torch.Tensor, sparse: torch.Tensor, kept: torch.Tensor,
+                      gate: torch.Tensor | None, distance: torch.Tensor | None, diagonal: torch.Tensor, weight_h: torch.Tensor,
+                      weight_v: torch.Tensor, variable: str) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(head(features), features)`` of a pixel-grid solve in one compiled pass (:mod:`crfdepth.native`): the
+    conditional variance ``1 / A_ii`` of the system ``diagonal``, ``weight_h``, ``weight_v`` (the unknown's
+    units, ``variable``), :func:`std_features` and :class:`PredictiveStd`, the same numbers as those; None
+    where it does not apply (not on the CPU, no kernels, the kernel failed): the caller runs them instead.
+
+    ``kept``: ``sparse`` without the returns the gate rejects; ``distance``: (B, 1, H, W) pixels to the nearest
+    of them if the fill found it, else None (searched here). With a gradient wanted for ``head``'s weights, the std is ``head(features)`` in torch.
+    """
+    native = kernels() if depth.device.type == "cpu" and depth.dtype in (torch.float32, torch.float64) else None
+    if native is None:
+        return None
+    dtype = depth.dtype
+
+    def plain(t: torch.Tensor) -> torch.Tensor:
+        return t.detach().to(dtype).contiguous()
+
+    if distance is None:
+        found = native.nearest_fill(plain(kept[:, 0]))
+        if found is None:
+            return None
+        distance = found[1][:, None]
+    weights = [float(v) for v in head.weights.detach().double().tolist()]
+    done = native.predictive_std(plain(depth), plain(sparse), torch.empty(0, dtype=dtype) if gate is None else plain(gate),
+                                 plain(distance), plain(diagonal), plain(weight_h), plain(weight_v), _POWER[variable],
+                                 weights, RANGE_NOISE_M, EDGE_WINDOW, LIDAR_WINDOW)
+    if done is None:
+        return None
+    std, features = done
+    if torch.is_grad_enabled() and head.weights.requires_grad:
+        std = head(features)  # the weights' gradient; the signals carry none
+    return std, features
 
 
 def predictive_std(features: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

@@ -28,7 +28,7 @@ def test_one_solve_then_one_per_round_then_the_reweighting(options, solves):
     model = CRFDepth(mode="pixel", **options).double()
     _, _, fill = evidence(model, sparse)
     infos = []
-    depth, _ = pixel_solve(model, image, sparse, K[None], fill, model.scales()[4], infos)
+    depth, _, _ = pixel_solve(model, image, sparse, K[None], fill, model.scales()[4], infos)
     assert len(infos) == solves and depth.shape == sparse.shape
 
 

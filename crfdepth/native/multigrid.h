@@ -18,6 +18,8 @@
 // count. The row kernels are separate (noinline) functions with __restrict__ arguments: inlined into the tasks'
 // lambdas, GCC 12 left some `omp simd reduction` loops scalar.
 
+#pragma once
+
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -26,6 +28,8 @@
 #include <cstdint>
 #include <limits>
 #include <vector>
+
+namespace crfdepth_multigrid {
 
 namespace {
 namespace mg {
@@ -741,3 +745,5 @@ void register_multigrid(pybind11::module& m) {
   m.def("grid_mg_precondition", &grid_mg_precondition, "one multigrid V-cycle, scaled preconditioner form");
   m.def("grid_mg_cg", &grid_mg_cg, "multigrid-preconditioned CG on pixel grids, scaled form");
 }
+
+}  // namespace crfdepth_multigrid

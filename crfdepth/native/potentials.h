@@ -3,12 +3,16 @@
 // (colour_affinity, normal_affinity of dense_normals, distance_affinity of camera_points), with
 // the same formulas and the same order of operations, for each 4-neighbour edge of each frame.
 
+#pragma once
+
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
 #include <cmath>
 #include <cstdint>
 #include <vector>
+
+namespace crfdepth_potentials {
 
 namespace {
 
@@ -230,3 +234,5 @@ std::vector<torch::Tensor> grid_affinities(torch::Tensor image, torch::Tensor de
 void register_potentials(pybind11::module& m) {
   m.def("grid_affinities", &grid_affinities, "colour, normal and 3D-distance affinities of a pixel grid's edges");
 }
+
+}  // namespace crfdepth_potentials
