@@ -58,6 +58,7 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
     rounds, v, solver = 1, structure.variable, model.solve_settings
     kept = sparse if kept is None else kept
     extra = dict(variable=v, gate=gate, factors=None if model.head is None else model.head(image, kept, prior))
+    t = None  # a round's terms: the next round computes only those that depend on the geometry
     if geometry is None:
         t = grid_potentials(image, sparse, K, prior, eps, None, model.potential_weights(), **extra)
         system = grid_system(t)
@@ -67,7 +68,7 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
             return to_depth(x, v)[:, None], t, system
         geometry, rounds = to_depth(x, v)[:, None], structure.rounds
     for _ in range(rounds):
-        t = grid_potentials(image, sparse, K, prior, eps, geometry, model.potential_weights(), **extra)
+        t = grid_potentials(image, sparse, K, prior, eps, geometry, model.potential_weights(), **extra, previous=t)
         system = grid_system(t)
         x, info = solve_system(system, to_unknown(geometry[:, 0], v), solver)
         infos.append(info)

@@ -1,7 +1,8 @@
-// The exponents of the pixel grid's affinities in fused passes (docs/design.md sections 3 and 4b): what
+// The pixel grid's affinities in fused passes (docs/design.md sections 3 and 4b): what
 // crfdepth/potentials/energy.py's grid_potentials computes with torch when no gradient is needed
 // (colour_affinity, normal_affinity of dense_normals, distance_affinity of camera_points), with
-// the same formulas and the same order of operations, for each 4-neighbour edge of each frame.
+// the same formulas and the same order of operations, for each 4-neighbour edge of each frame; each
+// row's exponents go through torch's vectorised exp while they are in cache.
 
 #pragma once
 
@@ -11,6 +12,8 @@
 #include <cmath>
 #include <cstdint>
 #include <vector>
+
+#include "vec_math.h"
 
 namespace crfdepth_potentials {
 
@@ -125,7 +128,7 @@ void dense_normals(const T* px, const T* py, const T* pz, T* nx, T* ny, T* nz, i
   });
 }
 
-// -sum_c (a_c - b_c)^2 / sigma^2 (the exponent of the affinity) over the edges to the right (out_h) and downwards (out_v) of
+// -sum_c (a_c - b_c)^2 / sigma^2 (then its exp: the affinity) over the edges to the right (out_h) and downwards (out_v) of
 // three planes at stride `plane`.
 template <typename T>
 void squared_distance_affinity(const T* v, int64_t plane, T sigma2, T* out_h, T* out_v, int64_t h, int64_t w) {
@@ -141,6 +144,7 @@ void squared_distance_affinity(const T* v, int64_t plane, T sigma2, T* out_h, T*
         const T d0 = v0[r + j] - v0[r + j + 1], d1 = v1[r + j] - v1[r + j + 1], d2 = v2[r + j] - v2[r + j + 1];
         oh[j] = -(d0 * d0 + d1 * d1 + d2 * d2) / sigma2;
       }
+      crfdepth_vec::exp_inplace(oh, w - 1);
       if (i + 1 < h) {
         T* __restrict__ ov = out_v + i * w;
 #pragma omp simd
@@ -148,12 +152,13 @@ void squared_distance_affinity(const T* v, int64_t plane, T sigma2, T* out_h, T*
           const T d0 = v0[r + j] - v0[r + w + j], d1 = v1[r + j] - v1[r + w + j], d2 = v2[r + j] - v2[r + w + j];
           ov[j] = -(d0 * d0 + d1 * d1 + d2 * d2) / sigma2;
         }
+        crfdepth_vec::exp_inplace(ov, w);
       }
     }
   });
 }
 
-// (clamp(n_i . n_j, -1, 1) - 1) / sigma^2 (the exponent of the affinity) over the edges, of three planes at stride `plane`.
+// exp((clamp(n_i . n_j, -1, 1) - 1) / sigma^2), the affinity, over the edges, of three planes at stride `plane`.
 template <typename T>
 void cosine_affinity(const T* n, int64_t plane, T sigma2, T* out_h, T* out_v, int64_t h, int64_t w) {
   at::parallel_for(0, h, kRows, [=](int64_t i0, int64_t i1) {
@@ -168,6 +173,7 @@ void cosine_affinity(const T* n, int64_t plane, T sigma2, T* out_h, T* out_v, in
         const T c = n0[r + j] * n0[r + j + 1] + n1[r + j] * n1[r + j + 1] + n2[r + j] * n2[r + j + 1];
         oh[j] = (std::min(std::max(c, T(-1)), T(1)) - T(1)) / sigma2;
       }
+      crfdepth_vec::exp_inplace(oh, w - 1);
       if (i + 1 < h) {
         T* __restrict__ ov = out_v + i * w;
 #pragma omp simd
@@ -175,16 +181,17 @@ void cosine_affinity(const T* n, int64_t plane, T sigma2, T* out_h, T* out_v, in
           const T c = n0[r + j] * n0[r + w + j] + n1[r + j] * n1[r + w + j] + n2[r + j] * n2[r + w + j];
           ov[j] = (std::min(std::max(c, T(-1)), T(1)) - T(1)) / sigma2;
         }
+        crfdepth_vec::exp_inplace(ov, w);
       }
     }
   });
 }
 
 template <typename T>
-void affinities_one(const T* image, const T* depth, const T* k, T sd2, T sn2, T sp2, bool normal, bool distance,
-                    T* ch, T* cv, T* nh, T* nv, T* dh, T* dv, T* work, int64_t h, int64_t w) {
+void affinities_one(const T* image, const T* depth, const T* k, T sd2, T sn2, T sp2, bool colour, bool normal,
+                    bool distance, T* ch, T* cv, T* nh, T* nv, T* dh, T* dv, T* work, int64_t h, int64_t w) {
   const int64_t plane = h * w;
-  squared_distance_affinity<T>(image, plane, sd2, ch, cv, h, w);
+  if (colour) squared_distance_affinity<T>(image, plane, sd2, ch, cv, h, w);
   if (!normal && !distance) return;
   T* points = work;  // x, y planes then the depth copied as z: three planes at stride `plane`
   camera_points<T>(depth, k[0], k[4], k[2], k[5], k[1], points, points + plane, h, w);
@@ -200,35 +207,34 @@ void affinities_one(const T* image, const T* depth, const T* k, T sd2, T sn2, T 
 }  // namespace
 
 // image (B, 3, H, W), depth (B, H, W) (ignored unless normal or distance), K (B, 3, 3), the sigmas
-// squared; H, W >= 2. Returns the exponents of [colour_h, colour_v, normal_h, normal_v, distance_h,
-// distance_v], (B, H, W-1) and (B, H-1, W) maps; the pairs not asked for are empty. The caller takes
-// their exp with torch (its vectorised exp; a scalar std::exp here cost 10 ms per frame).
+// squared; H, W >= 2. Returns the affinities [colour_h, colour_v, normal_h, normal_v, distance_h,
+// distance_v], (B, H, W-1) and (B, H-1, W) maps; the pairs not asked for are empty.
 std::vector<torch::Tensor> grid_affinities(torch::Tensor image, torch::Tensor depth, torch::Tensor K, double sd2,
-                                           double sn2, double sp2, bool normal, bool distance) {
+                                           double sn2, double sp2, bool colour, bool normal, bool distance) {
   TORCH_CHECK(image.device().is_cpu() && image.is_contiguous() && depth.is_contiguous(),
               "grid_affinities: expected contiguous CPU tensors");
   const int64_t b = image.size(0), h = image.size(2), w = image.size(3);
   TORCH_CHECK(h >= 2 && w >= 2, "grid_affinities: expected H, W >= 2");
   auto opts = image.options();
-  auto ch = torch::empty({b, h, w - 1}, opts), cv = torch::empty({b, h - 1, w}, opts);
-  auto nh = normal ? torch::empty({b, h, w - 1}, opts) : torch::empty({0}, opts);
-  auto nv = normal ? torch::empty({b, h - 1, w}, opts) : torch::empty({0}, opts);
-  auto dh = distance ? torch::empty({b, h, w - 1}, opts) : torch::empty({0}, opts);
-  auto dv = distance ? torch::empty({b, h - 1, w}, opts) : torch::empty({0}, opts);
+  auto pair = [&](bool on) {
+    return on ? std::vector<torch::Tensor>{torch::empty({b, h, w - 1}, opts), torch::empty({b, h - 1, w}, opts)}
+              : std::vector<torch::Tensor>{torch::empty({0}, opts), torch::empty({0}, opts)};
+  };
+  auto c = pair(colour), nn = pair(normal), d = pair(distance);
   auto work = torch::empty({(normal || distance) ? 6 * h * w : 0}, opts);
   auto k = K.to(image.scalar_type()).contiguous();
   AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "grid_affinities", [&] {
     using T = scalar_t;
+    auto at = [](torch::Tensor& t, bool on, int64_t offset) { return on ? t.data_ptr<T>() + offset : nullptr; };
     for (int64_t f = 0; f < b; ++f) {
       const int64_t eh = f * h * (w - 1), ev = f * (h - 1) * w;
       affinities_one<T>(image.data_ptr<T>() + f * 3 * h * w, (normal || distance) ? depth.data_ptr<T>() + f * h * w : nullptr,
-                        k.data_ptr<T>() + 9 * f, static_cast<T>(sd2), static_cast<T>(sn2), static_cast<T>(sp2), normal,
-                        distance, ch.data_ptr<T>() + eh, cv.data_ptr<T>() + ev, normal ? nh.data_ptr<T>() + eh : nullptr,
-                        normal ? nv.data_ptr<T>() + ev : nullptr, distance ? dh.data_ptr<T>() + eh : nullptr,
-                        distance ? dv.data_ptr<T>() + ev : nullptr, work.data_ptr<T>(), h, w);
+                        k.data_ptr<T>() + 9 * f, static_cast<T>(sd2), static_cast<T>(sn2), static_cast<T>(sp2), colour,
+                        normal, distance, at(c[0], colour, eh), at(c[1], colour, ev), at(nn[0], normal, eh),
+                        at(nn[1], normal, ev), at(d[0], distance, eh), at(d[1], distance, ev), work.data_ptr<T>(), h, w);
     }
   });
-  return {ch, cv, nh, nv, dh, dv};
+  return {c[0], c[1], nn[0], nn[1], d[0], d[1]};
 }
 
 void register_potentials(pybind11::module& m) {

@@ -12,7 +12,6 @@
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
-#include <ATen/cpu/vec/vec.h>
 
 #include <algorithm>
 #include <cmath>
@@ -20,28 +19,16 @@
 #include <limits>
 #include <vector>
 
+#include "vec_math.h"
+
 namespace crfdepth_predictive_std {
 
 namespace {
 
 constexpr int64_t kRows = 8;  // rows per task at least
 
-// x[j] <- log(x[j]) for j < n, vectorised.
-template <typename T>
-void log_inplace(T* x, int64_t n) {
-  using Vec = at::vec::Vectorized<T>;
-  int64_t j = 0;
-  for (; j + Vec::size() <= n; j += Vec::size()) Vec::loadu(x + j).log().store(x + j);
-  if (j < n) Vec::loadu(x + j, n - j).log().store(x + j, n - j);
-}
-
-template <typename T>
-void exp_inplace(T* x, int64_t n) {
-  using Vec = at::vec::Vectorized<T>;
-  int64_t j = 0;
-  for (; j + Vec::size() <= n; j += Vec::size()) Vec::loadu(x + j).exp().store(x + j);
-  if (j < n) Vec::loadu(x + j, n - j).exp().store(x + j, n - j);
-}
+using crfdepth_vec::exp_inplace;
+using crfdepth_vec::log_inplace;
 
 // out[j] = max (or min) of x[j - r .. j + r] within [0, n): a sliding window along one row (the
 // interior by shifted passes, which vectorise; the borders one by one).

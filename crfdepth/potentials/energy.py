@@ -16,7 +16,7 @@ delta dp)`` and ``b = alpha w z + eps x0``: the :class:`~crfdepth.linalg.system.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
@@ -270,7 +270,8 @@ class GridTerms:
 def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, prior: torch.Tensor,
                     eps: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights, *,
                     variable: Variable = "depth", gate: torch.Tensor | None = None,
-                    factors: tuple[torch.Tensor, torch.Tensor] | None = None) -> GridTerms:
+                    factors: tuple[torch.Tensor, torch.Tensor] | None = None,
+                    previous: GridTerms | None = None) -> GridTerms:
     """The potentials of one pixel-grid round (pixel mode and the refinement; docs/design.md sections 3 and 6).
 
     Args:
@@ -286,10 +287,18 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         factors: ``(data (B, 1, H, W), edge (B, 2, H, W))`` of :class:`crfdepth.potentials.head.PotentialHead`
             or None: the data weight is multiplied by ``data``, the pairwise weights of the
             edge to the right / downwards of a pixel by ``edge[:, 0]`` / ``edge[:, 1]``.
+        previous: an earlier round's terms with the same arguments but ``geometry``: its data, prior and
+            colour terms are the same tensors, so they are taken, and only the normal and 3D-distance
+            terms are computed (the same gradients: the graph holds those tensors once).
 
     Returns:
         The :class:`GridTerms`, for :func:`grid_system`.
     """
+    if previous is not None:
+        fused = _fused_affinities(image, K, geometry, weights, colour=previous.colour)
+        _, normal, distance = _affinities(image, K, geometry, weights, previous.colour) if fused is None else fused
+        return replace(previous, alpha=weights.alpha, beta=weights.beta, gamma=weights.gamma, delta=weights.delta,
+                       eps=eps, normal=normal, distance=distance)
     s = sparse[:, 0]
     w = data_confidence((s > 0).to(s.dtype), weights.confidence)
     if gate is not None:
@@ -307,10 +316,12 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
                      edge_factor=None if factors is None else (factors[1][:, 0, :, :-1], factors[1][:, 1, :-1, :]))
 
 
-def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights
-                ) -> tuple[Pair, Pair | None, Pair | None]:
-    """The colour, normal and 3D-distance :data:`Pair` of :func:`grid_potentials` (None: off), in torch."""
-    colour = tuple(gaussian_affinity(q, weights.sigma_d) for q in grid_pairs(image, "squared_distance"))
+def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights,
+                colour: Pair | None = None) -> tuple[Pair, Pair | None, Pair | None]:
+    """The colour (unless given), normal and 3D-distance :data:`Pair` of :func:`grid_potentials` (None: off), in
+    torch."""
+    if colour is None:
+        colour = tuple(gaussian_affinity(q, weights.sigma_d) for q in grid_pairs(image, "squared_distance"))
     normal = distance = None
     if geometry is not None:
         if weights.gamma is not None:
@@ -322,11 +333,12 @@ def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | N
     return colour, normal, distance
 
 
-def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights
-                      ) -> tuple[Pair, Pair | None, Pair | None] | None:
+def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights,
+                      colour: Pair | None = None) -> tuple[Pair, Pair | None, Pair | None] | None:
     """:func:`_affinities` by the compiled kernels (:mod:`crfdepth.native`: the normals and all three
     affinities in four passes instead of about sixty torch kernels) where they can compute them: no
-    gradient needed, CPU tensors of one dtype, H, W >= 2; else None (torch computes them, the reference)."""
+    gradient needed, CPU tensors of one dtype, H, W >= 2; else None (torch computes them, the reference).
+    ``colour``: that pair, given (then not computed)."""
     tensors = [image, K, weights.sigma_d, weights.sigma_n, weights.sigma_p] + ([] if geometry is None else [geometry])
     if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return None
@@ -343,13 +355,12 @@ def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tens
     distance_on = geometry is not None and weights.delta is not None
     depth = image.new_empty(0) if geometry is None else geometry[:, 0].contiguous()
     sigmas = [float(sigma.detach()) ** 2 for sigma in (weights.sigma_d, weights.sigma_n, weights.sigma_p)]
-    exponents = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, normal_on, distance_on)
-    if exponents is None:  # the kernel failed (told in a warning): torch computes them
+    found = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, colour is None, normal_on,
+                                   distance_on)
+    if found is None:  # the kernel failed (told in a warning): torch computes them
         return None
-    ch, cv, nh, nv, dh, dv = exponents
-    for exponent in (ch, cv, nh, nv, dh, dv):
-        exponent.exp_()
-    return (ch, cv), ((nh, nv) if normal_on else None), ((dh, dv) if distance_on else None)
+    ch, cv, nh, nv, dh, dv = found
+    return (ch, cv) if colour is None else colour, ((nh, nv) if normal_on else None), ((dh, dv) if distance_on else None)
 
 
 def grid_system(t: GridTerms) -> System:

@@ -1,4 +1,5 @@
-"""The compiled affinities (crfdepth.native, potentials.cpp) against grid_potentials' torch path, their reference."""
+"""The compiled affinities (crfdepth.native, potentials.h) against grid_potentials' torch path, their reference; a later
+round's terms built on the earlier round's are the terms built afresh."""
 
 import pytest
 import torch
@@ -60,3 +61,41 @@ def test_the_model_gives_the_same_depth_with_and_without_the_kernels(kernels):
     assert float(difference.max()) < 0.05 and float(difference.quantile(0.99)) < 0.005
     assert float((fast.std / reference.std - 1).abs().max()) < 0.01
     assert [int(i.iterations) for i in fast.info] == pytest.approx([int(i.iterations) for i in reference.info], abs=8)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_later_round_built_on_the_earlier_one_is_the_round_built_afresh(compiled):
+    image, K, geometry = _frames(torch.float64)
+    sparse = torch.where(torch.rand_like(geometry) < 0.1, geometry, torch.zeros_like(geometry))
+    gate = torch.rand_like(geometry)
+    weights = CRFDepth.from_pretrained("kitti").double().potential_weights()
+    eps = torch.tensor(0.01, dtype=torch.float64)
+    args = (image, sparse, K, geometry, eps)
+    with torch.no_grad(), (native.eager() if not compiled else torch.no_grad()):
+        first = energy.grid_potentials(*args, None, weights, variable="log", gate=gate)
+        later = energy.grid_potentials(*args, geometry, weights, variable="log", gate=gate, previous=first)
+        fresh = energy.grid_potentials(*args, geometry, weights, variable="log", gate=gate)
+    later_system, fresh_system = energy.grid_system(later), energy.grid_system(fresh)
+    for a, b in zip((later_system.diagonal, later_system.rhs, *later_system.weights),
+                    (fresh_system.diagonal, fresh_system.rhs, *fresh_system.weights)):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
+def test_a_later_round_built_on_the_earlier_one_has_the_same_gradients():
+    image, K, geometry = _frames(torch.float64, size=(12, 16))
+    sparse = torch.where(torch.rand_like(geometry) < 0.2, geometry, torch.zeros_like(geometry))
+    model = CRFDepth.from_pretrained("kitti").double()
+    eps = torch.tensor(0.01, dtype=torch.float64)
+
+    def loss(reuse: bool) -> list[torch.Tensor]:
+        weights = model.potential_weights()
+        first = energy.grid_potentials(image, sparse, K, geometry, eps, None, weights, variable="log")
+        later = energy.grid_potentials(image, sparse, K, geometry, eps, geometry, weights, variable="log",
+                                       previous=first if reuse else None)
+        system = energy.grid_system(later)
+        total = sum((t ** 2).sum() for t in (system.diagonal, system.rhs, *system.weights))
+        return torch.autograd.grad(total, [model.sigma_d, model.sigma_n, model.sigma_p, model.beta, model.confidence],
+                                   allow_unused=True)
+
+    for a, b in zip(loss(True), loss(False)):
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
