@@ -14,6 +14,7 @@
 #include "nearest.h"
 #include "potentials.h"
 #include "predictive_std.h"
+#include "workspace.h"
 
 #include <algorithm>
 #include <cmath>
@@ -41,11 +42,47 @@ double sum_over_rows(int64_t rows, F&& row_sum) {
 
 constexpr int64_t kChunk = 4096;  // entries per block of the element-wise passes
 
+// The interior of a row (columns 1 .. w-2, both vertical neighbours present) of the passes below, as
+// separate noinline functions with __restrict__ arguments: inlined into the tasks' lambdas (the OpenMP
+// outlined function of at::parallel_for), GCC left these `omp simd reduction` loops scalar.
+// q = M p on the row and the sum of p q.
+template <typename T>
+__attribute__((noinline)) T matvec_dot_row(const T* __restrict__ pr, const T* __restrict__ whr,
+                                           const T* __restrict__ down, const T* __restrict__ wd,
+                                           const T* __restrict__ up, const T* __restrict__ wu, T* __restrict__ qr,
+                                           int64_t w) {
+  T acc = 0;
+#pragma omp simd reduction(+ : acc)
+  for (int64_t j = 1; j < w - 1; ++j) {
+    const T v = pr[j] - whr[j] * pr[j + 1] - whr[j - 1] * pr[j - 1] - wd[j] * down[j] - wu[j] * up[j];
+    qr[j] = v;
+    acc += v * pr[j];
+  }
+  return acc;
+}
+
+// r = c - M y on the row and the sum of D r^2.
+template <typename T>
+__attribute__((noinline)) T residual_row(const T* __restrict__ yr, const T* __restrict__ whr,
+                                         const T* __restrict__ down, const T* __restrict__ wd,
+                                         const T* __restrict__ up, const T* __restrict__ wu, const T* __restrict__ cr,
+                                         const T* __restrict__ dwr, T* __restrict__ rr, int64_t w) {
+  T acc = 0;
+#pragma omp simd reduction(+ : acc)
+  for (int64_t j = 1; j < w - 1; ++j) {
+    const T t = cr[j] - (yr[j] - whr[j] * yr[j + 1] - whr[j - 1] * yr[j - 1] - wd[j] * down[j] - wu[j] * up[j]);
+    rr[j] = t;
+    acc += dwr[j] * t * t;
+  }
+  return acc;
+}
+
 // One pass over an H x W grid applying M = I - W' (scaled weights wh (H, W-1), wv (H-1, W)) to p,
-// row by row: emit(e, v) receives (M p)_e at flat index e, stores what it needs and returns a term of
-// the sum this returns (summed in T within a row, in double over rows).
-template <typename T, typename Emit>
-double stencil_pass(const T* p_, const T* wh_, const T* wv_, int64_t h, int64_t w, Emit emit) {
+// row by row: emit(e, v) receives (M p)_e at flat index e of a border pixel, stores what it needs and
+// returns a term of the sum this returns; interior(i, row pointers) does a row's interior (one of the
+// row functions above). Sums in T within a row, in double over rows.
+template <typename T, typename Emit, typename Interior>
+double stencil_pass(const T* p_, const T* wh_, const T* wv_, int64_t h, int64_t w, Emit emit, Interior interior) {
   return sum_over_rows(h, [=](int64_t i) {
     const T* __restrict__ pr = p_ + i * w;
     const T* __restrict__ whr = wh_ + i * (w - 1);
@@ -65,9 +102,7 @@ double stencil_pass(const T* p_, const T* wh_, const T* wv_, int64_t h, int64_t 
     T acc = edge(0);
     if (w > 1) acc += edge(w - 1);
     if (down && up) {
-#pragma omp simd reduction(+ : acc)
-      for (int64_t j = 1; j < w - 1; ++j)
-        acc += emit(row + j, pr[j] - whr[j] * pr[j + 1] - whr[j - 1] * pr[j - 1] - wd[j] * down[j] - wu[j] * up[j]);
+      acc += interior(i, pr, whr, down, wd, up, wu);
     } else {
       for (int64_t j = 1; j < w - 1; ++j) acc += edge(j);
     }
@@ -78,17 +113,26 @@ double stencil_pass(const T* p_, const T* wh_, const T* wv_, int64_t h, int64_t 
 // q = M p and p . q.
 template <typename T>
 double grid_matvec_dot_one(const T* p, const T* wh, const T* wv, T* q, int64_t h, int64_t w) {
-  return stencil_pass<T>(p, wh, wv, h, w, [=](int64_t e, T v) { q[e] = v; return v * p[e]; });
+  return stencil_pass<T>(
+      p, wh, wv, h, w, [=](int64_t e, T v) { q[e] = v; return v * p[e]; },
+      [=](int64_t i, const T* pr, const T* whr, const T* down, const T* wd, const T* up, const T* wu) {
+        return matvec_dot_row<T>(pr, whr, down, wd, up, wu, q + i * w, w);
+      });
 }
 
 // r = c - M y and sum D r^2.
 template <typename T>
 double residual_one(const T* y, const T* wh, const T* wv, const T* c, const T* dw, T* r, int64_t h, int64_t w) {
-  return stencil_pass<T>(y, wh, wv, h, w, [=](int64_t e, T v) {
-    const T t = c[e] - v;
-    r[e] = t;
-    return dw[e] * t * t;
-  });
+  return stencil_pass<T>(
+      y, wh, wv, h, w,
+      [=](int64_t e, T v) {
+        const T t = c[e] - v;
+        r[e] = t;
+        return dw[e] * t * t;
+      },
+      [=](int64_t i, const T* yr, const T* whr, const T* down, const T* wd, const T* up, const T* wu) {
+        return residual_row<T>(yr, whr, down, wd, up, wu, c + i * w, dw + i * w, r + i * w, w);
+      });
 }
 
 // y += alpha p, r -= alpha q over n entries; returns r . r after the update.
@@ -255,10 +299,10 @@ void grid_solve_one(const T* dk, const T* bk, const T* whk, const T* wvk, const 
         const T* __restrict__ wu = wvk + (i - 1) * w;
         for (int64_t j = 0; j < w; ++j) deg[j] += wu[j];
       }
-      for (int64_t j = 0; j < w; ++j) {
-        si[j] = T(1) / std::sqrt(deg[j]);
-        row_peak = std::max(row_peak, std::abs(bi[j]));
-      }
+#pragma omp simd
+      for (int64_t j = 0; j < w; ++j) si[j] = T(1) / std::sqrt(deg[j]);
+#pragma omp simd reduction(max : row_peak)
+      for (int64_t j = 0; j < w; ++j) row_peak = std::max(row_peak, std::abs(bi[j]));
       peaks[i] = static_cast<double>(row_peak);
     }
   });
@@ -348,18 +392,17 @@ std::vector<torch::Tensor> grid_solve(torch::Tensor d, torch::Tensor b, torch::T
   if (warm) check_rows(*x0, "grid_solve");
   auto x = torch::empty_like(b);
   auto stats = torch::zeros({g, 3}, b.options().dtype(torch::kFloat64));
-  auto whs = torch::empty_like(wh), wvs = torch::empty_like(wv);
-  auto s = torch::empty({h, w}, b.options()), dw = torch::empty({n}, b.options()), c = torch::empty({n}, b.options());
-  auto y = torch::empty({n}, b.options()), r = torch::empty({n}, b.options()), p = torch::empty({n}, b.options()),
-       q = torch::empty({n}, b.options());
+  // one frame's scratch, frame after frame: the scaled weights, s, D, c, y, r, p, q (nine planes)
+  auto work = crfdepth_workspace::scratch(crfdepth_workspace::kGridSolve, 9 * n, b.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(b.scalar_type(), "grid_solve", [&] {
     using T = scalar_t;
+    T* plane[9];
+    for (int k = 0; k < 9; ++k) plane[k] = work.data_ptr<T>() + k * n;
     for (int64_t k = 0; k < g; ++k) {
       grid_solve_one<T>(d.data_ptr<T>() + k * n, b.data_ptr<T>() + k * n, wh.data_ptr<T>() + k * h * (w - 1),
                         wv.data_ptr<T>() + k * (h - 1) * w, warm ? x0->data_ptr<T>() + k * n : nullptr,
-                        x.data_ptr<T>() + k * n, s.data_ptr<T>(), dw.data_ptr<T>(), c.data_ptr<T>(), y.data_ptr<T>(),
-                        whs.data_ptr<T>() + k * h * (w - 1), wvs.data_ptr<T>() + k * (h - 1) * w, r.data_ptr<T>(),
-                        p.data_ptr<T>(), q.data_ptr<T>(), h, w, rtol, max_iter, check_every, restarts,
+                        x.data_ptr<T>() + k * n, plane[0], plane[1], plane[2], plane[3], plane[4], plane[5],
+                        plane[6], plane[7], plane[8], h, w, rtol, max_iter, check_every, restarts,
                         stats.data_ptr<double>() + 3 * k);
     }
   });

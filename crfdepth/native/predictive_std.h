@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "vec_math.h"
+#include "workspace.h"
 
 namespace crfdepth_predictive_std {
 
@@ -195,11 +196,7 @@ std::vector<torch::Tensor> predictive_std(torch::Tensor z, torch::Tensor sparse,
   const int64_t b = z.size(0), h = z.size(2), w = z.size(3), n = h * w;
   auto std_out = torch::empty_like(z);
   auto features = torch::empty({b, 5, h, w}, z.options());
-  // Four scratch planes, kept between calls (callers hold the GIL, so one call runs at a time): fresh
-  // memory of this size costs the operating system's page faults at every call.
-  static torch::Tensor scratch;
-  if (!scratch.defined() || scratch.numel() < 4 * n || scratch.scalar_type() != z.scalar_type())
-    scratch = torch::empty({4 * n}, z.options());
+  auto scratch = crfdepth_workspace::scratch(crfdepth_workspace::kPredictiveStd, 4 * n, z.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(z.scalar_type(), "predictive_std", [&] {
     scalar_t* s[4];
     for (int k = 0; k < 4; ++k) s[k] = scratch.data_ptr<scalar_t>() + k * n;
