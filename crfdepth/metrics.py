@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.special import erf
-from scipy.stats import spearmanr
 
 from crfdepth.errors import InputError
 
@@ -204,6 +202,8 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     """Spearman rank correlation (average ranks for ties); nan when either is constant."""
     if np.ptp(a) == 0 or np.ptp(b) == 0:
         return float("nan")
+    from scipy.stats import spearmanr  # at first use: importing scipy.stats costs 0.5 s
+
     return float(spearmanr(a, b).statistic)
 
 
@@ -319,7 +319,7 @@ def reliability(error: np.ndarray, std: np.ndarray, ks=None) -> dict[str, np.nda
                          + (f" with values from {k.min()} to {k.max()}" if k.size else ""))
     abs_e = np.abs(e)
     observed = np.array([np.mean(abs_e <= kk * u) for kk in k])
-    return {"k": k, "observed": observed, "expected": erf(k / np.sqrt(2.0))}
+    return {"k": k, "observed": observed, "expected": torch.special.erf(torch.from_numpy(k / np.sqrt(2.0))).numpy()}
 
 
 # -- data --------------------------------------------------------------------------------

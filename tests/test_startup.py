@@ -84,3 +84,19 @@ def test_an_eager_forward_never_imports_the_compiler():
             "print('torch._dynamo' in sys.modules)")
     _, out = _loaded_after(code)
     assert out == "False"
+
+
+def test_the_default_models_forward_imports_neither_kornia_nor_scipy():
+    """The pixel grid's forward (and the metrics' module) needs neither: their imports cost 0.2 s and 0.5 s of a
+    fresh process's first frame (benchmarks/startup.py). Where the compiled kernels are off, the eager fill and std
+    use SciPy and OpenCV, so this runs with the kernels as the process has them."""
+    code = ("import sys, torch\nfrom crfdepth import CRFDepth, native\nimport crfdepth.metrics, crfdepth.io.files\n"
+            "from crfdepth.data.synthetic import make_scene\n"
+            "s = make_scene(seed=0).to_tensors()\n"
+            "with torch.inference_mode():\n"
+            "    CRFDepth.from_pretrained()(s['image'][None], s['sparse'][None], s['K'][None], return_std=True)\n"
+            "print(native.kernels() is not None)")
+    loaded, out = _loaded_after(code)
+    assert "kornia" not in loaded and "pypcd4" not in loaded
+    if out == "True":  # the kernels' fill needs no SciPy
+        assert "scipy" not in loaded

@@ -17,7 +17,6 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import bilateral_blur, gaussian_blur2d, median_blur
 
 from crfdepth.checks import check_choice, check_depth_frames, check_number
 from crfdepth.errors import InputError
@@ -206,6 +205,8 @@ def _extend_to_top(x: torch.Tensor) -> torch.Tensor:
 def _median(x: torch.Tensor, size: int) -> torch.Tensor:
     """Median over the ``size`` x ``size`` window, border pixels replicated; empty pixels count as 0."""
     r = size // 2
+    from kornia.filters import median_blur  # kornia at first use: its import costs 0.2 s
+
     return median_blur(F.pad(x, (r, r, r, r), mode="replicate"), size)[..., r:-r, r:-r]
 
 
@@ -216,12 +217,16 @@ def _median_filled(x: torch.Tensor, size: int) -> torch.Tensor:
 
 def _gaussian(x: torch.Tensor) -> torch.Tensor:
     """5x5 Gaussian blur, sigma 1.1 px (the sigma of a 5-tap kernel given by its size alone)."""
+    from kornia.filters import gaussian_blur2d
+
     return gaussian_blur2d(x, (5, 5), (_GAUSSIAN_SIGMA, _GAUSSIAN_SIGMA), border_type="replicate")
 
 
 def _bilateral(x: torch.Tensor) -> torch.Tensor:
     """5x5 bilateral blur: sigma 1.5 m in (inverted) depth, 2 px in space."""
     space = (_BILATERAL_SIGMA_SPACE, _BILATERAL_SIGMA_SPACE)
+    from kornia.filters import bilateral_blur
+
     return bilateral_blur(x, (5, 5), _BILATERAL_SIGMA_COLOR_M, space, border_type="replicate")
 
 

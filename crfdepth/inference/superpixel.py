@@ -11,7 +11,6 @@ The stages read the model as :mod:`crfdepth.inference.pixel` says (``model.setti
 from __future__ import annotations
 
 import torch
-from kornia.geometry.camera import unproject_points
 
 from crfdepth.geometry.node_normals import graph_normals
 from crfdepth.inference.nodes import Nodes, gather_nodes, gather_normals
@@ -56,6 +55,8 @@ def refit_geometry(model: torch.nn.Module, terms: EnergyTerms, x: torch.Tensor, 
     """Refit the normal and 3D-distance terms to the solution ``x`` (in the unknown), in place:
     nodes without LiDAR normals take the normal fitted to their neighbours' 3D points."""
     src, dst = nodes.edge_index
+    from kornia.geometry.camera import unproject_points  # at first use: kornia's import is 0.2 s
+
     points = unproject_points(nodes.centroid, to_depth(x, model.settings.structure.variable)[:, None], K[nodes.frame])
     if normals is not None:
         node_normal, known = normals

@@ -6,17 +6,45 @@ point clouds: :mod:`crfdepth.io.pointcloud`; safe output paths and atomic writes
 :mod:`crfdepth.io.files`.
 """
 
-from crfdepth.io.calibration import (
-    Calibration,
-    RigCalibration,
-    load_any_calibration,
-    load_calibration,
-    read_object_calibration,
-    read_raw_calibration,
-    read_rig_calibration,
-)
-from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_velodyne, write_depth_png
-from crfdepth.io.pointcloud import read_points, write_pcd, write_ply
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from crfdepth.io.calibration import (
+        Calibration,
+        RigCalibration,
+        load_any_calibration,
+        load_calibration,
+        read_object_calibration,
+        read_raw_calibration,
+        read_rig_calibration,
+    )
+    from crfdepth.io.kitti import read_depth_png, read_intrinsics, read_rgb, read_velodyne, write_depth_png
+    from crfdepth.io.pointcloud import read_points, write_pcd, write_ply
+
+# Where each name lives, imported at its first use (PEP 562): writing a file (crfdepth.io.files) does not import
+# the point-cloud readers (pypcd4, 70 ms) and every format.
+_LAZY = {
+    **dict.fromkeys(["Calibration", "RigCalibration", "load_any_calibration", "load_calibration",
+                     "read_object_calibration", "read_raw_calibration", "read_rig_calibration"], "crfdepth.io.calibration"),
+    **dict.fromkeys(["read_depth_png", "read_intrinsics", "read_rgb", "read_velodyne", "write_depth_png"],
+                    "crfdepth.io.kitti"),
+    **dict.fromkeys(["read_points", "write_pcd", "write_ply"], "crfdepth.io.pointcloud"),
+}
+
+
+def __getattr__(name: str):
+    """The name ``name`` of :data:`_LAZY`, imported from its module at first use and kept here."""
+    if name not in _LAZY:
+        raise AttributeError(f"module 'crfdepth.io' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "Calibration",

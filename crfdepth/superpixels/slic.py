@@ -50,7 +50,6 @@ import math
 from numbers import Integral, Real
 
 import torch
-from kornia.color import rgb_to_lab
 
 from crfdepth.checks import describe
 from crfdepth.errors import InputError
@@ -181,6 +180,8 @@ def _colour_features(x: torch.Tensor, compactness: float, sigma: float, convert2
     span = hi - lo
     x = (x - lo) / torch.where(span > 0, span, torch.ones_like(span))
     if convert2lab:
+        from kornia.color import rgb_to_lab  # at first use: importing kornia costs 0.2 s, and the pixel grid needs none
+
         x = rgb_to_lab(x)
     if sigma > 0:
         x = _gaussian_blur(x, sigma)
