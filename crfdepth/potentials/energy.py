@@ -170,16 +170,23 @@ def grid_pairs(values: torch.Tensor, reduce: Literal["squared_distance", "dot"]
     ``(horizontal (B, H, W-1), vertical (B, H-1, W))``.
 
     Channel by channel on contiguous planes; :func:`gaussian_affinity` or
-    :func:`cosine_affinity` of the result is the grid form of the affinities above.
+    :func:`cosine_affinity` of the result is the grid form of the affinities above. The planes are
+    taken apart once (``unbind``) and then shifted: in backward that is one stack and a shift per
+    plane, where selecting the channel of each shifted copy cost a zero-filled copy of all channels per
+    channel (2.4x the time of forward and backward at 320x896).
     """
-    def pair(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    planes = values.unbind(1)
+
+    def pair(dim: int) -> torch.Tensor:
         total = None
-        for c in range(values.shape[1]):
-            term = (a[:, c] - b[:, c]) ** 2 if reduce == "squared_distance" else a[:, c] * b[:, c]
+        for p in planes:
+            n = p.shape[dim]
+            a, b = p.narrow(dim, 0, n - 1), p.narrow(dim, 1, n - 1)
+            term = (a - b) ** 2 if reduce == "squared_distance" else a * b
             total = term if total is None else total + term
         return total
 
-    return pair(values[..., :-1], values[..., 1:]), pair(values[..., :-1, :], values[..., 1:, :])
+    return pair(2), pair(1)
 
 
 def grid_energy_terms(z, w, prior, colour, normal, distance, alpha, beta, gamma, delta, eps) -> EnergyTerms:
