@@ -187,9 +187,17 @@ def test_gradcheck_through_the_compiled_multigrid_solve(native_calls, coarsest, 
     assert native_calls  # forward and adjoint solves ran compiled
 
 
-def test_real_frame_training_gradients_match_the_eager_path(native_calls):
+@pytest.mark.parametrize("adjoint_dtype, tol", [(torch.float64, 1e-6), (torch.float32, 1e-3)])
+def test_real_frame_training_gradients_match_the_eager_path(native_calls, monkeypatch, adjoint_dtype, tol):
     """The shipped model in train mode on a crop of the official val frame: loss.backward() gives the same
-    parameter gradients with the compiled solves as with the eager ones."""
+    parameter gradients with the compiled solves as with the eager ones. With the adjoint in float64 to 1e-6;
+    in float32 (the default for a float32 model) to 1e-3 of the largest: both stop at rtol 1e-5 with float32 sums
+    in another order, and each is that far from the exact gradient (raw_alpha: 2.8e-4 in float32, 4.7e-4 with a
+    float64 adjoint, against an rtol 1e-10 one)."""
+    from crfdepth.linalg import adjoint
+
+    if adjoint_dtype == torch.float64:
+        monkeypatch.setattr(adjoint, "_single_precision_adjoint", lambda ctx, grad_x: (None, None))
     from crfdepth.data.factory import build_dataset
     from crfdepth.data.transforms import BottomCenterCrop
     from crfdepth.model import CRFDepth
@@ -217,7 +225,7 @@ def test_real_frame_training_gradients_match_the_eager_path(native_calls):
     assert compiled.keys() == eager.keys() and compiled
     for name, g in compiled.items():
         ref = eager[name]
-        assert float((g - ref).abs().max()) <= 1e-6 * max(float(ref.abs().max()), 1e-30), name
+        assert float((g - ref).abs().max()) <= tol * max(float(ref.abs().max()), 1e-30), name
     for i, j in zip(info, info_eager):
         assert abs(int(i.iterations.max()) - int(j.iterations.max())) <= 1
         assert abs(int(i.adjoint.iterations.max()) - int(j.adjoint.iterations.max())) <= 1
