@@ -60,7 +60,7 @@ def _krylov_solve(layout, scaled_matvec, inv_sqrt_diag_rows, diag_rows, b_rows, 
     check_every = settings.check_every if precondition is None else 1
     native = _native_kernels(scaled_matvec, c, settings, precondition)
     native_mg = None
-    if precondition is not None:  # the multigrid V-cycle and CG fused (crfdepth/native/multigrid.cpp)
+    if precondition is not None:  # the multigrid V-cycle and CG fused (crfdepth/native/multigrid.h)
         from crfdepth.linalg import multigrid
 
         native_mg = multigrid.native_kernels(precondition, scaled_matvec, c)

@@ -20,7 +20,7 @@ the CG iterations of the differentiated forward solve (rtol 1e-8, warm start) fr
 four Jacobi-CG iterations (two grid products per cycle, plus the coarse levels).
 
 Where the compiled kernels run (:mod:`crfdepth.native`, float32 / float64 on the CPU), the whole preconditioned CG
-runs in crfdepth/native/multigrid.cpp (:func:`native_cg`: three fused passes an iteration instead of about a hundred
+runs in crfdepth/native/multigrid.h (:func:`native_cg`: three fused passes an iteration instead of about a hundred
 torch kernels, about 4x faster on 2 threads at 320 x 896); the levels built here are its input, and this eager cycle
 remains the reference.
 """
@@ -186,7 +186,7 @@ class GridMultigrid:
         return self._cycle(0, r)
 
     def native_levels(self) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """The compiled V-cycle's arguments (crfdepth/native/multigrid.cpp): ``[diag, omega / diag, weight_h,
+        """The compiled V-cycle's arguments (crfdepth/native/multigrid.h): ``[diag, omega / diag, weight_h,
         weight_v]`` of every level below the finest (which runs in the scaled form of CG), contiguous, and the
         coarsest level's (B, n, n) float64 inverse."""
         if self._native is None:

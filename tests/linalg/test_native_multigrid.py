@@ -1,4 +1,4 @@
-"""The compiled multigrid-preconditioned CG (crfdepth/native/multigrid.cpp) against the eager path, its reference.
+"""The compiled multigrid-preconditioned CG (crfdepth/native/multigrid.h) against the eager path, its reference.
 
 The eager path is GridMultigrid's V-cycle through adjoint._scaled_multigrid in cg.py's loop (``native.eager()``);
 the compiled one runs the same iteration (a convergence check after every iteration) in three fused passes. Both

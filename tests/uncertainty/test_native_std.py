@@ -1,4 +1,4 @@
-"""The compiled predictive std and nearest search (crfdepth/native/std.cpp, nearest.cpp) against the eager torch
+"""The compiled predictive std and nearest search (crfdepth/native/predictive_std.h, nearest.h) against the eager torch
 path, their reference: the same signals and std on the same inputs, every variable, with and without the gate,
 both dtypes, frames down to one row or column, and the model's output with the kernels on and off."""
 
