@@ -249,26 +249,18 @@ class _LaplacianSolve(torch.autograd.Function):
 
 
 def _single_precision_adjoint(ctx, grad_x: torch.Tensor):
-    """``(lam_rows, SolveInfo)`` of the adjoint solve in float32 for a float32 solve whose forward ran in float64,
-    or ``(None, None)``: then the caller solves in the forward's precision.
-
-    The forward needs float64 to reach its ``grad_rtol`` (1e-10, where the implicit gradient is exact); the
-    adjoint's ``rtol`` (1e-5 by default) is 150 float32 ulps, and the gradient is returned in float32. Its
-    operator and preconditioner are built again in float32 (the multigrid's setup: 4 ms at 320x896) and its
-    iterations move half the bytes (40 multigrid-CG iterations: 51 -> 20 ms there). A solve that does not
-    converge so (an ill-conditioned system float32 cannot resolve to ``rtol``) is done again in float64.
-    """
+    """``(lam_rows, SolveInfo)`` of the adjoint in float32 for a float32 solve whose forward ran in float64, else
+    ``(None, None)`` (the caller solves in the forward's precision): its ``rtol`` (1e-5) is 150 float32 ulps and the
+    gradient is float32; its operator and V-cycle are built again in float32 (4 ms at 320x896) and its iterations
+    move half the bytes (51 -> 20 ms for 40). One that does not converge so is solved again in float64."""
     if ctx.system is None or ctx.dtype != torch.float32 or ctx.settings.rtol < 1e-6:
         return None, None
     layout = ctx.solver_state[0]
     d, weights = ctx.system
-    matvec, s_rows, diag_rows, precondition = _scaled_operator(layout, ctx.settings, True, d.float(),
-                                                               [w.float() for w in weights])
+    operator = _scaled_operator(layout, ctx.settings, True, d.float(), [w.float() for w in weights])
     g_rows = layout.to_rows(grad_x.float().contiguous())
-    lam_rows, info = _krylov_solve(layout, matvec, s_rows, diag_rows, g_rows, None, ctx.settings, precondition)
-    if not bool(info.converged.all()):
-        return None, None
-    return lam_rows.double(), info
+    lam_rows, info = _krylov_solve(layout, *operator[:3], g_rows, None, ctx.settings, operator[3])
+    return (lam_rows.double(), info) if bool(info.converged.all()) else (None, None)
 
 
 DOUBLE_BACKWARD_MESSAGE = (
