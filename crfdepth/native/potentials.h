@@ -237,8 +237,67 @@ std::vector<torch::Tensor> grid_affinities(torch::Tensor image, torch::Tensor de
   return {c[0], c[1], nn[0], nn[1], d[0], d[1]};
 }
 
+// The grid system's maps, element by element in the order crfdepth/potentials/energy.py's grid_system
+// takes them: out = ((beta c + gamma n) + delta p) f, with the terms that are off left out.
+template <typename T>
+__attribute__((noinline)) void edge_weights(const T* __restrict__ c, const T* __restrict__ n, const T* __restrict__ p,
+                                            const T* __restrict__ f, T beta, T gamma, T delta, T* __restrict__ out,
+                                            int64_t lo, int64_t hi) {
+#pragma omp simd
+  for (int64_t k = lo; k < hi; ++k) {
+    T v = beta * c[k];
+    if (n) v = v + gamma * n[k];
+    if (p) v = v + delta * p[k];
+    if (f) v = v * f[k];
+    out[k] = v;
+  }
+}
+
+// d = alpha w + eps and b = (alpha w) z + eps prior: unary_system of (alpha w, z) and (eps, prior).
+template <typename T>
+__attribute__((noinline)) void unary_maps(const T* __restrict__ w, const T* __restrict__ z, const T* __restrict__ x0,
+                                          T alpha, T eps, T* __restrict__ d, T* __restrict__ b, int64_t lo, int64_t hi) {
+#pragma omp simd
+  for (int64_t k = lo; k < hi; ++k) {
+    const T u = alpha * w[k];
+    d[k] = u + eps;
+    b[k] = u * z[k] + eps * x0[k];
+  }
+}
+
+// (d, b, wh, wv) of a round's maps (B, H, W) w, z, prior and edge pairs (B, H, W-1) / (B, H-1, W): colour, and
+// normal, distance and the head's factor where given (empty tensors where off), with their scalar weights.
+std::vector<torch::Tensor> grid_system(torch::Tensor w, torch::Tensor z, torch::Tensor prior, torch::Tensor ch,
+                                       torch::Tensor cv, torch::Tensor nh, torch::Tensor nv, torch::Tensor dh,
+                                       torch::Tensor dv, torch::Tensor fh, torch::Tensor fv, double alpha, double beta,
+                                       double gamma, double delta, double eps) {
+  for (const auto* t : {&w, &z, &prior, &ch, &cv, &nh, &nv, &dh, &dv, &fh, &fv})
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && (t->numel() == 0 || t->scalar_type() == w.scalar_type()),
+                "grid_system: expected contiguous CPU tensors of one dtype");
+  auto d = torch::empty_like(w), b = torch::empty_like(w), wh = torch::empty_like(ch), wv = torch::empty_like(cv);
+  AT_DISPATCH_FLOATING_TYPES(w.scalar_type(), "grid_system", [&] {
+    using T = scalar_t;
+    auto ptr = [](torch::Tensor& t) -> const T* { return t.numel() ? t.data_ptr<T>() : nullptr; };
+    const T *pw = ptr(w), *pz = ptr(z), *px = ptr(prior);
+    const T *pch = ptr(ch), *pcv = ptr(cv), *pnh = ptr(nh), *pnv = ptr(nv), *pdh = ptr(dh), *pdv = ptr(dv);
+    const T *pfh = ptr(fh), *pfv = ptr(fv);
+    T *pd = d.data_ptr<T>(), *pb = b.data_ptr<T>(), *pwh = wh.data_ptr<T>(), *pwv = wv.data_ptr<T>();
+    const T a = T(alpha), be = T(beta), g = T(gamma), de = T(delta), e = T(eps);
+    const int64_t n = w.numel(), nhz = ch.numel(), nvt = cv.numel();
+    at::parallel_for(0, n, 32768, [=](int64_t lo, int64_t hi) { unary_maps<T>(pw, pz, px, a, e, pd, pb, lo, hi); });
+    at::parallel_for(0, nhz, 32768, [=](int64_t lo, int64_t hi) {
+      edge_weights<T>(pch, pnh, pdh, pfh, be, g, de, pwh, lo, hi);
+    });
+    at::parallel_for(0, nvt, 32768, [=](int64_t lo, int64_t hi) {
+      edge_weights<T>(pcv, pnv, pdv, pfv, be, g, de, pwv, lo, hi);
+    });
+  });
+  return {d, b, wh, wv};
+}
+
 void register_potentials(pybind11::module& m) {
   m.def("grid_affinities", &grid_affinities, "colour, normal and 3D-distance affinities of a pixel grid's edges");
+  m.def("grid_system", &grid_system, "the pixel grid system's diagonal, right-hand side and edge weights");
 }
 
 }  // namespace crfdepth_potentials

@@ -25,6 +25,7 @@ from crfdepth.config import Variable
 from crfdepth.geometry.normals import camera_points, dense_normals
 from crfdepth.linalg.operators import grid_edge_index
 from crfdepth.linalg.system import System
+from crfdepth.potentials.compiled import fused_affinities, fused_system
 
 
 def to_unknown(depth: torch.Tensor, variable: Variable) -> torch.Tensor:
@@ -302,7 +303,7 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         The :class:`GridTerms`, for :func:`grid_system`.
     """
     if previous is not None:
-        fused = _fused_affinities(image, K, geometry, weights, colour=previous.colour)
+        fused = fused_affinities(image, K, geometry, weights, colour=previous.colour)
         _, normal, distance = _affinities(image, K, geometry, weights, previous.colour) if fused is None else fused
         return replace(previous, alpha=weights.alpha, beta=weights.beta, gamma=weights.gamma, delta=weights.delta,
                        eps=eps, normal=normal, distance=distance)
@@ -312,7 +313,7 @@ def grid_potentials(image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, 
         w = w * gate[:, 0]
     if factors is not None:
         w = w * factors[0][:, 0]
-    fused = _fused_affinities(image, K, geometry, weights)
+    fused = fused_affinities(image, K, geometry, weights)
     if fused is not None:
         colour, normal, distance = fused
     else:
@@ -340,38 +341,12 @@ def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | N
     return colour, normal, distance
 
 
-def _fused_affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | None, weights: PotentialWeights,
-                      colour: Pair | None = None) -> tuple[Pair, Pair | None, Pair | None] | None:
-    """:func:`_affinities` by the compiled kernels (:mod:`crfdepth.native`: the normals and all three
-    affinities in four passes instead of about sixty torch kernels) where they can compute them: no
-    gradient needed, CPU tensors of one dtype, H, W >= 2; else None (torch computes them, the reference).
-    ``colour``: that pair, given (then not computed)."""
-    tensors = [image, K, weights.sigma_d, weights.sigma_n, weights.sigma_p] + ([] if geometry is None else [geometry])
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return None
-    if any(t.device.type != "cpu" for t in tensors) or image.dtype not in (torch.float32, torch.float64):
-        return None
-    if min(image.shape[-2:]) < 2 or (geometry is not None and geometry.dtype != image.dtype):
-        return None
-    from crfdepth.native import kernels
-
-    native = kernels()
-    if native is None:
-        return None
-    normal_on = geometry is not None and weights.gamma is not None
-    distance_on = geometry is not None and weights.delta is not None
-    depth = image.new_empty(0) if geometry is None else geometry[:, 0].contiguous()
-    sigmas = [float(sigma.detach()) ** 2 for sigma in (weights.sigma_d, weights.sigma_n, weights.sigma_p)]
-    found = native.grid_affinities(image.contiguous(), depth, K.detach(), *sigmas, colour is None, normal_on,
-                                   distance_on)
-    if found is None:  # the kernel failed (told in a warning): torch computes them
-        return None
-    ch, cv, nh, nv, dh, dv = found
-    return (ch, cv) if colour is None else colour, ((nh, nv) if normal_on else None), ((dh, dv) if distance_on else None)
-
-
 def grid_system(t: GridTerms) -> System:
-    """The pixel-grid system of the potentials of :func:`grid_potentials`."""
+    """The pixel-grid system of the potentials of :func:`grid_potentials` (one compiled pass per map where no
+    gradient is needed, :func:`crfdepth.potentials.compiled.fused_system`; the same numbers)."""
+    fused = fused_system(t)
+    if fused is not None:
+        return System.grid(*fused)
     wh = t.beta * t.colour[0]
     wv = t.beta * t.colour[1]
     for scale, term in ((t.gamma, t.normal), (t.delta, t.distance)):

@@ -8,7 +8,7 @@ from crfdepth import native
 from crfdepth.data.synthetic import make_scene
 from crfdepth.fill.nearest import nearest_fill
 from crfdepth.model import CRFDepth
-from crfdepth.potentials import energy
+from crfdepth.potentials import compiled, energy
 
 
 def _frames(dtype, batch: int = 2, size: tuple[int, int] = (48, 64)):
@@ -28,9 +28,9 @@ def test_compiled_affinities_equal_the_torch_ones(kernels, dtype, atol, size):
     image, K, geometry = _frames(dtype, size=size)
     weights = CRFDepth.from_pretrained("kitti").to(dtype).potential_weights()
     with torch.no_grad():
-        fused = energy._fused_affinities(image, K, geometry, weights)
+        fused = compiled.fused_affinities(image, K, geometry, weights)
         reference = energy._affinities(image, K, geometry, weights)
-        first_round = energy._fused_affinities(image, K, None, weights)
+        first_round = compiled.fused_affinities(image, K, None, weights)
     assert fused is not None and first_round is not None and first_round[1] is None and first_round[2] is None
     for got, want in zip(fused, reference):
         for a, b in zip(got, want):
@@ -43,9 +43,9 @@ def test_with_gradients_the_torch_path_runs(kernels):
     image, K, geometry = _frames(torch.float64)
     weights = CRFDepth.from_pretrained("kitti").double().potential_weights()
     geometry.requires_grad_(True)
-    assert energy._fused_affinities(image, K, geometry, weights) is None  # the training path: differentiable
+    assert compiled.fused_affinities(image, K, geometry, weights) is None  # the training path: differentiable
     with torch.no_grad():
-        assert energy._fused_affinities(image, K, geometry, weights) is not None
+        assert compiled.fused_affinities(image, K, geometry, weights) is not None
 
 
 def test_the_model_gives_the_same_depth_with_and_without_the_kernels(kernels):
@@ -99,3 +99,42 @@ def test_a_later_round_built_on_the_earlier_one_has_the_same_gradients():
 
     for a, b in zip(loss(True), loss(False)):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 1e-6), (torch.float64, 1e-14)])
+@pytest.mark.parametrize("normal, distance, factor", [(False, False, False), (True, True, False), (True, False, True),
+                                                      (False, True, True)])
+def test_the_compiled_grid_system_is_torchs(kernels, dtype, tol, normal, distance, factor):
+    g = torch.Generator().manual_seed(3)
+    b_, h, w = 2, 9, 13
+
+    def maps(*shape):
+        return torch.rand(*shape, generator=g, dtype=torch.float64).to(dtype)
+
+    def pair():
+        return maps(b_, h, w - 1), maps(b_, h - 1, w)
+
+    scalar = [torch.tensor(v, dtype=dtype) for v in (0.3, 0.7, 0.05, 0.4, 1e-3)]
+    terms = energy.GridTerms(alpha=scalar[0], beta=scalar[1], gamma=scalar[2] if normal else None,
+                             delta=scalar[3] if distance else None, eps=scalar[4], z=maps(b_, h, w), w=maps(b_, h, w),
+                             prior=maps(b_, h, w), colour=pair(), normal=pair() if normal else None,
+                             distance=pair() if distance else None, edge_factor=pair() if factor else None)
+    fused = compiled.fused_system(terms)
+    with native.eager():
+        reference = energy.grid_system(terms)
+    assert fused is not None
+    for got, want in zip(fused, (reference.diagonal, reference.rhs, *reference.weights)):
+        assert got.shape == want.shape and got.dtype == want.dtype
+        torch.testing.assert_close(got, want, atol=0, rtol=tol)  # an FMA may round once where torch rounds twice
+
+
+def test_with_gradients_torch_builds_the_grid_system(kernels):
+    model = CRFDepth.from_pretrained("kitti").double()
+    image, K, geometry = _frames(torch.float64, size=(12, 16))
+    sparse = torch.where(geometry > 30, geometry, torch.zeros_like(geometry))
+    eps = torch.tensor(0.01, dtype=torch.float64)
+    terms = energy.grid_potentials(image, sparse, K, geometry, eps, geometry, model.potential_weights(),
+                                   variable="log")
+    assert compiled.fused_system(terms) is None  # the weights require grad: autograd needs torch's graph
+    with torch.no_grad():
+        assert compiled.fused_system(terms) is not None
