@@ -123,7 +123,7 @@ def test_the_concept_table_covers_the_paper_and_its_additions():
 
 
 LAYERS = [  # bottom first (docs/design.md section 8); a module imports only its own package or lower layers
-    {"crfdepth.errors", "crfdepth._version"},
+    {"crfdepth.errors", "crfdepth._version", "crfdepth.lazy"},
     {"crfdepth.checks", "crfdepth.plausibility", "crfdepth.precision", "crfdepth.native"},
     {"crfdepth.config"},  # its groups check themselves with crfdepth.checks
     {"crfdepth.intrinsics", "crfdepth.layer_inputs"},

@@ -9,8 +9,9 @@ builds one by layout name. Sub-modules: :mod:`~crfdepth.data.kitti`,
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from crfdepth.lazy import lazy_names
 
 if TYPE_CHECKING:
     from crfdepth.data.factory import LAYOUTS, build_dataset
@@ -46,17 +47,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
-    """The name ``name`` of :data:`_LAZY`, imported from its module at first use and kept here."""
-    if name not in _LAZY:
-        raise AttributeError(f"module 'crfdepth.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_names(__name__, _LAZY)
 
 
 __all__ = [

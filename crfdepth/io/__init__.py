@@ -6,8 +6,9 @@ point clouds: :mod:`crfdepth.io.pointcloud`; safe output paths and atomic writes
 :mod:`crfdepth.io.files`.
 """
 
-import importlib
 from typing import TYPE_CHECKING
+
+from crfdepth.lazy import lazy_names
 
 if TYPE_CHECKING:
     from crfdepth.io.calibration import (
@@ -33,17 +34,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
-    """The name ``name`` of :data:`_LAZY`, imported from its module at first use and kept here."""
-    if name not in _LAZY:
-        raise AttributeError(f"module 'crfdepth.io' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_names(__name__, _LAZY)
 
 
 __all__ = [

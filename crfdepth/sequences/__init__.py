@@ -4,8 +4,9 @@ ROS bag (``crfdepth targets``)."""
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from crfdepth.lazy import lazy_names
 
 if TYPE_CHECKING:
     from crfdepth.sequences.recording_targets import DriveTargets, make_targets
@@ -13,11 +14,6 @@ if TYPE_CHECKING:
 __all__ = ["DriveTargets", "make_targets"]
 
 
-def __getattr__(name: str):
-    """``DriveTargets`` and ``make_targets``, imported at first use (PEP 562): a module that needs one submodule
-    (the pictures need ``targets``) does not import the recordings' readers with it."""
-    if name not in __all__:
-        raise AttributeError(f"module 'crfdepth.sequences' has no attribute {name!r}")
-    value = getattr(importlib.import_module("crfdepth.sequences.recording_targets"), name)
-    globals()[name] = value
-    return value
+# imported at first use: a module that needs one submodule (the pictures need ``targets``) does not import the
+# recordings' readers with it
+__getattr__, __dir__ = lazy_names(__name__, dict.fromkeys(__all__, "crfdepth.sequences.recording_targets"))
