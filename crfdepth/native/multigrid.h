@@ -213,6 +213,23 @@ inline void restrict_row(int64_t i, T* t, T* acc, T* rc, int64_t h, int64_t w, i
   }
 }
 
+// t = row i of r - A x on level L (unit: the finest level's scaled form, without its diagonal), with x's rows
+// i - 1, i, i + 1 in a task's ring of three smoothed rows and zero rows beyond the grid.
+template <typename T>
+void ring_residual(const Level<T>& L, const T* r, T* const* ring, const T* zero, int64_t i, T* t) {
+  const int64_t h = L.h, w = L.w;
+  const bool up = i > 0, down = i + 1 < h;
+  const T* xu = up ? ring[(i - 1) % 3] : zero;
+  const T* wu = up ? L.wv + (i - 1) * w : zero;
+  const T* xd = down ? ring[(i + 1) % 3] : zero;
+  const T* wd = down ? L.wv + i * w : zero;
+  if (L.dg == nullptr) {
+    residual_row<T, true>(r + i * w, nullptr, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
+  } else {
+    residual_row<T, false>(r + i * w, L.dg + i * w, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
+  }
+}
+
 // The down pass of level L on its right-hand side r: x = coef r, t = r - A x, rc = P^T (s t) (s = sq on the
 // scaled finest level, where A is M; else 1), written to the next level's right-hand side rc.
 template <typename T>
@@ -230,17 +247,8 @@ void down_pass(const Level<T> L, const T* r, const T* sq, T omega, const T* zero
     smooth(i0);
     for (int64_t i = i0; i < i1; ++i) {
       if (i + 1 < h) smooth(i + 1);
-      const bool up = i > 0, down = i + 1 < h;
-      const T* xu = up ? ring[(i - 1) % 3] : zero;
-      const T* wu = up ? L.wv + (i - 1) * w : zero;
-      const T* xd = down ? ring[(i + 1) % 3] : zero;
-      const T* wd = down ? L.wv + i * w : zero;
-      if (unit) {
-        residual_row<T, true>(r + i * w, nullptr, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
-        scale_row<T>(t, sq + i * w, w);
-      } else {
-        residual_row<T, false>(r + i * w, L.dg + i * w, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
-      }
+      ring_residual<T>(L, r, ring, zero, i, t);
+      if (unit) scale_row<T>(t, sq + i * w, w);
       restrict_row<T>(i, t, acc, rc, h, w, fh, fw, w2);
     }
   });
@@ -265,16 +273,7 @@ double up_pass(const Level<T> L, const T* r, const T* sq, T omega, const T* zero
     prolong(i0);
     for (int64_t i = i0; i < i1; ++i) {
       if (i + 1 < h) prolong(i + 1);
-      const bool up = i > 0, down = i + 1 < h;
-      const T* xu = up ? ring[(i - 1) % 3] : zero;
-      const T* wu = up ? L.wv + (i - 1) * w : zero;
-      const T* xd = down ? ring[(i + 1) % 3] : zero;
-      const T* wd = down ? L.wv + i * w : zero;
-      if (unit) {
-        residual_row<T, true>(r + i * w, nullptr, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
-      } else {
-        residual_row<T, false>(r + i * w, L.dg + i * w, ring[i % 3], xu, xd, L.wh + i * (w - 1), wu, wd, t, w);
-      }
+      ring_residual<T>(L, r, ring, zero, i, t);
       part[i] = static_cast<double>(
           correct_row<T, kDot>(ring[i % 3], t, L.jac ? L.jac + i * w : nullptr, omega, r + i * w, z + i * w, w));
     }
