@@ -48,6 +48,9 @@ one exponent per signal."""
 DEFAULT_STD_TERMS = {"bias": -1.35, "depth": 1.17, "posterior": 0.64, "distance": 1.09, "edge": 0.95, "gate": 0.19}
 """Hand-set weights: the shipped weights' fit on raw KITTI scans, rounded (crfdepth/weights/README.md)."""
 
+MAX_COARSE = 64
+"""Largest block side of the coarse solve, pixels (``Structure.coarse``)."""
+
 DEFAULT_WINDOW = 5
 """Side of the occlusion gate's square neighbourhood, pixels (:mod:`crfdepth.potentials.occlusion`)."""
 DEFAULT_THRESHOLD = 0.015
@@ -120,11 +123,15 @@ class Structure:
     variable: Variable = "depth"
     prior: Literal["nearest", "ip_basic"] = "nearest"
     head: bool = False
+    coarse: int = 1
+    """Pixel mode: side in pixels of the square blocks of a coarse first solve whose depth is the pixel
+    solve's prior (section 17); 1: no coarse solve."""
 
     def __post_init__(self) -> None:
         for name, choices in (("mode", MODES), ("variable", VARIABLES), ("prior", PRIORS)):
             _check_choice(name, getattr(self, name), choices)
         check_number("superpixels", self.superpixels, low=1, low_open=False, integer=True)
+        check_number("coarse", self.coarse, low=1, high=MAX_COARSE, low_open=False, high_open=False, integer=True)
         check_number("rounds", self.rounds, low=1, low_open=False, integer=True)
 
 
@@ -212,7 +219,7 @@ GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "ga
 
 FLAT: dict[str, tuple[str, str]] = {
     **{name: ("structure", name) for name in ("mode", "superpixels", "scale_superpixels", "aggregate", "refine",
-                                              "rounds", "variable", "prior", "head")},
+                                              "rounds", "variable", "prior", "head", "coarse")},
     "potentials": ("potentials", "on"),
     **{name: ("potentials", name) for name in ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p",
                                                "confidence", "eps", "refine_prior", "irls", "irls_scale")},

@@ -25,6 +25,8 @@ from crfdepth.checks import check_flag, check_frames
 from crfdepth.config import POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
+from crfdepth.inference.coarse import SPARSE_DISTANCE, median_return_distance
+from crfdepth.inference.regime import merge_outputs
 from crfdepth.intrinsics import check_batch_intrinsics
 from crfdepth.linalg import SolverSettings, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
@@ -34,7 +36,7 @@ from crfdepth.potentials.head import PotentialHead
 from crfdepth.potentials.parameters import ConstrainedWeights
 from crfdepth.precision import autocast_off, widen
 from crfdepth.uncertainty.predictive import PredictiveStd
-from crfdepth.weights import load_state, pretrained_state, weights_path
+from crfdepth.weights import SPARSE_REGIMES, load_state, pretrained_state, weights_path
 
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
 
@@ -170,7 +172,7 @@ class CRFDepth(ConstrainedWeights):
         return solver_settings(method=solver.method, rtol=solver.rtol, max_iter=solver.max_iter)
 
     @classmethod
-    def from_pretrained(cls, name: str = "kitti", **overrides) -> "CRFDepth":
+    def from_pretrained(cls, name: str = "kitti", *, adaptive: bool = True, **overrides) -> "CRFDepth":
         """The model with a shipped weight set, in eval mode (:func:`crfdepth.checkpoints.load_pretrained`).
 
         ``"kitti"``: weights learned on real KITTI frames (``crfdepth/weights/README.md``
@@ -179,9 +181,19 @@ class CRFDepth(ConstrainedWeights):
         the model has the structure the weights were made for (kitti: pixel grid, log
         depth, occlusion gate). Stored tensors are loaded with every key checked (a
         missing or unexpected one is an error naming the file).
+
+        ``adaptive`` (kitti on the pixel grid): frames with few returns (a median distance to the nearest
+        return above 4.5 pixels: 500 samples, 16 beams) go to :attr:`sparse_regime`, the hand-set weights on
+        the pixel grid with a coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`,
+        docs/design.md section 17); ``overrides`` apply to the shipped weights only. False: every frame gets
+        the shipped weights.
         """
+        check_flag("adaptive", adaptive)
         config, state = pretrained_state(name)
-        return cls.from_stored(config, state, overrides=overrides, file=weights_path(name)).eval()
+        model = cls.from_stored(config, state, overrides=overrides, file=weights_path(name)).eval()
+        if adaptive and name in SPARSE_REGIMES and model.settings.structure.mode == "pixel":
+            model.sparse_regime = cls(SPARSE_REGIMES[name]).eval()
+        return model
 
     @classmethod
     def from_stored(cls, config: Mapping, state: dict[str, torch.Tensor], *, overrides: Mapping | None = None,
@@ -235,6 +247,22 @@ class CRFDepth(ConstrainedWeights):
             return structure.superpixels
         return max(16, round(structure.superpixels * height * width / REFERENCE_AREA))
 
+    sparse_regime: "CRFDepth | None" = None
+    """The model that completes frames with few returns instead of this one (:meth:`from_pretrained`'s
+    ``adaptive``); None: this model completes every frame. Not a sub-module: its weights are hand-set, outside
+    this model's ``state_dict`` and ``parameters()``; :meth:`_apply` moves and casts it with this model."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "sparse_regime":  # kept out of the module tree (state_dict, parameters, train())
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
+    def _apply(self, fn, recurse: bool = True):
+        if self.sparse_regime is not None:
+            self.sparse_regime._apply(fn, recurse)
+        return super()._apply(fn, recurse)
+
     # -- forward -------------------------------------------------------------------------
     progress: Callable[[str], None] | None = None
     """Called with each stage's name (those of ``CRFOutput.timings``) as the stage starts; None: no calls.
@@ -274,7 +302,17 @@ class CRFDepth(ConstrainedWeights):
         autocast off (the CRF in full precision, :mod:`crfdepth.precision`)."""
         image, sparse, K = self._checked_inputs(image, sparse, K, return_std)
         with autocast_off(sparse):
-            return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
+            regime = self.sparse_regime
+            if regime is None:
+                return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
+            regime.progress = self.progress
+            few = median_return_distance(sparse) > SPARSE_DISTANCE
+            parts = [(rows, model) for rows, model in ((torch.nonzero(~few)[:, 0], self),
+                                                       (torch.nonzero(few)[:, 0], regime)) if rows.numel()]
+            if len(parts) == 1:
+                return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std)
+            return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std))
+                                  for rows, model in parts], sparse.shape[0])
 
     def _checked_inputs(self, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``."""

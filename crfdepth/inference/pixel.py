@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from crfdepth.fill.nearest import trusted_nearest_fill
+from crfdepth.inference.coarse import coarse_frame, paint, usable_block
 from crfdepth.linalg import SolveInfo, System, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
@@ -79,6 +81,16 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
     return geometry, t, system
 
 
+def coarse_solve(model: torch.nn.Module, image, kept, K, block: int, infos: list[SolveInfo]) -> torch.Tensor:
+    """The depth of the pixel-grid CRF solved on ``block`` x ``block`` blocks (:mod:`crfdepth.inference.coarse`,
+    docs/design.md section 17), painted back to the full resolution: the prior and first geometry of the
+    full-resolution solve, as the superpixel mode's painted solution is its refinement's."""
+    coarse_image, coarse_sparse, coarse_K = coarse_frame(image, kept, K, block, model.settings.structure.variable)
+    fill = trusted_nearest_fill(coarse_sparse)
+    depth, _, _ = pixel_solve(model, coarse_image, coarse_sparse, coarse_K, fill, model.scales()[4], infos)
+    return paint(depth, block, tuple(kept.shape[2:]))
+
+
 def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
                   return_std: bool) -> CRFOutput:
     """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""
@@ -87,8 +99,15 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
     with stage("fill"):
         gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     infos: list[SolveInfo] = []
+    prior, eps, geometry = fill, model.scales()[4], None
+    block = usable_block(model.settings.structure.coarse, (h, w))
+    if block > 1:
+        with stage("coarse"):
+            prior = geometry = coarse_solve(model, image, kept, K, block, infos)
+            eps = model.refine_prior * model.scales()[5]  # the weight of the superpixel mode's painted prior
     with stage("solve"):  # potentials, normals and solves of all rounds
-        depth, t, system = pixel_solve(model, image, sparse, K, fill, model.scales()[4], infos, gate=gate, kept=kept)
+        depth, t, system = pixel_solve(model, image, sparse, K, prior, eps, infos, geometry=geometry, gate=gate,
+                                       kept=kept)
     std = node_std = features = None
     if return_std:
         with stage("uncertainty"):

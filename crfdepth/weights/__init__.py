@@ -10,6 +10,7 @@ values of ``CRFDepth()``, no file).
 from crfdepth.weights.files import (
     DEFAULT_WEIGHTS,
     LEARNED,
+    SPARSE_REGIMES,
     WEIGHTS,
     WEIGHTS_FORMAT,
     WEIGHTS_VERSION,
@@ -22,6 +23,6 @@ from crfdepth.weights.files import (
 from crfdepth.weights.state import load_state
 from crfdepth.weights.torch_files import BARE_STATE_DICT, MODEL_FORMAT, MODEL_VERSION, write_model_file
 
-__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "WEIGHTS",
+__all__ = ["BARE_STATE_DICT", "DEFAULT_WEIGHTS", "LEARNED", "MODEL_FORMAT", "MODEL_VERSION", "SPARSE_REGIMES", "WEIGHTS",
            "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "load_state", "pretrained_state", "read_checkpoint", "read_weights",
            "weights_path", "write_model_file", "write_weights"]

@@ -35,13 +35,16 @@ from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_output_file
 from crfdepth.weights.torch_files import check_device, is_config, load_torch_file, unpack_torch_file
 
-__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MAX_ABS_TENSOR", "POSITIVE_RANGE", "STD_BIAS_RANGE", "STD_EXPONENT_RANGE",
+__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "SPARSE_REGIMES", "MAX_ABS_TENSOR", "POSITIVE_RANGE", "STD_BIAS_RANGE", "STD_EXPONENT_RANGE",
            "UNIT_RANGE", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint",
            "read_weights", "weights_path", "write_weights"]
 
 WEIGHTS = ("kitti", "paper")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
 DEFAULT_WEIGHTS = "kitti"
+SPARSE_REGIMES: dict[str, dict[str, Any]] = {"kitti": {"structure": {"mode": "pixel", "coarse": 6}}}
+"""Shipped set -> the configuration (hand-set weights) of the model that completes its frames with few returns
+(:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>`, docs/design.md section 17)."""
 """The weight set used when none is named and no checkpoint is given."""
 WEIGHTS_FORMAT = "crfdepth-weights"
 """Value of the ``"format"`` key of a JSON weights file."""
