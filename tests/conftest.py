@@ -38,6 +38,17 @@ def kitti_root() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def nyu_root() -> Path:
+    """The real NYU Depth v2 sample frames, ``../shared/data/nyu`` next to the repository."""
+    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nyu"
+    if not root.is_dir():
+        if os.environ.get("CI"):  # CI always has ../shared: a missing folder is a failure
+            pytest.fail(f"NYU sample data not found at {root} (CI=true)")
+        pytest.skip(f"NYU sample data not found at {root}")
+    return root
+
+
 @pytest.fixture
 def mast_map():
     """A camera 8 m up a mast over a flat ground, looking level: the ground's returns in the image's

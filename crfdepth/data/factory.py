@@ -11,8 +11,9 @@ from crfdepth.checks import check_choice
 from crfdepth.errors import InputError
 
 Layout = Literal["depth_completion", "annotated", "val_selection", "test_selection", "raw", "object", "synthetic",
-                 "sequence"]
-LAYOUTS = ("depth_completion", "annotated", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence")
+                 "sequence", "nyu_sync", "nyu_raw", "nyu_h5"]
+LAYOUTS = ("depth_completion", "annotated", "val_selection", "test_selection", "raw", "object", "synthetic", "sequence",
+           "nyu_sync", "nyu_raw", "nyu_h5")
 
 
 def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> Dataset:
@@ -28,7 +29,14 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
     - ``"raw"`` / ``"object"``: :class:`~crfdepth.data.kitti.KittiRawScans` with held-out LiDAR
       targets (``holdout``, ``holdout_fraction``, ``keep_every_ring``, ``keep_fraction``, ``seed``);
     - ``"synthetic"``: :class:`~crfdepth.data.synthetic.SyntheticScenes` (``count``, ``seed``,
-      ``beams``); ``root`` is ignored.
+      ``beams``); ``root`` is ignored;
+    - ``"nyu_sync"`` / ``"nyu_raw"`` / ``"nyu_h5"``: NYU Depth v2 (docs/design.md section 17):
+      :class:`~crfdepth.data.nyu.NyuSync`, :class:`~crfdepth.data.nyu.NyuRawFilled`,
+      :class:`~crfdepth.data.nyu.NyuH5` (``split``), through
+      :func:`~crfdepth.data.nyu.layouts.build_nyu_dataset`: with ``samples`` (and ``seed``) the
+      published protocol (320 x 240, centre 304 x 228, ``samples`` pixels of the ground truth as the
+      input: :func:`~crfdepth.data.sampling.nyu_protocol`; ``protocol=False`` keeps the full size),
+      without them the frames as stored.
     """
     from crfdepth.data import kitti, synthetic
 
@@ -43,6 +51,10 @@ def build_dataset(layout: Layout, root: str | Path | None = None, **options) -> 
         return kitti.KittiAnnotated(root, **options)
     if layout == "val_selection":
         return kitti.KittiValSelection(root, **options)
+    if layout.startswith("nyu_"):
+        from crfdepth.data.nyu.layouts import build_nyu_dataset
+
+        return build_nyu_dataset(layout, root, **options)
     if layout == "sequence":
         from crfdepth.data.sequences import SequenceFrames
 

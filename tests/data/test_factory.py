@@ -18,7 +18,7 @@ def test_synthetic_needs_no_root():
 
 def test_bad_layout_and_missing_root():
     assert set(LAYOUTS) == {"depth_completion", "annotated", "val_selection", "test_selection", "raw", "object",
-                            "synthetic", "sequence"}
+                            "synthetic", "sequence", "nyu_sync", "nyu_raw", "nyu_h5"}
     with pytest.raises(InputError, match="layout: expected one of 'depth_completion', .*, got 'kitti'"):
         build_dataset("kitti", "somewhere")
     with pytest.raises(InputError, match="root: a data folder is needed for layout 'raw'"):
