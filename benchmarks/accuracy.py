@@ -42,11 +42,14 @@ if str(Path(__file__).resolve().parent) not in sys.path:  # a load by the file's
 import script_args as sa  # noqa: E402  (benchmarks/script_args.py: one-line errors, checked option types)
 
 DEFAULT_ROOT = HERE.parent.parent / "shared" / "data" / "kitti"
+DEFAULT_NYU_ROOT = HERE.parent.parent / "shared" / "data" / "nyu"
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = sa.ScriptParser(prog="accuracy.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--kitti-root", type=Path, default=DEFAULT_ROOT, help="KITTI root (default: %(default)s)")
+    parser.add_argument("--nyu-root", type=Path, default=DEFAULT_NYU_ROOT,
+                        help="NYU Depth v2 frames of protocols n500/n200 (default: %(default)s)")
     parser.add_argument("--protocols", nargs="+", choices=list(protocols.PROTOCOLS), default=list(protocols.PROTOCOLS))
     parser.add_argument("--methods", nargs="+", choices=list(methods.METHODS), default=list(methods.METHODS))
     parser.add_argument("--max-frames", type=sa.count(1), default=None, help="frames per group (evenly spaced); default all")
@@ -83,13 +86,20 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         args.targets_root = args.out_dir / "targets"
     if args.fit_epochs < 1:
         parser.error(f"--fit-epochs: expected >= 1, got {args.fit_epochs}")
-    needed = sorted({folder for key in args.protocols for _, _, folder, _ in protocols.PROTOCOLS[key][1] if folder}
+    needed = sorted({folder for key in args.protocols for _, _, folder, _ in protocols.PROTOCOLS[key][1]
+                     if folder and not folder.startswith("nyu:")}
                     | ({"raw", "object/training"} if args.learn_ablations else set())
                     | (set() if args.no_subsample else {"raw", "object/training"}))
     missing = [f for f in needed if not (args.kitti_root / f).is_dir()]
     if missing:
         parser.error(f"--kitti-root: expected the folders {', '.join(needed)} under {args.kitti_root} "
                      f"(the layout of ../shared/data/kitti), missing: {', '.join(missing)}")
+    nyu = sorted({folder[4:] for key in args.protocols for _, _, folder, _ in protocols.PROTOCOLS[key][1]
+                  if folder and folder.startswith("nyu:")})
+    missing = [f for f in nyu if not (args.nyu_root / f).is_dir()]
+    if missing:
+        parser.error(f"--nyu-root: expected the folders {', '.join(nyu)} under {args.nyu_root} "
+                     f"(the layout of ../shared/data/nyu), missing: {', '.join(missing)}")
     return args
 
 

@@ -55,6 +55,12 @@ def depth_bin_errors(depth: torch.Tensor, target: torch.Tensor) -> tuple[np.ndar
             torch.bincount(b, minlength=n_bins).numpy())
 
 
+def log10_error(depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(1,) mean |log10 depth - log10 target| over the target pixels (the paper's Table 4 reports it)."""
+    mask = target > 0
+    return (depth[mask].double().log10() - target[mask].double().log10()).abs().mean().reshape(1).cpu()
+
+
 def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) -> tuple[list[dict], dict]:
     """Rows (one per method) of protocol ``key`` and its mean sparsification curves."""
     groups = PROTOCOLS[key][1]
@@ -64,9 +70,12 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
     fit_note = {}
     for group, layout, folder, options in groups:
         frames = load_group(args.kitti_root, layout, folder, options, args.max_frames,
-                            targets_root=ensure_targets(args) if layout == "sequence" else None)
+                            targets_root=ensure_targets(args) if layout == "sequence" else None,
+                            nyu_root=args.nyu_root)
         models = {m: CRFDepth(**method_config(m)).to(args.device) for m in args.methods
-                  if m in CRF_METHODS and m != "learned"}
+                  if m in CRF_METHODS and m not in ("learned", "default")}
+        if "default" in args.methods:
+            models["default"] = CRFDepth.from_pretrained().to(args.device)
         for m in methods:
             if m in LEARNED_ABLATIONS:
                 models[m] = get_fit(("recipe", m), args, fits, log)
@@ -82,7 +91,7 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
             mask = (target > 0)[0, 0]
             for m in methods:
                 depth, std, count, seconds = predict(m, models.get(m), image, sparse, K, args.device)
-                per[m]["metrics"].append(depth_metrics(depth, target))
+                per[m]["metrics"].append({**depth_metrics(depth, target), "log10": log10_error(depth, target)})
                 per[m]["seconds"].append(seconds)
                 per[m]["bins"].append(depth_bin_errors(depth, target))
                 if std is None:
@@ -121,6 +130,8 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
             row["fit"] = (f"weights learned for this configuration by the shipped recipe on its "
                           f"{fits[('recipe', m)]['frames']} frames (drive 0060, object frames; both hold-outs)")
             row["weights"] = fits[("recipe", m)]["weights"]
+        elif m == "default":
+            row["config"] = "CRFDepth.from_pretrained(): the shipped weights, frames with few returns to its sparse regime"
         elif m in CRF_METHODS:
             row["config"] = _as_json(method_config(m))
         for name, items in per[m]["unc"].items():

@@ -17,7 +17,9 @@ from .protocols import load_group
 FIT_SOURCE = {("a", "val"): "shipped", ("b", "raw"): "object", ("b", "object"): "raw",
               ("bu", "raw"): "object", ("bu", "object"): "raw",
               ("c", "raw"): "object", ("c", "object"): "raw", ("s", "synthetic"): "shipped",
-              ("q", "drive"): "shipped", ("a22", "val"): "shipped", ("q22", "drive"): "shipped"}
+              ("q", "drive"): "shipped", ("a22", "val"): "shipped", ("q22", "drive"): "shipped",
+              **{(f"t{n}", g): "shipped" for n in (500, 200) for g in ("raw", "object")},
+              **{(f"n{n}", g): "shipped" for n in (500, 200) for g in ("basement", "dining")}}
 GROUP_FOLDERS = {"raw": "raw", "object": "object/training"}
 
 

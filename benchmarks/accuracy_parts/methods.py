@@ -23,6 +23,10 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   fitted on the raw drives. The NLL term is off in these fits (it moves only the std
   scale, which changes neither the depth nor the AUSE). Which fit served which frames is
   in the output (``fit``);
+- ``default``: ``CRFDepth.from_pretrained()``, what the API and the CLI use: the shipped weights, and for
+  frames with few returns their sparse regime (docs/design.md section 17); unlike ``learned`` never re-fitted;
+- ``coarse``: that sparse regime alone, ``CRFDepth(mode="pixel", coarse=6)`` (hand-set weights, a coarse
+  solve on 6-pixel blocks first);
 - ``pixel``: ``CRFDepth(mode="pixel")``;
 - ``sp-c``, ``sp-cn``, ``sp-cnd``: the paper's Table 1 ablation (colour; + normal; +
   3D distance), superpixel 5500, piecewise-constant painting (``refine=False``);
@@ -58,6 +62,8 @@ CRF_METHODS = {
     "paper": {},
     "learned": {},
     "hand-set": {},  # the recipe's structure (recipe_crf()), the constructor's weights
+    "default": {},  # CRFDepth.from_pretrained(): the shipped weights and their sparse regime
+    "coarse": {"mode": "pixel", "coarse": 6},  # the sparse regime alone: hand-set, pixel grid, coarse solve
     "pixel": {"mode": "pixel"},
     "sp-c": {"potentials": ("colour",), "refine": False},
     "sp-cn": {"potentials": ("colour", "normal"), "refine": False},

@@ -25,6 +25,16 @@ repository), through :func:`crfdepth.data.factory.build_dataset`, all 1216 x 352
   other 78% as the target: an input without see-through returns and off the laser rings
   (a LiDAR beside the camera, an input cleaned upstream).
 
+- protocols **t500** and **t200**: the paper's Table 4 (after Sparse-to-Dense) on the raw scans of (b): the
+  bottom-centre 912 x 228 of the frame, N = 500 or 200 pixels of the projected scan drawn at random as the
+  input (:func:`crfdepth.data.sampling.kitti_table4`, seed 0 per frame name), the whole projected scan, as it
+  is, as the target (the input's pixels included, as the paper scores it);
+- protocols **n500** and **n200**: NYU Depth v2's protocol on the real frames of ``--nyu-root`` (default
+  ``../shared/data/nyu``): resize to 320 x 240, centre crop 304 x 228, N samples of the depth as the input,
+  all of it as the target (:func:`crfdepth.data.sampling.nyu_protocol`). The three ``official_test/basement``
+  frames score against their Kinect depth with its holes, ``labeled_crop`` against the in-painted depth
+  (``tiny`` is in neither layout and is left out).
+
 Targets in b and c are raw LiDAR points (sparse, noisy), not KITTI's semi-dense
 annotation, cleaned of see-through points against the whole scan
 (``KittiRawScans(clean_target=True)``, the default); each frame's input and target pixels
@@ -67,15 +77,28 @@ PROTOCOLS = {
     "q22": ("(q22) the frames of (q), 22% of the camera-view targets as input, the other 78% as target",
             [("drive", "sequence", "sequences", {"frames": list(REPORTED_BLOCK), "input_share": CLEAN_SHARE})]),
 }
+for _n in (500, 200):
+    PROTOCOLS[f"t{_n}"] = (
+        f"(t{_n}) KITTI Table 4: bottom-centre 912x228, {_n} samples of the projected scan in, the whole scan as target",
+        [(g, g, folder, {"holdout": "fraction", "holdout_fraction": 0.2, "clean_target": False, "table4": _n})
+         for g, folder in (("raw", "raw"), ("object", "object/training"))])
+    PROTOCOLS[f"n{_n}"] = (
+        f"(n{_n}) NYU Depth v2: 320x240, centre 304x228, {_n} samples of the depth in, all of it as target",
+        [("basement", "nyu_sync", "nyu:official_test", {"samples": _n}),
+         ("dining", "nyu_raw", "nyu:labeled_crop", {"samples": _n})])
 # (protocol, evaluated group) -> training group of its learned weights ("shipped": the package's file)
 
 
 def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: int | None,
-               keep_fraction: float = 1.0, targets_root: Path | None = None) -> list:
+               keep_fraction: float = 1.0, targets_root: Path | None = None, nyu_root: Path | None = None) -> list:
     """Samples of one frame group, evenly spaced down to ``max_frames``; ``options["input_share"]``
-    turns each into a clean-input sample (:func:`clean_input`)."""
+    turns each into a clean-input sample (:func:`clean_input`), ``options["table4"]`` into the paper's
+    Table 4 sample (:func:`table4_input`); a ``folder`` ``nyu:<sub-folder>`` is under ``nyu_root``."""
     options = dict(options)
     share = options.pop("input_share", None)
+    table4 = options.pop("table4", None)
+    if folder is not None and folder.startswith("nyu:"):
+        root, folder = nyu_root, folder[len("nyu:"):]
     if layout in ("raw", "object"):
         options["keep_fraction"] = keep_fraction
     if layout == "sequence":
@@ -84,7 +107,29 @@ def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: 
     idx = list(range(len(ds)))
     if max_frames is not None and len(idx) > max_frames:
         idx = sorted({round(i * (len(ds) - 1) / max(max_frames - 1, 1)) for i in range(max_frames)})
+    if table4 is not None:
+        return [table4_input(ds[i], table4) for i in idx]
+    if table4 is not None:
+        return [table4_input(ds[i], table4) for i in idx]
     return [ds[i] if share is None else clean_input(ds[i], share, seed=i) for i in idx]
+
+
+def table4_input(sample, samples: int):
+    """A raw-scan sample (input and held-out points) as the paper's Table 4 scores it: the whole projected
+    scan is the target, and ``samples`` of its pixels in the bottom-centre 912 x 228 are the input."""
+    from crfdepth.data.sampling import kitti_table4
+
+    whole = torch.where(sample.sparse > 0, sample.sparse, sample.target)
+    return kitti_table4(samples, seed=0)(dataclasses.replace(sample, target=whole))
+
+
+def table4_input(sample, samples: int):
+    """A raw-scan sample (input and held-out points) as the paper's Table 4 scores it: the whole projected
+    scan is the target, and ``samples`` of its pixels in the bottom-centre 912 x 228 are the input."""
+    from crfdepth.data.sampling import kitti_table4
+
+    whole = torch.where(sample.sparse > 0, sample.sparse, sample.target)
+    return kitti_table4(samples, seed=0)(dataclasses.replace(sample, target=whole))
 
 
 def clean_input(sample, share: float, seed: int):

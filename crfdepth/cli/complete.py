@@ -111,6 +111,17 @@ a second run into one of them exits 2 naming the first. A folder holding a finis
 outputs may be written again: each PNG is replaced atomically; PNGs this run does not
 write stay, with a warning counting them.
 
+An RGB-D camera's depth image with holes (Kinect, RealSense: :mod:`crfdepth.cli.complete_rgbd`, docs/rgbd.md),
+its holes filled and its measured pixels kept, written in its own unit::
+
+    crfdepth complete --image RGB.png --depth DEPTH.png [--depth-units mm] (--intrinsics K.txt | --known-camera nyu) \\
+        --out FILLED.png [--out-std STD.png] [--vis [DIR]]
+
+and a folder of RGB-D pairs the same way (NYU's ``rgb_XXXXX.jpg`` + ``sync_depth_XXXXX.png``, or ``image/`` +
+``depth/``; :mod:`crfdepth.cli.complete_rgbd_folder`)::
+
+    crfdepth complete --input-dir DIR --known-camera nyu --out-dir OUT [--out-std-dir STD] [--depth-units mm]
+
 A ROS 1 / ROS 2 recording (:mod:`crfdepth.cli.complete_bag`)::
 
     crfdepth complete --bag RUN.bag --image-topic /cam/image_raw --points-topic /lidar/points \\
@@ -136,11 +147,14 @@ from crfdepth.cli.complete_bag import add_arguments as add_bag_arguments
 from crfdepth.cli.complete_folder import folder_run, run_folder
 from crfdepth.cli.complete_list import run_list
 from crfdepth.cli.complete_one import read_one, write_one
+from crfdepth.cli.complete_rgbd import KNOWN_CAMERAS, complete_rgbd_frame, rgbd_input
+from crfdepth.cli.complete_rgbd_folder import complete_rgbd_folder
 from crfdepth.cli.completion import frame_errors
 from crfdepth.cli.model_options import add_model_arguments
 from crfdepth.cli.outputs import rerun_recording
 from crfdepth.errors import InputError
 from crfdepth.io.calibration import is_rig_file
+from crfdepth.io.depth_image import DEPTH_UNITS
 from crfdepth.plausibility import SPARSE_UNITS
 from crfdepth.runs.folder import complete_folder
 from crfdepth.runs.ranks import launcher_world_size
@@ -150,7 +164,8 @@ logger = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- arguments
 
 
-HELP = "complete sparse LiDAR into dense depth (one frame, a KITTI folder or raw drive, or a ROS bag)"
+HELP = ("complete sparse LiDAR into dense depth (one frame, a KITTI folder or raw drive, or a ROS bag), or fill the "
+        "holes of an RGB-D depth image")
 DESCRIPTION = ("Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (uint16, "
                "metres * 256) with the CRF model, for one frame (--image, --sparse, "
                "--intrinsics, --out; or --image, --points, --calib, --out from a raw point "
@@ -158,7 +173,9 @@ DESCRIPTION = ("Complete a sparse LiDAR depth PNG into a dense KITTI depth PNG (
                "test_depth_completion_anonymous folder or of a KITTI raw drive folder (--input-dir, "
                "--out-dir), or every camera "
                "image of a ROS 1 / ROS 2 recording with the LiDAR cloud nearest in time (--bag, "
-               "--image-topic, --points-topic, --out-dir).")
+               "--image-topic, --points-topic, --out-dir). With --depth (or an --input-dir of RGB-D pairs) it "
+               "fills the holes of an RGB-D camera's depth image instead, keeping its measured pixels, and "
+               "writes it in its own unit (docs/rgbd.md).")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -173,6 +190,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "the chosen unit is refused with the likely one; given explicitly, it also overrules "
                           "the guess that the camera is at most 4 m above the ground (a mast, a drone)")
     one.add_argument("--intrinsics", metavar="K.txt", help="3x3 camera matrix as 9 numbers, row-major")
+    rgbd = parser.add_argument_group(
+        "RGB-D hole filling", "A depth camera's image registered to --image (Kinect, RealSense): its holes filled, "
+                              "its measured pixels kept, the output PNGs in its own unit (docs/rgbd.md)")
+    rgbd.add_argument("--depth", metavar="DEPTH.png",
+                      help="instead of --sparse: 16-bit depth PNG registered to --image, 0 = hole, in "
+                           "--depth-units; needs --intrinsics or --known-camera")
+    rgbd.add_argument("--depth-units", choices=DEPTH_UNITS, default=None,
+                      help="the codes of the --depth PNG (or of the depth PNGs of an --input-dir of RGB-D pairs) "
+                           "and of the outputs: mm = millimetres (the default; NYU, most RGB-D cameras), m = whole "
+                           "metres, kitti = metres * 256. A map that is not plausibly depth in the unit is refused "
+                           "with the likely one")
+    rgbd.add_argument("--known-camera", choices=tuple(KNOWN_CAMERAS), default=None,
+                      help="instead of --intrinsics for RGB-D input: the intrinsics of a known camera, scaled to "
+                           "the image's size; " + "; ".join(f"{k} = {v}" for k, v in KNOWN_CAMERAS.items()))
     one.add_argument("--points", metavar="CLOUD",
                      help="instead of --sparse/--intrinsics: LiDAR point cloud (.bin KITTI, .npy, .ply, .pcd; "
                           "x y z in metres in the LiDAR frame), projected with --calib")
@@ -191,10 +222,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "if it also has groundtruth_depth/, else test_depth_completion_anonymous), or a "
                              "KITTI raw drive folder <day>/<day>_drive_NNNN_sync (velodyne_points/data/*.bin, "
                              "image_0X/data/*.png, the day's calib_*.txt above it): each scan projected whole "
-                             "into the --camera image, uncropped")
+                             "into the --camera image, uncropped; or a folder of RGB-D pairs (rgb_XXXXX.jpg with "
+                             "sync_depth_XXXXX.png, or image/ with depth/ of the same stems), each depth image's "
+                             "holes filled (with --intrinsics or --known-camera)")
     folder.add_argument("--out-dir", metavar="OUT",
                         help="output folder (created if missing): one <velodyne_raw name>.png per frame "
-                             "(a raw drive: <frame number>.png)")
+                             "(a raw drive: <frame number>.png; RGB-D pairs: <depth file's stem>.png)")
     folder.add_argument("--out-std-dir", metavar="OUT",
                         help="also write each frame's std PNG here (created if missing)")
     add_batch_arguments(folder)
@@ -290,13 +323,19 @@ def run(args: argparse.Namespace) -> int:
     if args.rerun is not None and (args.input_list is not None or scale or launched):
         raise InputError(f"--rerun: records the frames of one process (one frame, --input-dir or --bag), got "
                          f"{' '.join(scale) or ('--input-list' if args.input_list is not None else 'a launcher')}")
-    _warn_ignored(args)
+    rgbd = rgbd_input(args)  # None: LiDAR; "frame" (--depth) or the layout of an --input-dir of RGB-D pairs
+    if rgbd is None:
+        _warn_ignored(args)
     if args.input_list is not None:
         return run_list(args, run_folder, run_bag)
     stray = [flag for flag in BAG_ONLY if getattr(args, flag[2:].replace("-", "_")) not in (None, False)]
     if stray and args.bag is None:
         raise InputError(f"{', '.join(stray)}: bag options need --bag")
     with rerun_recording(args) as args.recorder:  # checked now, written when the run ends
+        if rgbd == "frame":
+            return complete_rgbd_frame(args)
+        if rgbd is not None:
+            return complete_rgbd_folder(args, rgbd)
         if args.bag is not None:
             return run_bag(args)
         if args.input_dir is not None:

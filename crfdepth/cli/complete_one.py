@@ -31,7 +31,7 @@ from crfdepth.runs.outputs import check_output_folder, make_output_dir, same_fil
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
-__all__ = ["OneFrame", "read_one", "write_one"]
+__all__ = ["OneFrame", "check_outputs", "read_one", "write_one"]
 
 
 @dataclass
@@ -51,7 +51,7 @@ class OneFrame:
     start: float = 0.0
 
 
-def _check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
+def check_outputs(args, inputs: dict[str, Path]) -> tuple[Path, Path | None]:
     """``--out`` / ``--out-std`` / ``--vis`` / ``--rerun`` checked before anything is read: PNG names in writable
     folders, none an input, no two naming the same file (the pictures of ``--vis`` included)."""
     with flagged("--out", args.out, "write"):  # a name too long, a path through a file ...
@@ -101,7 +101,8 @@ def read_one(args: argparse.Namespace) -> OneFrame:
     if not points_mode and args.sparse is None and args.intrinsics is None:  # no LiDAR at all: both ways
         absent = [flag for flag in ("--image", "--out") if given[flag] is None] + ["the LiDAR"]
         raise InputError(f"one frame needs --image, --out and its LiDAR: --sparse DEPTH.png with --intrinsics K.txt, or "
-                         f"--points CLOUD with --calib RIG.yaml (many frames: --input-dir, --input-list or --bag); "
+                         f"--points CLOUD with --calib RIG.yaml (an RGB-D camera's depth image: --depth DEPTH.png "
+                         f"with --intrinsics or --known-camera; many frames: --input-dir, --input-list or --bag); "
                          f"missing {', '.join(absent)}")
     if missing:
         mode = "point-cloud mode" if points_mode else "one-frame mode"
@@ -115,7 +116,7 @@ def read_one(args: argparse.Namespace) -> OneFrame:
                          f"calibration replace --sparse and --intrinsics; one frame only)")
     if stray:
         raise InputError(f"{', '.join(stray)}: folder options need --input-dir; for one frame use --out / --out-std")
-    out, out_std = _check_outputs(args, {flag: Path(given[flag]) for flag in needed[:-1]})
+    out, out_std = check_outputs(args, {flag: Path(given[flag]) for flag in needed[:-1]})
     # each file read under its flag (a reader's label, an OS error: the flag), decoders' C warnings held back
     with flagged("--image", args.image, labels=("image",)), quiet_decoders():
         check_image_file(args.image, f"--image {args.image}", device=args.device, dtype=args.dtype, mode=args.mode,

@@ -63,6 +63,16 @@ ground truth but no ground-truth pixel (possible after a crop) are skipped with 
 warning and listed in the summary. The ``test_selection`` layout has no ground truth:
 for benchmark submissions use ``crfdepth complete --input-dir DIR --out-dir OUT``.
 
+NYU Depth v2 (docs/rgbd.md): ``--layout nyu_sync`` (``rgb_XXXXX.jpg`` + ``sync_depth_XXXXX.png``), ``nyu_raw``
+(``images.png`` + ``rawdepth.png`` + ``depth.png``) or ``nyu_h5`` (the Sparse-to-Dense HDF5 release; needs h5py).
+``--samples N`` applies the published protocol (:func:`crfdepth.data.sampling.nyu_protocol`: resize to 320x240,
+centre crop 304x228, N pixels of the ground truth drawn as the input with ``--seed``, default 0); without it the
+frames are evaluated as stored (``nyu_raw``: the raw depth's holes filled, scored against the filled depth), except
+``nyu_sync``, whose target is its input, which requires ``--samples``. The model runs with the occlusion gate off
+(registered depth, :func:`~crfdepth.cli.model_options.build_model`), and the table is followed by the three
+numbers as NYU papers report them: RMSE in metres, REL and delta < 1.25 (also ``nyu`` in ``summary.json``).
+``--samples`` larger than a frame's valid ground-truth pixels stops the run naming ``--samples`` and the frame.
+
 Needs no Lightning: a machine with the crfdepth library alone can evaluate a ``.ckpt``.
 """
 
@@ -98,25 +108,30 @@ from crfdepth.weights import DEFAULT_WEIGHTS
 logger = logging.getLogger(__name__)
 
 CSV_NAME = "per_frame.csv"
+# How crfdepth.data.sampling.SparseSamples refuses a frame with fewer valid pixels than asked for.
+_SAMPLES_REFUSAL = "samples: expected"
 JSON_NAME = "summary.json"
 PNG_FOLDER = "depth"
 
+# The NYU Depth v2 layouts (registered depth: the model's occlusion gate off; RMSE also in metres).
+NYU_LAYOUTS = tuple(layout for layout in LAYOUTS if layout.startswith("nyu_"))
 # Dataset options: command-line flag -> (build_dataset keyword, layouts that take it).
 _DATASET_OPTIONS = {
-    "--split": ("split", ("depth_completion",)),
+    "--split": ("split", ("depth_completion", "nyu_h5")),
     "--holdout": ("holdout", ("raw", "object")),
     "--holdout-fraction": ("holdout_fraction", ("raw", "object")),
     "--keep-every-ring": ("keep_every_ring", ("raw", "object")),
-    "--seed": ("seed", ("raw", "object", "synthetic")),
+    "--seed": ("seed", ("raw", "object", "synthetic", *NYU_LAYOUTS)),
+    "--samples": ("samples", NYU_LAYOUTS),
     "--targets-root": ("targets_root", ("sequence",)),
 }
 
 
-HELP = "KITTI metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)"
+HELP = "KITTI (and NYU Depth v2) metrics of a checkpoint over a dataset (table, per-frame CSV, summary JSON)"
 DESCRIPTION = ("Run a checkpoint (or the shipped weights) over a dataset with ground truth and "
                "report the KITTI depth-completion metrics (per-frame mean; RMSE/MAE in mm, "
-               "iRMSE/iMAE in 1/km). For test-set submissions use 'crfdepth complete "
-               "--input-dir'.")
+               "iRMSE/iMAE in 1/km; NYU Depth v2 layouts also RMSE in m, REL and delta<1.25 as papers "
+               "report them). For test-set submissions use 'crfdepth complete --input-dir'.")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -128,7 +143,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--data", metavar="DIR",
                       help="dataset folder (not needed for --layout synthetic)")
     data.add_argument("--split", choices=("train", "val"), default=None,
-                      help="depth_completion: split (default: the dataset's, train)")
+                      help="depth_completion: split (default: the dataset's, train); nyu_h5: split (default: "
+                           "the folder's own, or both)")
     data.add_argument("--targets-root", metavar="DIR", default=None,
                       help="sequence (required): the --out-dir of 'crfdepth targets', whose camera-view targets "
                            "are the ground truth; --data is the raw root holding <date>/<drive>/")
@@ -140,7 +156,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="raw / object with --holdout rings: keep every N-th laser ring as input "
                            "(default 4)")
     data.add_argument("--seed", type=seed_type(), default=None, metavar="S",
-                      help="raw / object: hold-out seed; synthetic: first scene (default 0)")
+                      help="raw / object: hold-out seed; synthetic: first scene; NYU layouts with --samples: "
+                           "the samples' draw (default 0)")
+    data.add_argument("--samples", type=int_at_least(1), default=None, metavar="N",
+                      help="NYU layouts: the published protocol (resize 320x240, centre crop 304x228, N pixels "
+                           "of the ground truth drawn as the input; papers use 500); required for nyu_sync, "
+                           "whose target is its input; without it nyu_raw / nyu_h5 are evaluated as stored")
     data.add_argument("--limit", type=int_at_least(1), default=None, metavar="N",
                       help="evaluate only the first N frames")
     add_batch_arguments(data)
@@ -170,6 +191,13 @@ def _dataset_options(args: argparse.Namespace) -> dict[str, Any]:
         if args.layout not in layouts:
             raise InputError(f"{flag}: only applies to --layout {' / '.join(layouts)}, got --layout {args.layout}")
         options[keyword] = value
+    if args.layout in NYU_LAYOUTS and args.samples is None:
+        if args.layout == "nyu_sync":
+            raise InputError("--samples: required with --layout nyu_sync: its ground truth is the stored depth "
+                             "itself, so the input must be drawn from it (--samples 500: the published protocol)")
+        if args.seed is not None:
+            raise InputError(f"--seed {args.seed}: applies with --samples (it seeds their draw) for --layout "
+                             f"{args.layout}")
     if args.holdout == "rings" and args.holdout_fraction is not None:
         logger.warning("--holdout-fraction is ignored with --holdout rings (it sets the share of points held out "
                        "with --holdout fraction)")
@@ -244,15 +272,20 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, spread: Spread, ranks: Ranks | None) -> int:
     built: dict = {}
-    run = EvaluationRun(make_model=model_maker(args), batch_size=args.batch_size, workers=args.workers, std=args.std,
-                        quiet=args.quiet, spread=spread, memory_advice=functools.partial(cli_advice, args.device),
+    run = EvaluationRun(make_model=model_maker(args, args.layout in NYU_LAYOUTS), batch_size=args.batch_size,
+                        workers=args.workers, std=args.std, quiet=args.quiet, spread=spread, memory_advice=functools.partial(cli_advice, args.device),
                         progress=FrameBars())
     with contextlib.ExitStack() as stack:
         prepared = _prepare(args, stack, built) if ranks is None else \
             ranks.share(lambda: _prepare(args, stack, built))
         options, dataset, root, out_dir, png_dir = prepared
         start = time.perf_counter()
-        rows, skipped = evaluate_dataset(built.get("model"), dataset, run, png_dir, ranks)
+        try:
+            rows, skipped = evaluate_dataset(built.get("model"), dataset, run, png_dir, ranks)
+        except InputError as exc:  # a frame with fewer valid pixels than --samples: the dataset names "samples"
+            if args.samples is None or _SAMPLES_REFUSAL not in str(exc):
+                raise
+            raise InputError(str(exc).replace(_SAMPLES_REFUSAL, f"--samples {args.samples}: expected", 1)) from None
         if ranks is None or ranks.is_main:
             return _write_report(args, options, dataset, root, built["model"], out_dir, png_dir, rows, skipped,
                                  time.perf_counter() - start)
@@ -265,7 +298,7 @@ def _prepare(args: argparse.Namespace, stack: contextlib.ExitStack, built: dict)
     options = _dataset_options(args)
     dataset, root = _open_dataset(args, options)
     out_dir = _check_out_dir(args, root)
-    built["model"] = build_model(args)  # prints the model line: after every refusal of the options
+    built["model"] = build_model(args, args.layout in NYU_LAYOUTS)  # the model line: after every refusal of the options
     stack.enter_context(output_folders([("--out-dir", args.out_dir)]))
     png_dir = None
     if args.save_png:
@@ -301,6 +334,10 @@ def _write_report(args: argparse.Namespace, options: dict, dataset, root: Path |
         "seconds": seconds,
         "png_dir": str(png_dir.resolve()) if png_dir is not None else None,
     })
+    if args.layout in NYU_LAYOUTS:  # the numbers as NYU papers report them (per-frame means, RMSE in metres)
+        metrics = summary["metrics"]
+        summary["nyu"] = {"rmse_m": metrics["rmse"] / 1000.0, "rel": metrics["rel"], "delta1": metrics["delta1"],
+                          "samples": args.samples}
     out_dir.mkdir(parents=True, exist_ok=True)
     _atomic_write_text(out_dir / CSV_NAME, csv_text(rows, args.std))
     _atomic_write_text(out_dir / JSON_NAME, json.dumps(summary, indent=2) + "\n")
@@ -309,6 +346,12 @@ def _write_report(args: argparse.Namespace, options: dict, dataset, root: Path |
     data = f"{args.layout} {root}" if root is not None else args.layout
     print(f"crfdepth evaluate: {source} on {data}, {describe(model)}, {args.dtype}")
     print(format_table(summary))
+    if "nyu" in summary:
+        nyu = summary["nyu"]
+        print(f"NYU Depth v2 as papers report it: RMSE {nyu['rmse_m']:.4f} m, REL {nyu['rel']:.4f}, "
+              f"delta<1.25 {nyu['delta1']:.4f}"
+              + (f" ({args.samples} samples, seed {options.get('seed', 0)})" if args.samples is not None else
+                 " (the stored input, no --samples)"))
     if skipped:
         print(f"skipped {len(skipped)} frame(s) without ground-truth pixels (listed in {JSON_NAME})")
     print(f"wrote {out_dir / CSV_NAME} and {out_dir / JSON_NAME}"

@@ -25,7 +25,7 @@ from crfdepth.weights import DEFAULT_WEIGHTS, WEIGHTS
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["add_model_arguments", "available_devices", "build_model", "check_device", "model_line", "model_maker"]
+__all__ = ["REGISTERED_DEPTH_NOTE", "add_model_arguments", "available_devices", "build_model", "check_device", "model_line", "model_maker"]
 
 MAX_SUPERPIXELS = 1216 * 352
 """Largest ``--superpixels`` (segments for a 1216x352 image, scaled with the image): one per pixel."""
@@ -115,6 +115,9 @@ def _model_overrides(args: argparse.Namespace) -> dict:
     return kwargs
 
 
+REGISTERED_DEPTH_NOTE = "occlusion gate off: registered depth has no see-through returns"
+"""What the model line adds when :func:`build_model` turns the gate off for registered depth."""
+
 _OVERRIDE_FLAGS = {"mode": "--mode", "superpixels": "--superpixels", "potentials": "--potentials",
                    "refine": "--no-refine"}
 
@@ -132,7 +135,7 @@ def model_line(model: CRFDepth, source: str, overrides: dict, own: dict | None =
     return line
 
 
-def build_model(args: argparse.Namespace) -> CRFDepth:
+def build_model(args: argparse.Namespace, registered_depth: bool = False) -> CRFDepth:
     """The :class:`CRFDepth` the options ask for, weights loaded, on ``--device`` / ``--dtype``.
 
     Without ``--checkpoint``: the shipped weight set ``--weights`` (default "kitti",
@@ -145,6 +148,11 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
     Raises InputError for a CUDA request without CUDA and for a checkpoint that cannot be
     read or does not fit (file and problem named, prefixed ``--checkpoint:``);
     FileNotFoundError for a missing checkpoint.
+
+    ``registered_depth``: the input is a depth camera's image registered to the colour camera (``complete
+    --depth``, the NYU layouts of ``evaluate``), which has no LiDAR return seen through a foreground edge: the
+    shipped weights run with the occlusion gate off (``gate=False``, docs/design.md section 3b), and the model
+    line says so. A ``--checkpoint`` runs as stored (its configuration is the user's choice).
     """
     check_device(args.device)
     overrides = _model_overrides(args)
@@ -159,8 +167,10 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
         line = model_line(model, f"checkpoint {args.checkpoint}", overrides)
     else:
         name = args.weights or DEFAULT_WEIGHTS
-        model = load_pretrained(name, **overrides)
+        model = load_pretrained(name, **overrides, **({"gate": False} if registered_depth else {}))
         line = model_line(model, f"{name} weights", overrides, own_structure(name) if overrides else None)
+        if registered_depth:
+            line += f" ({REGISTERED_DEPTH_NOTE})"
     if model.settings.structure.mode == "pixel" and (args.superpixels is not None or args.no_refine):
         logger.warning("--superpixels and --no-refine only apply to --mode superpixel; ignored")
     dtype = torch.float64 if args.dtype == "float64" else torch.float32
@@ -170,13 +180,14 @@ def build_model(args: argparse.Namespace) -> CRFDepth:
     return model
 
 
-def model_maker(args: argparse.Namespace) -> Callable[[bool], CRFDepth]:
-    """:func:`build_model` of ``args`` as the library's runs take it: ``make(quiet)`` (quiet: no model line, as in
-    the ``--devices`` processes and the other ranks, which build their own), picklable."""
-    return functools.partial(_build_model, args)
+def model_maker(args: argparse.Namespace, registered_depth: bool = False) -> Callable[[bool], CRFDepth]:
+    """:func:`build_model` of ``args`` (and ``registered_depth``) as the library's runs take it: ``make(quiet)``
+    (quiet: no model line, as in the ``--devices`` processes and the other ranks, which build their own),
+    picklable."""
+    return functools.partial(_build_model, args, registered_depth=registered_depth)
 
 
-def _build_model(args: argparse.Namespace, quiet: bool) -> CRFDepth:
+def _build_model(args: argparse.Namespace, quiet: bool, registered_depth: bool = False) -> CRFDepth:
     told = copy.copy(args)
     told.quiet = quiet
-    return build_model(told)
+    return build_model(told, registered_depth)

@@ -327,8 +327,9 @@ def test_an_image_without_lidar_is_told_both_ways_to_give_it(main, synth, tmp_pa
     assert main(["complete", "--image", str(synth["image"]), "--out", str(out)]) == 2
     assert capsys.readouterr().err == (
         "crfdepth complete: error: one frame needs --image, --out and its LiDAR: --sparse DEPTH.png with "
-        "--intrinsics K.txt, or --points CLOUD with --calib RIG.yaml (many frames: --input-dir, --input-list or "
-        "--bag); missing the LiDAR\n")
+        "--intrinsics K.txt, or --points CLOUD with --calib RIG.yaml (an RGB-D camera's depth image: --depth "
+        "DEPTH.png with --intrinsics or --known-camera; many frames: --input-dir, --input-list or --bag); missing "
+        "the LiDAR\n")
     assert main(["complete"]) == 2
     assert capsys.readouterr().err.endswith("; missing --image, --out, the LiDAR\n")
     assert not out.exists()
