@@ -34,7 +34,6 @@ import torch
 from crfdepth.checkpoints import load_pretrained
 from crfdepth.checks import check_flag, check_frames, check_has_data
 from crfdepth.errors import InputError
-from crfdepth.inference import PIPELINES
 from crfdepth.inputs import checked_points_to_sparse, image_to_numpy, prepare_points, sparse_to_numpy
 from crfdepth.intrinsics import check_intrinsics
 from crfdepth.io.calibration import Calibration, RigCalibration
@@ -301,7 +300,7 @@ def complete_checked(model, image: torch.Tensor, sparse: torch.Tensor, K: torch.
 
 
 def _complete_on_model(model, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The one door into the pipelines (``crfdepth.inference.PIPELINES``, docs/design.md section 8), shared by
+    """The one door into the pipelines (:meth:`CRFDepth.pipeline`, docs/design.md section 8), shared by
     :func:`complete_depth` and :func:`complete_checked`: a checked batch (``image`` (B, 3, H, W) in [0, 1],
     ``sparse`` (B, 1, H, W) metres with 0 = no point, ``K`` (B, 3, 3) or (3, 3) pixels; numpy or tensors) converted
     to the model's tensors once (:func:`_on_model`) and run by the model's pipeline in :class:`_ModelStep` (no
@@ -309,7 +308,7 @@ def _complete_on_model(model, image, sparse, K, return_std: bool) -> tuple[torch
     float32 depth and std (None without ``return_std``), metres, on the model's device."""
     image, sparse, K = _on_model(model, image, sparse, K)
     with _ModelStep(model, sparse, return_std) as step:
-        step.output = PIPELINES[model.settings.structure.mode](model, image, sparse, K, return_std)
+        step.output = model.pipeline(image, sparse, K, return_std)
     return step.result()
 
 

@@ -302,17 +302,24 @@ class CRFDepth(ConstrainedWeights):
         autocast off (the CRF in full precision, :mod:`crfdepth.precision`)."""
         image, sparse, K = self._checked_inputs(image, sparse, K, return_std)
         with autocast_off(sparse):
-            regime = self.sparse_regime
-            if regime is None:
-                return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
-            regime.progress = self.progress
-            few = median_return_distance(sparse) > SPARSE_DISTANCE
-            parts = [(rows, model) for rows, model in ((torch.nonzero(~few)[:, 0], self),
-                                                       (torch.nonzero(few)[:, 0], regime)) if rows.numel()]
-            if len(parts) == 1:
-                return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std)
-            return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std))
-                                  for rows, model in parts], sparse.shape[0])
+            return self.pipeline(image, sparse, K, return_std)
+
+    def pipeline(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, return_std: bool) -> CRFOutput:
+        """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs of one dtype and device
+        (``K`` (B, 3, 3)): what :meth:`forward` and :func:`crfdepth.api.complete_checked` run. With a
+        :attr:`sparse_regime`, frames with few returns go to it (:mod:`crfdepth.inference.regime`)."""
+        regime = self.sparse_regime
+        if regime is None:
+            return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
+        regime.progress = self.progress
+        K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
+        few = median_return_distance(sparse) > SPARSE_DISTANCE
+        parts = [(rows, model) for rows, model in ((torch.nonzero(~few)[:, 0], self),
+                                                   (torch.nonzero(few)[:, 0], regime)) if rows.numel()]
+        if len(parts) == 1:
+            return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std)
+        return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std))
+                              for rows, model in parts], sparse.shape[0])
 
     def _checked_inputs(self, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``."""

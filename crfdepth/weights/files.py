@@ -39,7 +39,7 @@ __all__ = ["DEFAULT_WEIGHTS", "LEARNED", "SPARSE_REGIMES", "MAX_ABS_TENSOR", "PO
            "UNIT_RANGE", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint",
            "read_weights", "weights_path", "write_weights"]
 
-WEIGHTS = ("kitti", "paper")
+WEIGHTS = ("kitti", "paper", "nyu")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
 DEFAULT_WEIGHTS = "kitti"
 SPARSE_REGIMES: dict[str, dict[str, Any]] = {"kitti": {"structure": {"mode": "pixel", "coarse": 6}}}

@@ -72,7 +72,7 @@ def test_complete_depth_defaults_to_the_kitti_weights():
 
 
 def test_weight_sets_are_listed():
-    assert WEIGHTS == ("kitti", "paper")
+    assert WEIGHTS == ("kitti", "paper", "nyu")
 
 
 # --------------------------------------------------------------------------- pretrained_state

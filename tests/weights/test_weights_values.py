@@ -30,8 +30,8 @@ from crfdepth.weights.files import (
 def test_ranges_are_generous_around_the_shipped_values():
     assert POSITIVE_RANGE == (1e-6, 1e6) and UNIT_RANGE == (1e-6, 1 - 1e-6) and MAX_ABS_TENSOR == 1e6
     assert STD_BIAS_RANGE == pytest.approx((-13.8155, 13.8155), abs=1e-4) and STD_EXPONENT_RANGE == (-10.0, 10.0)
-    for name in ("kitti", "paper"):
-        assert CRFDepth.from_pretrained(name).weights()  # both shipped sets load
+    for name in ("kitti", "paper", "nyu"):
+        assert CRFDepth.from_pretrained(name).weights()  # every shipped set loads
 
 
 def _kitti_with(tmp_path, edit) -> str:
