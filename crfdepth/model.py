@@ -25,7 +25,7 @@ from crfdepth.checks import check_flag, check_frames
 from crfdepth.config import POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
-from crfdepth.inference.coarse import SPARSE_DISTANCE, median_return_distance
+from crfdepth.inference.coarse import few_returns
 from crfdepth.inference.regime import merge_outputs
 from crfdepth.intrinsics import check_batch_intrinsics
 from crfdepth.linalg import SolverSettings, solver_settings
@@ -313,7 +313,7 @@ class CRFDepth(ConstrainedWeights):
             return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
         regime.progress = self.progress
         K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
-        few = median_return_distance(sparse) > SPARSE_DISTANCE
+        few = few_returns(sparse)
         parts = [(rows, model) for rows, model in ((torch.nonzero(~few)[:, 0], self),
                                                    (torch.nonzero(few)[:, 0], regime)) if rows.numel()]
         if len(parts) == 1:

@@ -25,11 +25,42 @@ a 64-beam scan at KITTI's resolution has 2.2-3.6 px on the shared frames, 16 bea
 
 def median_return_distance(sparse: torch.Tensor) -> torch.Tensor:
     """(B,) the median over each frame's pixels of the distance in pixels to the nearest return of a
-    (B, 1, H, W) depth map (0 = no return): half the typical gap between returns."""
+    (B, 1, H, W) depth map (0 = no return): half the typical gap between returns. Exact but slow (an exact
+    distance transform in torch); the model decides with :func:`few_returns`."""
     _, squared = nearest_valid(sparse[:, 0] > 0)
     return squared.flatten(1).to(torch.float32).median(dim=1).values.sqrt()
 
 
+# The disk of radius SPARSE_DISTANCE (offsets with dx^2 + dy^2 <= 4.5^2) as the union of three rectangles.
+_DISK = ((9, 5), (7, 7), (5, 9))
+
+
+def few_returns(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
+    """(B,) bool: is the median distance from a pixel to its nearest return above :data:`SPARSE_DISTANCE`?
+
+    ``median_return_distance(sparse) > SPARSE_DISTANCE`` estimated in about a millisecond: are fewer than half
+    of the pixels within 4.5 px of a return? The pixels asked are every ``stride``-th of every ``stride``-th row
+    (1 asks all of them). The disk of that radius is the union of 9x5, 7x7 and 5x9 rectangles, and the returns
+    in each rectangle are counted from one integral image."""
+    h, w = sparse.shape[2:]
+    pad = max(max(kh, kw) for kh, kw in _DISK) // 2
+    counts = (sparse[:, 0] > 0).to(torch.int32).cumsum(1).cumsum(2)
+    # integral[y, x]: the returns above and left of (y, x) in the frame padded by pad + 1 / pad, exclusive
+    integral = counts.new_zeros(sparse.shape[0], h + 2 * pad + 1, w + 2 * pad + 1)
+    integral[:, pad + 1:pad + 1 + h, pad + 1:pad + 1 + w] = counts
+    integral[:, pad + 1 + h:, pad + 1:pad + 1 + w] = counts[:, -1:, :]
+    integral[:, pad + 1:, pad + 1 + w:] = integral[:, pad + 1:, pad + w:pad + 1 + w]
+    first, n_rows, n_cols = stride // 2, len(range(stride // 2, h, stride)), len(range(stride // 2, w, stride))
+
+    def at(y: int, x: int) -> torch.Tensor:  # the integral at (y + row, x + col) of every pixel asked
+        return integral[:, y + first:y + first + stride * (n_rows - 1) + 1:stride,
+                        x + first:x + first + stride * (n_cols - 1) + 1:stride]
+
+    near = torch.zeros(sparse.shape[0], n_rows, n_cols, dtype=torch.bool, device=sparse.device)
+    for kh, kw in _DISK:
+        top, left = pad - kh // 2, pad - kw // 2  # each rectangle's corner in the padded frame
+        near |= (at(top + kh, left + kw) - at(top, left + kw) - at(top + kh, left) + at(top, left)) > 0
+    return near.flatten(1).to(torch.float32).mean(1) < 0.5
 def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: int, variable: str
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(image, sparse, K)`` of the block grid: each block's mean colour, the mean of its returns (geometric for

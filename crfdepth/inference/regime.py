@@ -3,7 +3,8 @@
 :meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights a
 ``sparse_regime``: the hand-set weights on the pixel grid with a coarse first solve
 (:mod:`crfdepth.inference.coarse`). A frame whose median distance to the nearest return exceeds
-:data:`~crfdepth.inference.coarse.SPARSE_DISTANCE` pixels (500 or 200 samples, 16 beams) is completed by it,
+:data:`~crfdepth.inference.coarse.SPARSE_DISTANCE` pixels (:func:`~crfdepth.inference.coarse.few_returns`;
+500 or 200 samples, 16 beams) is completed by it,
 a denser one (a 64-beam scan, an RGB-D depth image) by the shipped weights. A batch that mixes both is split
 and its outputs merged frame by frame (:func:`merge_outputs`).
 """

@@ -7,7 +7,14 @@ import torch
 
 from crfdepth.data.nyu.layouts import build_nyu_dataset
 from crfdepth.errors import InputError
-from crfdepth.inference.coarse import SPARSE_DISTANCE, coarse_frame, median_return_distance, paint, usable_block
+from crfdepth.inference.coarse import (
+    SPARSE_DISTANCE,
+    coarse_frame,
+    few_returns,
+    median_return_distance,
+    paint,
+    usable_block,
+)
 from crfdepth.model import CRFDepth
 
 
@@ -119,3 +126,21 @@ def test_default_model_is_better_with_500_samples_of_real_indoor_frames(nyu_root
             errors[name].append(float(((depth[valid] - s.target[valid]) ** 2).mean().sqrt()))
     # measured 0.96-0.98 x per frame on these three frames (docs/design.md section 17)
     assert sum(errors["adaptive"]) < 0.99 * sum(errors["fixed"])
+
+
+@pytest.mark.parametrize("count", [20, 60, 150, 300, 600, 2000])
+def test_few_returns_agrees_with_the_exact_median_distance(count):
+    for seed in range(3):
+        _, sparse, _, _ = _scene(h=64, w=96, count=count, seed=seed)
+        median = float(median_return_distance(sparse))
+        assert bool(few_returns(sparse, stride=1)) == (median > SPARSE_DISTANCE)
+        if abs(median - SPARSE_DISTANCE) > 0.5:  # the default asks every third pixel of every third row
+            assert bool(few_returns(sparse)) == (median > SPARSE_DISTANCE)
+
+
+def test_few_returns_on_rings_and_on_a_depth_image_with_holes():
+    rings = torch.zeros(2, 1, 120, 200)
+    rings[0, :, ::3, :] = 5.0  # a ring every 3 rows: every pixel within 1 px
+    rings[1, :, ::24, :] = 5.0  # every 24 rows: 9 rows in 24 within 4.5 px
+    assert few_returns(rings).tolist() == [False, True]
+    assert torch.equal(few_returns(rings, stride=1), median_return_distance(rings) > SPARSE_DISTANCE)
