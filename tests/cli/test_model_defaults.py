@@ -218,7 +218,7 @@ def _help(main, capsys, command: str) -> str:
 def test_help_names_the_real_default_structure(main, capsys, command):
     text = _help(main, capsys, command)
     own = ", ".join(f"{name}: {load_pretrained(name).settings.structure.mode}" for name in WEIGHTS)
-    assert own == "kitti: pixel, paper: superpixel"
+    assert own == "kitti: pixel, paper: superpixel, nyu: pixel"
     assert f"default: the weights' own structure ({own})" in text
     assert "else superpixel" not in text and "default: superpixel" not in text
 

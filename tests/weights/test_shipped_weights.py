@@ -96,7 +96,7 @@ def test_pretrained_state_of_paper_is_empty():
 def test_pretrained_state_names_the_argument_and_the_choices(name):
     with pytest.raises(InputError) as info:
         pretrained_state(name)
-    assert str(info.value) == f"name: expected one of the shipped weights kitti, paper, got {name!r}"
+    assert str(info.value) == f"name: expected one of the shipped weights kitti, paper, nyu, got {name!r}"
 
 
 @pytest.mark.parametrize("overrides", [{}, {"mode": "pixel", "potentials": ("colour",)}, {"alpha": 0.3, "eps": 0.2}])
