@@ -130,6 +130,7 @@ def test_a_camera_up_a_mast_is_refused_by_the_rig_guess_and_accepted_with_trust_
 def test_a_camera_up_a_mast_passes_the_checks_with_trust_units(monkeypatch, mast_map):
     """trust_units skips only the rig guess: the map reaches the model unchanged."""
     import crfdepth.api as api
+    from crfdepth.inference import PIPELINES
 
     sparse, K = mast_map
     seen = {}
@@ -138,8 +139,8 @@ def test_a_camera_up_a_mast_passes_the_checks_with_trust_units(monkeypatch, mast
         seen["sparse"] = sparse_t[0, 0].numpy()
         return CRFOutput(torch.ones(1, 1, *sparse.shape), *(None,) * 10)
 
-    monkeypatch.setitem(api.PIPELINES, "pixel", fake_pipeline)
-    monkeypatch.setitem(api.PIPELINES, "superpixel", fake_pipeline)
+    monkeypatch.setitem(PIPELINES, "pixel", fake_pipeline)
+    monkeypatch.setitem(PIPELINES, "superpixel", fake_pipeline)
     image = np.full((*sparse.shape, 3), 128, np.uint8)
     api.complete_depth(image, sparse=sparse, K=K, return_std=False, trust_units=True)
     np.testing.assert_allclose(seen["sparse"], sparse, rtol=0, atol=0)
