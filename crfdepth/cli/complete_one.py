@@ -11,6 +11,7 @@ import itertools
 import logging
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,20 +154,29 @@ def read_one(args: argparse.Namespace) -> OneFrame:
     return OneFrame(rgb, inputs, model, where, None if points_mode else units, out, out_std, time.perf_counter())
 
 
-def write_one(args: argparse.Namespace, frame: OneFrame, depth: np.ndarray, std: np.ndarray | None) -> int:
-    """The frame's files written (depth, std, pictures: all or none), logged with ``--rerun``; returns 0."""
-    rgb, out, out_std = frame.rgb, frame.out, frame.out_std
+@contextlib.contextmanager
+def vis_folder(args: argparse.Namespace, out: Path) -> Iterator[Path | None]:
+    """The folder of one frame's ``--vis`` pictures (None without ``--vis``; ``--vis`` alone: beside ``out``),
+    made only now that the frame is completed; a folder this made is removed again, empty, if the writes in
+    the ``with`` block fail."""
     vis_dir, created = None, False
-    if args.vis is not None:  # created only once the frame is completed
+    if args.vis is not None:
         created = bool(args.vis) and not os.path.isdir(args.vis)
         vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
     try:
-        written = write_frame(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)  # all files, or none
+        yield vis_dir
     except BaseException:
         if created:
             with contextlib.suppress(OSError):
                 vis_dir.rmdir()  # the --vis folder this run created, empty again
         raise
+
+
+def write_one(args: argparse.Namespace, frame: OneFrame, depth: np.ndarray, std: np.ndarray | None) -> int:
+    """The frame's files written (depth, std, pictures: all or none), logged with ``--rerun``; returns 0."""
+    rgb, out, out_std = frame.rgb, frame.out, frame.out_std
+    with vis_folder(args, out) as vis_dir:
+        written = write_frame(depth, std, out, out_std, vis_dir, out.stem, args.vis_range)  # all files, or none
     if args.recorder is not None:  # --rerun
         lidar = {key: frame.inputs[key] for key in ("points", "calibration", "sparse", "K") if key in frame.inputs}
         args.recorder.complete_frame(rgb, depth, std, **lidar)

@@ -37,9 +37,7 @@ is read (:func:`crfdepth.cli.complete_one.check_outputs`); each refusal is one l
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,7 +56,7 @@ from crfdepth.io.depth_image import CODES_PER_METRE, check_depth_matches_image, 
 from crfdepth.io.kitti import read_intrinsics, read_rgb
 from crfdepth.memory import check_image_file
 from crfdepth.pictures.figures import depth_picture, std_picture
-from crfdepth.runs.outputs import make_output_dir, write_files
+from crfdepth.runs.outputs import write_files
 
 logger = logging.getLogger("crfdepth.cli.complete")  # the command's logger, whichever mode runs
 
@@ -237,7 +235,7 @@ def complete_holes(model, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, *, 
 def complete_rgbd_frame(args: argparse.Namespace) -> int:
     """One RGB-D frame (module docstring): outputs checked, inputs read and checked, the model built, the holes
     filled and the files written together; returns 0."""
-    from crfdepth.cli.complete_one import check_outputs
+    from crfdepth.cli.complete_one import check_outputs, vis_folder
 
     needed = {"--image": args.image, "--depth": args.depth, "--out": args.out}
     missing = [flag for flag, value in needed.items() if value is None]
@@ -270,19 +268,10 @@ def complete_rgbd_frame(args: argparse.Namespace) -> int:
     where = {"image": f"--image {args.image}", "sparse": f"--depth {args.depth}", "K": camera.flag}
     with frame_errors(args, model, rgb.shape[:2], where):
         filled, std = complete_holes(model, rgb, depth, K, device=args.device, return_std=return_std)
-    vis_dir, created = None, False
-    if args.vis is not None:  # created only once the frame is completed
-        created = bool(args.vis) and not os.path.isdir(args.vis)
-        vis_dir = make_output_dir(args.vis, "--vis") if args.vis else out.parent
-    files = frame_files(filled, std, units, out, out_std, vis_dir, out.stem, args.vis_range,
-                        ("--out", "--out-std", "--vis"))
-    try:
+    with vis_folder(args, out) as vis_dir:
+        files = frame_files(filled, std, units, out, out_std, vis_dir, out.stem, args.vis_range,
+                            ("--out", "--out-std", "--vis"))
         write_files(files)  # all of them, or none
-    except BaseException:
-        if created:
-            with contextlib.suppress(OSError):
-                vis_dir.rmdir()  # the --vis folder this run created, empty again
-        raise
     if args.recorder is not None:  # --rerun
         args.recorder.complete_frame(rgb, filled, std, sparse=depth, K=K)
     if not args.quiet:

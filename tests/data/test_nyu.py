@@ -20,19 +20,11 @@ from crfdepth.data.nyu import NYU_K, NyuH5, NyuRawFilled, NyuSync, nyu_intrinsic
 from crfdepth.data.sample import Sample
 from crfdepth.data.sampling import Resize
 from crfdepth.errors import InputError
+from tests.refusals import refused
 
 h5py = pytest.importorskip("h5py")
 
 SHARED_NYU = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nyu"
-
-
-def _refused(call, *words) -> str:
-    with pytest.raises(InputError) as info:
-        call()
-    message = str(info.value)
-    for word in words:
-        assert word in message, (word, message)
-    return message
 
 
 def _synthetic_frame(height=480, width=640, seed=0, holes=0.3) -> tuple[np.ndarray, np.ndarray]:
@@ -113,9 +105,9 @@ def test_nyu_intrinsics_agree_with_the_protocol_resize():
     torch.testing.assert_close(Resize(240, 320)(frame).K, nyu_intrinsics(320, 240), atol=1e-4, rtol=0)
 
 
-def test_nyu_intrinsics_of_an_unknown_size_are_refused():
-    _refused(lambda: nyu_intrinsics(500, 400), "width, height: expected a NYU v2 frame of 640x480", "got 500x400")
-    _refused(lambda: nyu_intrinsics(600, 400, crop=(50, 0)), "crop: expected (left, top) of a 600x400 window",
+def test_nyu_intrinsics_of_an_unknown_size_arerefused():
+    refused(lambda: nyu_intrinsics(500, 400), "width, height: expected a NYU v2 frame of 640x480", "got 500x400")
+    refused(lambda: nyu_intrinsics(600, 400, crop=(50, 0)), "crop: expected (left, top) of a 600x400 window",
              "got (50, 0)")
 
 
@@ -198,13 +190,13 @@ def test_samples_without_the_protocol_keep_the_full_frame(sync_root):
     assert cropped.size == (228, 304) and torch.equal(cropped.sparse, cropped.target)
 
 
-def test_more_samples_than_valid_pixels_is_refused(sync_root):
+def test_more_samples_than_valid_pixels_isrefused(sync_root):
     ds = build_dataset("nyu_sync", sync_root, samples=10**6)
-    _refused(lambda: ds[0], "samples: expected at most the ", "got 1000000")
+    refused(lambda: ds[0], "samples: expected at most the ", "got 1000000")
 
 
-def test_seed_without_samples_is_refused(sync_root):
-    _refused(lambda: build_dataset("nyu_sync", sync_root, seed=3), "seed: expected together with samples")
+def test_seed_without_samples_isrefused(sync_root):
+    refused(lambda: build_dataset("nyu_sync", sync_root, seed=3), "seed: expected together with samples")
 
 
 # --------------------------------------------------------------------------- NyuRawFilled
@@ -233,7 +225,7 @@ def test_raw_filled_synthetic_folders(tmp_path):
     torch.testing.assert_close(s.K, nyu_intrinsics(320, 240))
     assert bool((s.target > 0).all()) and (s.sparse == 0).any()
     (tmp_path / "b" / "depth.png").unlink()
-    _refused(lambda: NyuRawFilled(tmp_path), "root: expected images.png, rawdepth.png, depth.png together in",
+    refused(lambda: NyuRawFilled(tmp_path), "root: expected images.png, rawdepth.png, depth.png together in",
              "got no depth.png")
 
 
@@ -263,10 +255,10 @@ def test_h5_protocol_through_the_factory(h5_root):
 
 
 def test_h5_bad_split(h5_root):
-    _refused(lambda: NyuH5(h5_root, split="test"), "split: expected one of 'train', 'val' or None, got 'test'")
-    _refused(lambda: NyuH5(h5_root / "train", split="val"), "split: expected 'train' or None")
+    refused(lambda: NyuH5(h5_root, split="test"), "split: expected one of 'train', 'val' or None, got 'test'")
+    refused(lambda: NyuH5(h5_root / "train", split="val"), "split: expected 'train' or None")
     shutil.rmtree(h5_root / "val")
-    _refused(lambda: NyuH5(h5_root, split="val"), "split: expected a val/ folder in")
+    refused(lambda: NyuH5(h5_root, split="val"), "split: expected a val/ folder in")
 
 
 @pytest.mark.parametrize("datasets, words", [
@@ -286,18 +278,18 @@ def test_h5_bad_split(h5_root):
 def test_bad_h5_files_name_the_file_and_key(tmp_path, datasets, words):
     file = _write_h5(tmp_path / "val" / "official" / "00001.h5", **datasets)
     ds = NyuH5(tmp_path / "val")
-    _refused(lambda: ds[0], str(file), *words)
+    refused(lambda: ds[0], str(file), *words)
 
 
 def test_a_file_that_is_not_hdf5(tmp_path):
     (tmp_path / "scene").mkdir()
     (tmp_path / "scene" / "1.h5").write_text("not hdf5")
-    _refused(lambda: NyuH5(tmp_path)[0], str(tmp_path / "scene" / "1.h5"), "does not open")
+    refused(lambda: NyuH5(tmp_path)[0], str(tmp_path / "scene" / "1.h5"), "does not open")
 
 
 def test_h5_without_h5py_names_the_extra(h5_root, monkeypatch):
     monkeypatch.setitem(sys.modules, "h5py", None)  # import h5py now raises ImportError
-    _refused(lambda: NyuH5(h5_root), 'pip install "crfdepth[nyu]"')
+    refused(lambda: NyuH5(h5_root), 'pip install "crfdepth[nyu]"')
 
 
 # --------------------------------------------------------------------------- roots and bad files
@@ -306,27 +298,27 @@ def test_h5_without_h5py_names_the_extra(h5_root, monkeypatch):
 @pytest.mark.parametrize("layout", ["nyu_sync", "nyu_raw", "nyu_h5"])
 def test_roots_without_frames_name_root(tmp_path, layout):
     missing = tmp_path / "nope"
-    _refused(lambda: build_dataset(layout, missing), "root: expected a folder of the", str(missing), "does not exist")
+    refused(lambda: build_dataset(layout, missing), "root: expected a folder of the", str(missing), "does not exist")
     (tmp_path / "empty").mkdir()
-    _refused(lambda: build_dataset(layout, tmp_path / "empty"), "root: expected a folder of the", "got no frame in")
+    refused(lambda: build_dataset(layout, tmp_path / "empty"), "root: expected a folder of the", "got no frame in")
     (tmp_path / "file").write_text("x")
-    _refused(lambda: build_dataset(layout, tmp_path / "file"), "root: ", "got a file")
+    refused(lambda: build_dataset(layout, tmp_path / "file"), "root: ", "got a file")
 
 
 def test_sync_image_without_depth_and_depth_without_image(tmp_path):
     _write_sync(tmp_path / "s", "00001", *_synthetic_frame(48, 64))
     (tmp_path / "s" / "sync_depth_00001.png").rename(tmp_path / "s" / "sync_depth_00002.png")
-    message = _refused(lambda: NyuSync(tmp_path), "root: expected sync_depth_00001.png beside")
+    message = refused(lambda: NyuSync(tmp_path), "root: expected sync_depth_00001.png beside")
     assert "rgb_00001.jpg" in message
     (tmp_path / "s" / "rgb_00001.jpg").unlink()
-    _refused(lambda: NyuSync(tmp_path), "root: expected rgb_00002.jpg beside", "sync_depth_00002.png")
+    refused(lambda: NyuSync(tmp_path), "root: expected rgb_00002.jpg beside", "sync_depth_00002.png")
 
 
 def test_sync_depth_of_another_size_names_both_files(tmp_path):
     rgb, mm = _synthetic_frame()
     _write_sync(tmp_path / "s", "00001", rgb, mm[::2, ::2].copy())
     depth, image = tmp_path / "s" / "sync_depth_00001.png", tmp_path / "s" / "rgb_00001.jpg"
-    _refused(lambda: NyuSync(tmp_path)[0], f"{depth}: expected the size of {image}, 480x640 (HxW), got 240x320")
+    refused(lambda: NyuSync(tmp_path)[0], f"{depth}: expected the size of {image}, 480x640 (HxW), got 240x320")
 
 
 @pytest.mark.parametrize("depth, words", [
@@ -337,7 +329,7 @@ def test_sync_depth_of_another_size_names_both_files(tmp_path):
     (lambda mm: mm // 18, ["expected depth in millimetres with a median of 0.2 to 80 m", "got a median of 0.1",
                            "that looks like KITTI codes"]),  # 1.8 cm codes: nearer than a Kinect sees
 ], ids=["whole-metres", "8-bit", "x257", "empty", "too-shallow"])
-def test_sync_depth_files_not_in_millimetres_are_refused(tmp_path, depth, words):
+def test_sync_depth_files_not_in_millimetres_arerefused(tmp_path, depth, words):
     rgb, mm = _synthetic_frame(48, 64)
     _write_sync(tmp_path / "s", "00001", rgb, depth(mm))
     with pytest.raises(InputError) as info:

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-from crfdepth.errors import InputError
 from crfdepth.io.depth_image import (
     CODES_PER_METRE,
     DEPTH_UNITS,
@@ -14,6 +13,7 @@ from crfdepth.io.depth_image import (
     check_depth_units,
     read_depth_image,
 )
+from tests.refusals import refused
 
 
 def _png(path, array) -> str:
@@ -60,24 +60,15 @@ def test_a_constant_depth_on_a_multiple_of_257_is_not_a_picture(tmp_path):
 # --------------------------------------------------------------------------- refusals
 
 
-def _refused(call, *words) -> str:
-    with pytest.raises(InputError) as info:
-        call()
-    message = str(info.value)
-    for word in words:
-        assert word in message, (word, message)
-    return message
-
-
 def test_files_that_cannot_be_read_name_the_argument(tmp_path):
-    _refused(lambda: read_depth_image(tmp_path / "none.png", argument="--depth"), "--depth: ", "none.png")
-    _refused(lambda: read_depth_image(tmp_path, argument="--depth"), "--depth: ")
+    refused(lambda: read_depth_image(tmp_path / "none.png", argument="--depth"), "--depth: ", "none.png")
+    refused(lambda: read_depth_image(tmp_path, argument="--depth"), "--depth: ")
     text = tmp_path / "notes.png"
     text.write_text("not an image")
-    _refused(lambda: read_depth_image(text, argument="--depth"), "--depth: ", "does not decode")
+    refused(lambda: read_depth_image(text, argument="--depth"), "--depth: ", "does not decode")
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
-    _refused(lambda: read_depth_image(empty, argument="--depth"), "--depth: ", "0 bytes")
+    refused(lambda: read_depth_image(empty, argument="--depth"), "--depth: ", "0 bytes")
 
 
 @pytest.mark.parametrize("array", [
@@ -85,21 +76,21 @@ def test_files_that_cannot_be_read_name_the_argument(tmp_path):
     np.full((8, 8, 3), 120, np.uint8),  # a colour-mapped picture
     np.full((8, 8, 3), 3000, np.uint16),  # 16 bits, but three channels
 ], ids=["8-bit", "rgb", "16-bit-rgb"])
-def test_pictures_are_refused(tmp_path, array):
+def test_pictures_arerefused(tmp_path, array):
     path = _png(tmp_path / "vis.png", array)
-    _refused(lambda: read_depth_image(path, argument="--depth"), "--depth: expected a single-channel 16-bit",
+    refused(lambda: read_depth_image(path, argument="--depth"), "--depth: expected a single-channel 16-bit",
              "a visualisation, not depth codes")
 
 
-def test_an_8_bit_visualisation_saved_as_16_bits_is_refused(tmp_path):
+def test_an_8_bit_visualisation_saved_as_16_bits_isrefused(tmp_path):
     grey = np.linspace(1, 255, 64 * 48).reshape(48, 64).astype(np.uint16)
     path = _png(tmp_path / "vis16.png", grey)
-    message = _refused(lambda: read_depth_image(path, "mm", argument="--depth"), "--depth: ",
+    message = refused(lambda: read_depth_image(path, "mm", argument="--depth"), "--depth: ",
                        "an 8-bit visualisation saved as 16 bits", "--depth-units m")
     assert "largest 255" in message
     scaled = _png(tmp_path / "vis257.png", (grey * 257).astype(np.uint16))  # 8 bits stretched to 16
     for units in DEPTH_UNITS:
-        _refused(lambda: read_depth_image(scaled, units, argument="--depth"), "--depth: ", "multiple of 257")
+        refused(lambda: read_depth_image(scaled, units, argument="--depth"), "--depth: ", "multiple of 257")
 
 
 def test_whole_metres_read_as_whole_metres_are_accepted(tmp_path):
@@ -107,35 +98,35 @@ def test_whole_metres_read_as_whole_metres_are_accepted(tmp_path):
     assert read_depth_image(_png(tmp_path / "m.png", codes), "m").max() == pytest.approx(6.0)
 
 
-def test_no_valid_pixel_is_refused(tmp_path):
+def test_no_valid_pixel_isrefused(tmp_path):
     path = _png(tmp_path / "zero.png", np.zeros((8, 8), np.uint16))
-    _refused(lambda: read_depth_image(path, argument="--depth"), "--depth: ", "at least one valid (non-zero) pixel",
+    refused(lambda: read_depth_image(path, argument="--depth"), "--depth: ", "at least one valid (non-zero) pixel",
              "none of its 64 pixel(s)")
 
 
 def test_millimetres_read_as_metres_name_millimetres(tmp_path):
     codes = np.round(_room() * 1000).astype(np.uint16)
     path = _png(tmp_path / "mm.png", codes)
-    message = _refused(lambda: read_depth_image(path, "m", argument="--depth"), "--depth: expected depth in whole metres",
+    message = refused(lambda: read_depth_image(path, "m", argument="--depth"), "--depth: expected depth in whole metres",
                        "that looks like millimetres: pass --depth-units mm")
     assert message.index("--depth-units mm") < message.index("--depth-units kitti")  # both fit; mm named first
 
 
 def test_whole_metres_read_as_millimetres_name_metres(tmp_path):
     codes = np.round(_room(low=1.0, high=9.0)).astype(np.uint16)
-    _refused(lambda: read_depth_image(_png(tmp_path / "m.png", codes), "mm", argument="--depth"),
+    refused(lambda: read_depth_image(_png(tmp_path / "m.png", codes), "mm", argument="--depth"),
              "--depth: ", "whole metres, pass --depth-units m")
 
 
-def test_real_nyu_depth_read_as_metres_is_refused(nyu_root):
+def test_real_nyu_depth_read_as_metres_isrefused(nyu_root):
     path = nyu_root / "labeled_crop" / "rawdepth.png"
-    _refused(lambda: read_depth_image(path, "m", argument="--depth"), "--depth: ", "median of 3161 m",
+    refused(lambda: read_depth_image(path, "m", argument="--depth"), "--depth: ", "median of 3161 m",
              "that looks like millimetres: pass --depth-units mm")
 
 
 def test_unknown_units_name_the_option(tmp_path):
     path = _png(tmp_path / "d.png", np.full((8, 8), 3000, np.uint16))
-    _refused(lambda: read_depth_image(path, "cm"), "--depth-units: expected one of 'mm', 'm', 'kitti', got 'cm'")
+    refused(lambda: read_depth_image(path, "cm"), "--depth-units: expected one of 'mm', 'm', 'kitti', got 'cm'")
 
 
 # --------------------------------------------------------------------------- the array check
@@ -144,19 +135,19 @@ def test_unknown_units_name_the_option(tmp_path):
 def test_check_depth_units_on_metres():
     depth = _room().astype(np.float32)
     check_depth_units(depth, "mm", "depth")  # floats are metres already: 0.8-6 m passes
-    message = _refused(lambda: check_depth_units(depth * 1000, "m", "depth", units_argument=None),
+    message = refused(lambda: check_depth_units(depth * 1000, "m", "depth", units_argument=None),
                        "depth: expected depth in whole metres", "that looks like millimetres")
     assert "pass" not in message  # no option to name
-    _refused(lambda: check_depth_units(depth / 1000, "m", "depth"), "depth: ", "check the unit and scale")
+    refused(lambda: check_depth_units(depth / 1000, "m", "depth"), "depth: ", "check the unit and scale")
     nan = np.full((4, 4), np.nan, np.float32)
-    _refused(lambda: check_depth_units(nan, "m", "depth"), "depth: ", "at least one valid")
+    refused(lambda: check_depth_units(nan, "m", "depth"), "depth: ", "at least one valid")
 
 
 def test_check_depth_units_on_the_range_edges():
     check_depth_units(np.full((2, 2), 0.2), "m", "depth")
     check_depth_units(np.full((2, 2), 80.0), "m", "depth")
-    _refused(lambda: check_depth_units(np.full((2, 2), 0.19), "m", "depth"), "depth: ", "median of 0.19 m")
-    _refused(lambda: check_depth_units(np.full((2, 2), 81.0), "m", "depth"), "depth: ", "median of 81 m")
+    refused(lambda: check_depth_units(np.full((2, 2), 0.19), "m", "depth"), "depth: ", "median of 0.19 m")
+    refused(lambda: check_depth_units(np.full((2, 2), 81.0), "m", "depth"), "depth: ", "median of 81 m")
 
 
 # --------------------------------------------------------------------------- sizes
@@ -164,7 +155,7 @@ def test_check_depth_units_on_the_range_edges():
 
 def test_depth_and_image_of_different_sizes_name_both():
     check_depth_matches_image((480, 640), (480, 640, 3))
-    message = _refused(lambda: check_depth_matches_image((240, 320), (480, 640, 3)),
+    message = refused(lambda: check_depth_matches_image((240, 320), (480, 640, 3)),
                        "--depth: expected the size of --image, 480x640 (HxW), got 240x320")
     assert message.startswith("--depth")
-    _refused(lambda: check_depth_matches_image((4, 5), (4, 6), "a/depth.png", "a/rgb.jpg"), "a/depth.png: ", "a/rgb.jpg")
+    refused(lambda: check_depth_matches_image((4, 5), (4, 6), "a/depth.png", "a/rgb.jpg"), "a/depth.png: ", "a/rgb.jpg")

@@ -8,39 +8,21 @@ section 17).
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
+from crfdepth.data.kitti.loading import FrameDataset, PathLike, Transform, rgb_tensor
 from crfdepth.data.nyu.camera import nyu_intrinsics
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 from crfdepth.io.depth_image import check_depth_matches_image, read_depth_image
 from crfdepth.io.kitti import read_rgb
 
-__all__ = ["NyuFrames", "PathLike", "Transform", "check_root", "frame_sample", "no_frames", "read_png_frame",
+__all__ = ["FrameDataset", "PathLike", "Transform", "check_root", "frame_sample", "no_frames", "read_png_frame",
            "scene_name"]
 
-PathLike = str | os.PathLike
-Transform = Callable[[Sample], Sample]
-
-
-class NyuFrames(Dataset):
-    """A dataset of the frames its constructor lists in ``self._frames`` (each with a ``name``), in order."""
-
-    _frames: list
-
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    @property
-    def names(self) -> list[str]:
-        """Sample names in dataset order."""
-        return [f.name for f in self._frames]
 
 
 def check_root(root: PathLike, layout: str, expected: str) -> Path:
@@ -81,9 +63,8 @@ def frame_sample(rgb: np.ndarray, sparse: np.ndarray, target: np.ndarray, name: 
         transform: applied to the sample; None = none.
     """
     h, w = rgb.shape[:2]
-    image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))).to(torch.float32) / 255.0
     sample = Sample(
-        image=image,
+        image=rgb_tensor(rgb),
         sparse=torch.from_numpy(np.ascontiguousarray(sparse, dtype=np.float32))[None],
         target=torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32))[None],
         K=nyu_intrinsics(w, h, argument=image_argument),

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from crfdepth.data.nyu.camera import NYU_HEIGHT, NYU_WIDTH
-from crfdepth.data.nyu.frames import NyuFrames, PathLike, Transform, check_root, frame_sample, no_frames, scene_name
+from crfdepth.data.nyu.frames import FrameDataset, PathLike, Transform, check_root, frame_sample, no_frames, scene_name
 from crfdepth.data.sample import Sample
 from crfdepth.errors import InputError
 from crfdepth.io.depth_image import check_depth_units
@@ -44,7 +44,7 @@ class _H5Frame:
     file: Path
 
 
-class NyuH5(NyuFrames):
+class NyuH5(FrameDataset):
     """NYU v2 frames of the Sparse-to-Dense HDF5 release.
 
     Each ``<scene>/<n>.h5`` is one frame: the 640 x 480 image, ``sparse`` = ``target`` = its depth

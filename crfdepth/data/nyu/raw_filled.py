@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from crfdepth.data.nyu.frames import (
-    NyuFrames,
+    FrameDataset,
     PathLike,
     Transform,
     check_root,
@@ -41,7 +41,7 @@ class _RawFrame:
     filled: Path
 
 
-class NyuRawFilled(NyuFrames):
+class NyuRawFilled(FrameDataset):
     """NYU v2 frames with the raw Kinect depth as input and the filled depth as target.
 
     Each folder holding ``images.png``, ``rawdepth.png`` and ``depth.png`` (``root`` itself, or any

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from crfdepth.data.nyu.frames import (
-    NyuFrames,
+    FrameDataset,
     PathLike,
     Transform,
     check_root,
@@ -38,7 +38,7 @@ class _SyncFrame:
     depth: Path
 
 
-class NyuSync(NyuFrames):
+class NyuSync(FrameDataset):
     """NYU v2 frames of the "sync" layout: ``<scene>/rgb_XXXXX.jpg`` and ``<scene>/sync_depth_XXXXX.png``.
 
     Each frame's sample has the 640 x 480 image, ``sparse`` = the Kinect depth with its holes and
