@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from crfdepth.model import CRFDepth
 from crfdepth.uncertainty.predictive import STD_TERMS
@@ -102,3 +103,42 @@ def test_kitti_root_without_the_protocol_folders_is_named_before_any_output(accu
     assert "--kitti-root" in err and str(tmp_path) in err
     assert "missing: depth_selection/val_selection_cropped, object/training" in err
     assert not out.exists()
+
+
+@pytest.fixture(scope="module")
+def protocols(accuracy):
+    import sys
+
+    return sys.modules["accuracy_parts.protocols"]
+
+
+@pytest.mark.parametrize(("key", "size", "count"), [("t500", (228, 912), 500), ("t200", (228, 912), 200),
+                                                      ("n500", (228, 304), 500), ("n200", (228, 304), 200)])
+def test_sparse_protocols_draw_n_pixels_of_their_target(protocols, kitti_root, nyu_root, key, size, count):
+    frames = 0
+    for _, layout, folder, options in protocols.PROTOCOLS[key][1]:
+        for s in protocols.load_group(kitti_root, layout, folder, options, 2, nyu_root=nyu_root):
+            assert s.size == size
+            given = s.sparse > 0
+            assert int(given.sum()) == count
+            assert torch.equal(s.sparse[given], s.target[given])  # the input is part of the target
+            assert int((s.target > 0).sum()) > 20 * count  # the target is the whole scan or depth
+            frames += 1
+    assert frames == (4 if key.startswith("t") else 3)  # at most 2 per group; the dining room has 1
+
+
+def test_sparse_protocol_rows_report_log10(accuracy, kitti_root, nyu_root, tmp_path):
+    rows = accuracy.main(["--kitti-root", str(kitti_root), "--nyu-root", str(nyu_root), "--protocols", "n500",
+                          "--methods", "nn", "default", "--no-subsample", "--max-frames", "1",
+                          "--out-dir", str(tmp_path)])
+    by = {r["method"]: r for r in rows}
+    assert set(by) == {"nn", "default"} and all(r["frames"] == 2 for r in rows)
+    assert 0 < by["default"]["log10"] < by["nn"]["log10"] < 0.05
+    assert by["default"]["rmse"] < by["nn"]["rmse"]  # measured 284 against 360 mm over the four frames
+
+
+def test_nyu_root_without_the_scenes_is_named(accuracy, kitti_root, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        accuracy.main(["--kitti-root", str(kitti_root), "--nyu-root", str(tmp_path), "--protocols", "n500",
+                       "--out-dir", str(tmp_path / "out")])
+    assert info.value.code == 2 and "--nyu-root" in capsys.readouterr().err
