@@ -73,9 +73,11 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
                             targets_root=ensure_targets(args) if layout == "sequence" else None,
                             nyu_root=args.nyu_root)
         models = {m: CRFDepth(**method_config(m)).to(args.device) for m in args.methods
-                  if m in CRF_METHODS and m not in ("learned", "default")}
+                  if m in CRF_METHODS and m not in ("learned", "default", "shipped")}
         if "default" in args.methods:
             models["default"] = CRFDepth.from_pretrained().to(args.device)
+        if "shipped" in args.methods:
+            models["shipped"] = CRFDepth.from_pretrained(adaptive=False).to(args.device)
         for m in methods:
             if m in LEARNED_ABLATIONS:
                 models[m] = get_fit(("recipe", m), args, fits, log)
@@ -130,8 +132,9 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
             row["fit"] = (f"weights learned for this configuration by the shipped recipe on its "
                           f"{fits[('recipe', m)]['frames']} frames (drive 0060, object frames; both hold-outs)")
             row["weights"] = fits[("recipe", m)]["weights"]
-        elif m == "default":
-            row["config"] = "CRFDepth.from_pretrained(): the shipped weights, frames with few returns to its sparse regime"
+        elif m in ("default", "shipped"):
+            row["config"] = ("CRFDepth.from_pretrained(): the shipped weights, frames with few returns to its sparse "
+                             "regime" if m == "default" else "CRFDepth.from_pretrained(adaptive=False)")
         elif m in CRF_METHODS:
             row["config"] = _as_json(method_config(m))
         for name, items in per[m]["unc"].items():

@@ -95,7 +95,7 @@ def get_fit(source, args, fits: dict, log) -> CRFDepth:
             log(f"  fit of {source[1]} ({count} frames x 2 hold-outs): {args.fit_epochs} epochs in "
                 f"{time.perf_counter() - t:.0f} s")
         elif source == "shipped":
-            model, loss, count = CRFDepth.from_pretrained("kitti").to(args.device), float("nan"), 0
+            model, loss, count = CRFDepth.from_pretrained("kitti", adaptive=False).to(args.device), float("nan"), 0
             frames = None
         else:
             from train.calibrate import fit_predictive_std

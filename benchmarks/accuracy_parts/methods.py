@@ -25,6 +25,8 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   in the output (``fit``);
 - ``default``: ``CRFDepth.from_pretrained()``, what the API and the CLI use: the shipped weights, and for
   frames with few returns their sparse regime (docs/design.md section 17); unlike ``learned`` never re-fitted;
+- ``shipped``: ``CRFDepth.from_pretrained(adaptive=False)``, the shipped weights on every frame (the
+  default before the sparse regime), never re-fitted;
 - ``coarse``: that sparse regime alone, ``CRFDepth(mode="pixel", coarse=6)`` (hand-set weights, a coarse
   solve on 6-pixel blocks first);
 - ``pixel``: ``CRFDepth(mode="pixel")``;
@@ -63,6 +65,7 @@ CRF_METHODS = {
     "learned": {},
     "hand-set": {},  # the recipe's structure (recipe_crf()), the constructor's weights
     "default": {},  # CRFDepth.from_pretrained(): the shipped weights and their sparse regime
+    "shipped": {},  # CRFDepth.from_pretrained(adaptive=False): the shipped weights alone, every frame
     "coarse": {"mode": "pixel", "coarse": 6},  # the sparse regime alone: hand-set, pixel grid, coarse solve
     "pixel": {"mode": "pixel"},
     "sp-c": {"potentials": ("colour",), "refine": False},

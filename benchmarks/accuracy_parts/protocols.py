@@ -109,18 +109,7 @@ def load_group(root: Path, layout: str, folder: str, options: dict, max_frames: 
         idx = sorted({round(i * (len(ds) - 1) / max(max_frames - 1, 1)) for i in range(max_frames)})
     if table4 is not None:
         return [table4_input(ds[i], table4) for i in idx]
-    if table4 is not None:
-        return [table4_input(ds[i], table4) for i in idx]
     return [ds[i] if share is None else clean_input(ds[i], share, seed=i) for i in idx]
-
-
-def table4_input(sample, samples: int):
-    """A raw-scan sample (input and held-out points) as the paper's Table 4 scores it: the whole projected
-    scan is the target, and ``samples`` of its pixels in the bottom-centre 912 x 228 are the input."""
-    from crfdepth.data.sampling import kitti_table4
-
-    whole = torch.where(sample.sparse > 0, sample.sparse, sample.target)
-    return kitti_table4(samples, seed=0)(dataclasses.replace(sample, target=whole))
 
 
 def table4_input(sample, samples: int):
