@@ -22,7 +22,7 @@ from typing import Any, Callable, Mapping
 import torch
 
 from crfdepth.checks import check_flag, check_frames
-from crfdepth.config import POTENTIALS, CRFConfig
+from crfdepth.config import FLAT, POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
 from crfdepth.inference.coarse import few_returns
@@ -185,13 +185,16 @@ class CRFDepth(ConstrainedWeights):
         ``adaptive`` (kitti on the pixel grid): frames with few returns (a median distance to the nearest
         return above 4.5 pixels: 500 samples, 16 beams) go to :attr:`sparse_regime`, the hand-set weights on
         the pixel grid with a coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`,
-        docs/design.md section 17); ``overrides`` apply to the shipped weights only. False: every frame gets
-        the shipped weights.
+        docs/design.md section 17). ``overrides`` of the gate, the solver or the std apply to the shipped weights
+        only; one of the structure or the potentials (``mode``, ``variable``, ``alpha`` ...) asks for that one
+        model on every frame, as ``adaptive=False`` does.
         """
         check_flag("adaptive", adaptive)
         config, state = pretrained_state(name)
         model = cls.from_stored(config, state, overrides=overrides, file=weights_path(name)).eval()
-        if adaptive and name in SPARSE_REGIMES and model.settings.structure.mode == "pixel":
+        # An override of the structure or the potentials asks for one model: no regime beside it.
+        chosen = {FLAT[key][0] if key in FLAT else key for key in overrides} & {"structure", "potentials"}
+        if adaptive and name in SPARSE_REGIMES and not chosen:
             model.sparse_regime = cls(SPARSE_REGIMES[name]).eval()
         return model
 

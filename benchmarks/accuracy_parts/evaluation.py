@@ -38,7 +38,7 @@ from crfdepth.metrics import ause, average_metrics, depth_metrics, reliability, 
 from crfdepth.model import CRFDepth
 
 from .fits import FIT_SOURCE, get_fit, posterior_view
-from .methods import CRF_METHODS, LEARNED_ABLATIONS, method_config, predict
+from .methods import CRF_METHODS, LEARNED_ABLATIONS, PRETRAINED, method_config, predict
 from .protocols import PROTOCOLS, batch, ensure_targets, load_group
 
 DEPTH_BINS_M = (0.0, 10.0, 20.0, 40.0, float("inf"))  # target depth bins of the error breakdown
@@ -73,11 +73,9 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
                             targets_root=ensure_targets(args) if layout == "sequence" else None,
                             nyu_root=args.nyu_root)
         models = {m: CRFDepth(**method_config(m)).to(args.device) for m in args.methods
-                  if m in CRF_METHODS and m not in ("learned", "default", "shipped")}
-        if "default" in args.methods:
-            models["default"] = CRFDepth.from_pretrained().to(args.device)
-        if "shipped" in args.methods:
-            models["shipped"] = CRFDepth.from_pretrained(adaptive=False).to(args.device)
+                  if m in CRF_METHODS and m != "learned" and m not in PRETRAINED}
+        models.update({m: CRFDepth.from_pretrained(**PRETRAINED[m]).to(args.device) for m in args.methods
+                       if m in PRETRAINED})
         for m in methods:
             if m in LEARNED_ABLATIONS:
                 models[m] = get_fit(("recipe", m), args, fits, log)
@@ -132,9 +130,8 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
             row["fit"] = (f"weights learned for this configuration by the shipped recipe on its "
                           f"{fits[('recipe', m)]['frames']} frames (drive 0060, object frames; both hold-outs)")
             row["weights"] = fits[("recipe", m)]["weights"]
-        elif m in ("default", "shipped"):
-            row["config"] = ("CRFDepth.from_pretrained(): the shipped weights, frames with few returns to its sparse "
-                             "regime" if m == "default" else "CRFDepth.from_pretrained(adaptive=False)")
+        elif m in PRETRAINED:
+            row["config"] = f"CRFDepth.from_pretrained({', '.join(f'{k}={v}' for k, v in PRETRAINED[m].items())})"
         elif m in CRF_METHODS:
             row["config"] = _as_json(method_config(m))
         for name, items in per[m]["unc"].items():

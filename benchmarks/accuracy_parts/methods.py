@@ -85,6 +85,7 @@ CRF_METHODS = {
     "pixel+log+gate": {"mode": "pixel", "variable": "log", "gate": True},
 }
 METHODS = ("nn", "ipbasic", "inpaint", *CRF_METHODS)
+PRETRAINED = {"default": {}, "shipped": {"adaptive": False}}  # methods built by CRFDepth.from_pretrained(**...)
 WITH_STD = ("paper", "hand-set", "learned")
 
 

@@ -88,6 +88,9 @@ def test_default_model_sends_only_frames_with_few_returns_to_its_sparse_regime()
     assert model.sparse_regime is not None and model.sparse_regime.settings.structure.coarse == 6
     assert CRFDepth.from_pretrained(adaptive=False).sparse_regime is None
     assert CRFDepth.from_pretrained(mode="superpixel").sparse_regime is None
+    assert CRFDepth.from_pretrained(potentials=("colour",)).sparse_regime is None
+    assert CRFDepth.from_pretrained(structure={"variable": "inverse"}).sparse_regime is None
+    assert CRFDepth.from_pretrained(gate=False, rtol=1e-4).sparse_regime is not None  # what complete --depth asks
     assert CRFDepth.from_pretrained("paper").sparse_regime is None
     with pytest.raises(InputError, match="adaptive"):
         CRFDepth.from_pretrained(adaptive="yes")
