@@ -27,26 +27,26 @@ def kernels():
     return module
 
 
+def _shared_data(name: str, what: str) -> Path:
+    """``../shared/data/<name>`` next to the repository; skipped where it is missing, a failure under CI."""
+    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / name
+    if not root.is_dir():
+        if os.environ.get("CI"):  # CI always has ../shared: a missing folder is a failure
+            pytest.fail(f"{what} sample data not found at {root} (CI=true)")
+        pytest.skip(f"{what} sample data not found at {root}")
+    return root
+
+
 @pytest.fixture(scope="session")
 def kitti_root() -> Path:
     """The real KITTI sample frames, ``../shared/data/kitti`` next to the repository."""
-    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti"
-    if not root.is_dir():
-        if os.environ.get("CI"):  # CI always has ../shared: a missing folder is a failure
-            pytest.fail(f"KITTI sample data not found at {root} (CI=true)")
-        pytest.skip(f"KITTI sample data not found at {root}")
-    return root
+    return _shared_data("kitti", "KITTI")
 
 
 @pytest.fixture(scope="session")
 def nyu_root() -> Path:
     """The real NYU Depth v2 sample frames, ``../shared/data/nyu`` next to the repository."""
-    root = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "nyu"
-    if not root.is_dir():
-        if os.environ.get("CI"):  # CI always has ../shared: a missing folder is a failure
-            pytest.fail(f"NYU sample data not found at {root} (CI=true)")
-        pytest.skip(f"NYU sample data not found at {root}")
-    return root
+    return _shared_data("nyu", "NYU")
 
 
 @pytest.fixture
