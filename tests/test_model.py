@@ -126,6 +126,14 @@ def test_refinement_prior_gradient_matches_finite_differences():
     assert float(grad.abs()) > 0 and float(grad) == pytest.approx(float(numeric), rel=1e-4)
 
 
+def test_coarse_prior_weight_gets_a_gradient_on_the_pixel_grid():
+    image, sparse, K, depth = small_scene(24, 32)
+    model = CRFDepth(mode="pixel", coarse=4, rtol=1e-12).double()
+    ((model(image, sparse, K).depth - depth) ** 2).mean().backward()
+    grad = model.log_refine_prior.grad  # the weight of the painted coarse depth (design section 17)
+    assert grad is not None and torch.isfinite(grad).all() and float(grad.abs()) > 0
+
+
 def test_gradcheck_through_the_whole_model():
     image, sparse, K, depth = small_scene()
     model = CRFDepth(mode="pixel", rtol=1e-13).double()

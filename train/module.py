@@ -211,7 +211,7 @@ class CRFDepthModule(pl.LightningModule):
     device through ``Batch.to`` (its default ``transfer_batch_to_device``).
 
     Parameters the model does not use (the weights of potentials that are off; the
-    refinement prior without refinement; the std scale without NLL) are frozen too, so every trainable parameter gets a gradient each
+    refinement prior without a painted solution to weigh (no superpixel refinement, no coarse solve); the std scale without NLL) are frozen too, so every trainable parameter gets a gradient each
     step (as DDP requires).
     """
 
@@ -264,8 +264,9 @@ class CRFDepthModule(pl.LightningModule):
             frozen.update(("gamma", "sigma_n"))
         if "distance" not in settings.potentials.on:
             frozen.update(("delta", "sigma_p"))
-        if settings.structure.mode == "pixel" or not settings.structure.refine:
-            frozen.add("refine_prior")
+        structure = settings.structure
+        if (not structure.refine) if structure.mode == "superpixel" else structure.coarse <= 1:
+            frozen.add("refine_prior")  # weighs a painted solution: the superpixels' or the coarse blocks'
         for name in frozen:
             if hasattr(self.model, PARAMETERS[name]):  # the gate's exist only with gate=True
                 getattr(self.model, PARAMETERS[name]).requires_grad_(False)

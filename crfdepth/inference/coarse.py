@@ -61,14 +61,54 @@ def few_returns(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
         top, left = pad - kh // 2, pad - kw // 2  # each rectangle's corner in the padded frame
         near |= (at(top + kh, left + kw) - at(top, left + kw) - at(top + kh, left) + at(top, left)) > 0
     return near.flatten(1).to(torch.float32).mean(1) < 0.5
-def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: int, variable: str
+LINE_WINDOW = 4
+"""Half-length in pixels of the row and column segments that :func:`line_scan` looks along."""
+LINE_RATIO = 1.5
+"""Ratio of the two shares in :func:`line_scan` above which the returns lie on scan lines (section 17): 2.2-2.7
+for 16 beams on the shared frames (2.2 for the 64-beam official input), 0.99-1.05 for random samples."""
+LINE_STRETCH = 2
+"""On a line scan the coarse blocks are this many times taller than wide (chosen by cross-validation, section 17)."""
+
+
+def line_scan(sparse: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: do the returns of a (B, 1, H, W) depth map lie along scan lines (a spinning LiDAR's rings)?
+
+    The share of pixels with a return at most :data:`LINE_WINDOW` rows above or below in their column, against
+    the share with one as near in their row: on rings a pixel finds the ring above or below it, and only the
+    pixels on a ring find one beside them; scattered returns (random samples, a depth camera's holes) are
+    found as often both ways. True where the first share is over :data:`LINE_RATIO` times the second."""
+    has = (sparse > 0).to(torch.float32)
+    span = 2 * LINE_WINDOW + 1
+    along_column = F.max_pool2d(has, (span, 1), stride=1, padding=(LINE_WINDOW, 0)).flatten(1).mean(1)
+    along_row = F.max_pool2d(has, (1, span), stride=1, padding=(0, LINE_WINDOW)).flatten(1).mean(1)
+    return along_column > LINE_RATIO * along_row
+
+
+Block = tuple[int, int]
+"""A coarse block's (height, width) in pixels."""
+
+
+def block_shape(side: int, sparse: torch.Tensor) -> Block:
+    """The coarse blocks of ``Structure.coarse = side`` for a batch of depth maps: ``side`` square, or
+    :data:`LINE_STRETCH` times as tall where every frame is a :func:`line_scan`, so that a block reaches across
+    the gap between rings as far as along them; (1, 1), no coarse solve, where the block grid would be smaller
+    than 2 x 2."""
+    if side <= 1:
+        return 1, 1
+    shape = (LINE_STRETCH * side, side) if bool(line_scan(sparse).all()) else (side, side)
+    if min(-(-size // b) for size, b in zip(sparse.shape[2:], shape)) >= 2:
+        return shape
+    return (side, side) if min(-(-size // side) for size in sparse.shape[2:]) >= 2 else (1, 1)
+
+
+def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: Block, variable: str
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(image, sparse, K)`` of the block grid: each block's mean colour, the mean of its returns (geometric for
-    ``variable="log"``, arithmetic otherwise; 0 without one) and the intrinsics of the coarse pixels. A frame
-    whose size is not a multiple of ``block`` is padded on the right and bottom by its edge pixels (image) and
-    by no returns (depth)."""
-    h, w = kept.shape[2:]
-    pad = (0, -w % block, 0, -h % block)
+    """``(image, sparse, K)`` of the grid of ``block`` = (height, width) blocks: each block's mean colour, the
+    mean of its returns (geometric for ``variable="log"``, arithmetic otherwise; 0 without one) and the
+    intrinsics of the coarse pixels. A frame whose size is not a multiple of the block is padded on the right
+    and bottom by its edge pixels (image) and by no returns (depth)."""
+    (h, w), (bh, bw) = kept.shape[2:], block
+    pad = (0, -w % bw, 0, -h % bh)
     image = F.avg_pool2d(F.pad(image, pad, mode="replicate"), block)
     kept = F.pad(kept, pad)
     has = kept > 0
@@ -78,18 +118,15 @@ def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block
     mean = mean.exp() if variable == "log" else mean
     sparse = torch.where(count > 0, mean, torch.zeros_like(mean))
     coarse_K = K.clone()
-    coarse_K[:, :2, :2] = K[:, :2, :2] / block
-    coarse_K[:, :2, 2] = (K[:, :2, 2] + 0.5) / block - 0.5  # pixel centres: fine u -> coarse (u + 0.5) / b - 0.5
+    for axis, b in ((0, bw), (1, bh)):  # pixel centres: fine u -> coarse (u + 0.5) / b - 0.5
+        coarse_K[:, axis, :2] = K[:, axis, :2] / b
+        coarse_K[:, axis, 2] = (K[:, axis, 2] + 0.5) / b - 0.5
     return image, sparse, coarse_K
 
 
-def paint(depth: torch.Tensor, block: int, size: tuple[int, int]) -> torch.Tensor:
-    """The (B, 1, h, w) block depth back at full resolution ``size``, bilinear between block centres."""
+def paint(depth: torch.Tensor, block: Block, size: tuple[int, int]) -> torch.Tensor:
+    """The (B, 1, h, w) depth of ``block`` = (height, width) blocks back at full resolution ``size``, bilinear
+    between block centres."""
     h, w = depth.shape[2:]
-    return F.interpolate(depth, size=(h * block, w * block), mode="bilinear", align_corners=False)[
+    return F.interpolate(depth, size=(h * block[0], w * block[1]), mode="bilinear", align_corners=False)[
         ..., :size[0], :size[1]]
-
-
-def usable_block(block: int, size: tuple[int, int]) -> int:
-    """``block``, or 1 (no coarse solve) where the block grid would be smaller than 2 x 2."""
-    return block if block > 1 and min(-(-size[0] // block), -(-size[1] // block)) >= 2 else 1

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from crfdepth.fill.nearest import trusted_nearest_fill
-from crfdepth.inference.coarse import coarse_frame, paint, usable_block
+from crfdepth.inference.coarse import Block, block_shape, coarse_frame, paint
 from crfdepth.linalg import SolveInfo, System, solve_system
 from crfdepth.output import CRFOutput, Stages
 from crfdepth.potentials.data_term import lidar_evidence
@@ -81,8 +81,8 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
     return geometry, t, system
 
 
-def coarse_solve(model: torch.nn.Module, image, kept, K, block: int, infos: list[SolveInfo]) -> torch.Tensor:
-    """The depth of the pixel-grid CRF solved on ``block`` x ``block`` blocks (:mod:`crfdepth.inference.coarse`,
+def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: list[SolveInfo]) -> torch.Tensor:
+    """The depth of the pixel-grid CRF solved on ``block`` = (height, width) blocks (:mod:`crfdepth.inference.coarse`,
     docs/design.md section 17), painted back to the full resolution: the prior and first geometry of the
     full-resolution solve, as the superpixel mode's painted solution is its refinement's."""
     coarse_image, coarse_sparse, coarse_K = coarse_frame(image, kept, K, block, model.settings.structure.variable)
@@ -100,8 +100,8 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
         gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     infos: list[SolveInfo] = []
     prior, eps, geometry = fill, model.scales()[4], None
-    block = usable_block(model.settings.structure.coarse, (h, w))
-    if block > 1:
+    block = block_shape(model.settings.structure.coarse, kept)
+    if block != (1, 1):
         with stage("coarse"):
             prior = geometry = coarse_solve(model, image, kept, K, block, infos)
             eps = model.refine_prior * model.scales()[5]  # the weight of the superpixel mode's painted prior

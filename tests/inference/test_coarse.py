@@ -8,12 +8,14 @@ import torch
 from crfdepth.data.nyu.layouts import build_nyu_dataset
 from crfdepth.errors import InputError
 from crfdepth.inference.coarse import (
+    LINE_STRETCH,
     SPARSE_DISTANCE,
+    block_shape,
     coarse_frame,
     few_returns,
+    line_scan,
     median_return_distance,
     paint,
-    usable_block,
 )
 from crfdepth.model import CRFDepth
 
@@ -40,11 +42,11 @@ def test_coarse_frame_averages_blocks_and_keeps_pixel_centres():
     sparse.zero_()
     sparse[0, 0, 0, 0], sparse[0, 0, 1, 1] = 2.0, 8.0  # one block, two returns
     sparse[0, 0, 5, 7] = 3.0  # block (1, 1) of 4-pixel blocks: one return
-    img, coarse, cK = coarse_frame(image, sparse, K, 4, "log")
+    img, coarse, cK = coarse_frame(image, sparse, K, (4, 4), "log")
     assert coarse.shape == (1, 1, 3, 3) and img.shape == (1, 3, 3, 3)
     assert coarse[0, 0, 0, 0] == pytest.approx(4.0, rel=1e-5)  # geometric mean of 2 and 8
     assert coarse[0, 0, 1, 1] == pytest.approx(3.0, rel=1e-5) and int((coarse > 0).sum()) == 2
-    assert coarse_frame(image, sparse, K, 4, "depth")[1][0, 0, 0, 0] == pytest.approx(5.0, rel=1e-5)
+    assert coarse_frame(image, sparse, K, (4, 4), "depth")[1][0, 0, 0, 0] == pytest.approx(5.0, rel=1e-5)
     assert img[0, :, 2, 1] == pytest.approx(image[0, :, 8:12, 4:8].mean((1, 2)), abs=1e-6)
     # a point at the centre of fine pixels 4..7 (u = 5.5) is at the centre of coarse pixel 1
     fine_u = K[0, 0, 0] * 0.3 + K[0, 0, 2]
@@ -54,10 +56,46 @@ def test_coarse_frame_averages_blocks_and_keeps_pixel_centres():
 
 def test_coarse_frame_pads_sizes_that_are_not_a_multiple_of_the_block():
     image, sparse, K, _ = _scene(h=13, w=17, every=2)
-    img, coarse, _ = coarse_frame(image, sparse, K, 6, "depth")
+    img, coarse, _ = coarse_frame(image, sparse, K, (6, 6), "depth")
     assert img.shape[2:] == coarse.shape[2:] == (3, 3)
-    assert paint(coarse, 6, (13, 17)).shape == (1, 1, 13, 17)
-    assert usable_block(6, (13, 17)) == 6 and usable_block(6, (6, 40)) == 1 and usable_block(1, (100, 100)) == 1
+    assert paint(coarse, (6, 6), (13, 17)).shape == (1, 1, 13, 17)
+    assert block_shape(6, sparse) == (6, 6) and block_shape(1, sparse) == (1, 1)
+    assert block_shape(6, sparse[..., :6, :]) == (1, 1)  # a block grid of 1 x 3: no coarse solve
+
+
+def test_tall_blocks_scale_each_axis_of_the_intrinsics():
+    image, sparse, K, _ = _scene(h=24, w=24, every=2)
+    img, coarse, cK = coarse_frame(image, sparse, K, (8, 4), "depth")
+    assert img.shape[2:] == coarse.shape[2:] == (3, 6)
+    for axis, b in ((0, 4), (1, 8)):  # a point's coarse coordinate is (fine + 0.5) / b - 0.5 on each axis
+        fine = K[0, axis, axis] * 0.2 + K[0, axis, 2]
+        coarse_at = cK[0, axis, axis] * 0.2 + cK[0, axis, 2]
+        assert float(coarse_at) == pytest.approx((float(fine) + 0.5) / b - 0.5, abs=1e-5)
+    assert paint(coarse, (8, 4), (24, 24)).shape == (1, 1, 24, 24)
+
+
+def _rings(h=120, w=200, every=8, seed=0):
+    """Returns on every ``every``-th row, each ring a little wavy and with gaps, as a spinning LiDAR's."""
+    g = torch.Generator().manual_seed(seed)
+    sparse = torch.zeros(1, 1, h, w)
+    cols = torch.arange(w)
+    for row in range(every // 2, h, every):
+        rows = (row + 1.5 * torch.sin(cols / 30.0 + row)).round().long().clamp(0, h - 1)
+        keep = torch.rand(w, generator=g) < 0.6
+        sparse[0, 0, rows[keep], cols[keep]] = 10.0
+    return sparse
+
+
+def test_line_scan_tells_rings_from_scattered_returns():
+    rings = _rings()
+    scattered = torch.zeros_like(rings)
+    scattered.view(-1)[torch.randperm(rings.numel(), generator=torch.Generator().manual_seed(1))[:500]] = 10.0
+    holes = torch.full_like(rings, 3.0)  # a depth image with a square hole
+    holes[..., 40:80, 60:120] = 0.0
+    assert line_scan(torch.cat([rings, scattered, holes])).tolist() == [True, False, False]
+    assert line_scan(rings.transpose(2, 3)).tolist() == [False]  # vertical lines are not a LiDAR's rings
+    assert block_shape(6, rings) == (LINE_STRETCH * 6, 6) and block_shape(6, scattered) == (6, 6)
+    assert block_shape(6, torch.cat([rings, scattered])) == (6, 6)  # a mixed batch keeps square blocks
 
 
 @pytest.mark.parametrize("every", [2, 4, 8, 16])

@@ -78,6 +78,8 @@ def test_unused_parameters_are_frozen():
     # The refinement prior is learned only where there is a refinement.
     assert CRFDepthModule().model.log_refine_prior.requires_grad is True
     assert CRFDepthModule(crf={"refine": False}).model.log_refine_prior.requires_grad is False
+    # ... and on the pixel grid with a coarse solve, whose painted depth it weighs (design section 17).
+    assert CRFDepthModule(crf={"mode": "pixel", "coarse": 6}).model.log_refine_prior.requires_grad is True
 
 
 @pytest.mark.parametrize("kwargs, match", [
