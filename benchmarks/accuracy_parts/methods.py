@@ -28,7 +28,9 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
 - ``shipped``: ``CRFDepth.from_pretrained(adaptive=False)``, the shipped weights on every frame (the
   default before the sparse regime), never re-fitted;
 - ``coarse``: that sparse regime alone, ``CRFDepth(mode="pixel", coarse=6)`` (hand-set weights, a coarse
-  solve on 6-pixel blocks first);
+  solve on 6-pixel blocks first, twice as tall on a line scan);
+- ``coarse+log``, ``coarse+inv``: that regime with the log-depth or the inverse-depth unknown (section 17: the
+  unknown trades RMSE for REL);
 - ``pixel``: ``CRFDepth(mode="pixel")``;
 - ``sp-c``, ``sp-cn``, ``sp-cnd``: the paper's Table 1 ablation (colour; + normal; +
   3D distance), superpixel 5500, piecewise-constant painting (``refine=False``);
@@ -67,6 +69,9 @@ CRF_METHODS = {
     "default": {},  # CRFDepth.from_pretrained(): the shipped weights and their sparse regime
     "shipped": {},  # CRFDepth.from_pretrained(adaptive=False): the shipped weights alone, every frame
     "coarse": {"mode": "pixel", "coarse": 6},  # the sparse regime alone: hand-set, pixel grid, coarse solve
+    # the sparse regime with the other unknowns (section 17: the RMSE / REL trade of the unknown)
+    "coarse+log": {"mode": "pixel", "coarse": 6, "variable": "log"},
+    "coarse+inv": {"mode": "pixel", "coarse": 6, "variable": "inverse"},
     "pixel": {"mode": "pixel"},
     "sp-c": {"potentials": ("colour",), "refine": False},
     "sp-cn": {"potentials": ("colour", "normal"), "refine": False},
