@@ -25,8 +25,7 @@ from crfdepth.checks import check_flag, check_frames
 from crfdepth.config import FLAT, POTENTIALS, CRFConfig
 from crfdepth.errors import InputError
 from crfdepth.inference import PIPELINES
-from crfdepth.inference.coarse import few_returns
-from crfdepth.inference.regime import merge_outputs
+from crfdepth.inference.regime import REGIMES, assign, merge_outputs
 from crfdepth.intrinsics import check_batch_intrinsics
 from crfdepth.linalg import SolverSettings, solver_settings
 from crfdepth.memory import check_frame_size, check_memory
@@ -183,9 +182,10 @@ class CRFDepth(ConstrainedWeights):
         missing or unexpected one is an error naming the file).
 
         ``adaptive`` (kitti on the pixel grid): frames with few returns (a median distance to the nearest
-        return above 4.5 pixels: 500 samples, 16 beams) go to :attr:`sparse_regime`, the hand-set weights on
-        the pixel grid with a coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`,
-        docs/design.md section 17). ``overrides`` of the gate, the solver or the std apply to the shipped weights
+        return above 4.5 pixels: 500 samples, 16 beams) go to the hand-set weights on the pixel grid with a
+        coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`, docs/design.md section 17):
+        :attr:`sparse_regime` (the depth unknown) for scattered returns, :attr:`line_regime` (the log unknown,
+        blocks twice as tall) for returns on scan lines. ``overrides`` of the gate, the solver or the std apply to the shipped weights
         only; one of the structure or the potentials (``mode``, ``variable``, ``alpha`` ...) asks for that one
         model on every frame, as ``adaptive=False`` does.
         """
@@ -195,7 +195,8 @@ class CRFDepth(ConstrainedWeights):
         # An override of the structure or the potentials asks for one model: no regime beside it.
         chosen = {FLAT[key][0] if key in FLAT else key for key in overrides} & {"structure", "potentials"}
         if adaptive and name in SPARSE_REGIMES and not chosen:
-            model.sparse_regime = cls(SPARSE_REGIMES[name]).eval()
+            model.sparse_regime = cls(SPARSE_REGIMES[name]["scattered"]).eval()
+            model.line_regime = cls(SPARSE_REGIMES[name]["lines"]).eval()
         return model
 
     @classmethod
@@ -251,19 +252,23 @@ class CRFDepth(ConstrainedWeights):
         return max(16, round(structure.superpixels * height * width / REFERENCE_AREA))
 
     sparse_regime: "CRFDepth | None" = None
-    """The model that completes frames with few returns instead of this one (:meth:`from_pretrained`'s
-    ``adaptive``); None: this model completes every frame. Not a sub-module: its weights are hand-set, outside
-    this model's ``state_dict`` and ``parameters()``; :meth:`_apply` moves and casts it with this model."""
+    """The model that completes frames with few, scattered returns instead of this one (:meth:`from_pretrained`'s
+    ``adaptive``; :mod:`crfdepth.inference.regime`); None: this model does. Not a sub-module: its weights are
+    hand-set, outside this model's ``state_dict`` and ``parameters()``; :meth:`_apply` moves and casts it with
+    this model."""
+    line_regime: "CRFDepth | None" = None
+    """The same for frames whose few returns lie on scan lines (16 beams)."""
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if name == "sparse_regime":  # kept out of the module tree (state_dict, parameters, train())
+        if name in REGIMES:  # kept out of the module tree (state_dict, parameters, train())
             object.__setattr__(self, name, value)
         else:
             super().__setattr__(name, value)
 
     def _apply(self, fn, recurse: bool = True):
-        if self.sparse_regime is not None:
-            self.sparse_regime._apply(fn, recurse)
+        for regime in (self.sparse_regime, self.line_regime):
+            if regime is not None:
+                regime._apply(fn, recurse)
         return super()._apply(fn, recurse)
 
     # -- forward -------------------------------------------------------------------------
@@ -311,14 +316,10 @@ class CRFDepth(ConstrainedWeights):
         """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs of one dtype and device
         (``K`` (B, 3, 3)): what :meth:`forward` and :func:`crfdepth.api.complete_checked` run. With a
         :attr:`sparse_regime`, frames with few returns go to it (:mod:`crfdepth.inference.regime`)."""
-        regime = self.sparse_regime
-        if regime is None:
+        if self.sparse_regime is None and self.line_regime is None:
             return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
-        regime.progress = self.progress
         K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
-        few = few_returns(sparse)
-        parts = [(rows, model) for rows, model in ((torch.nonzero(~few)[:, 0], self),
-                                                   (torch.nonzero(few)[:, 0], regime)) if rows.numel()]
+        parts = assign(self, sparse)
         if len(parts) == 1:
             return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std)
         return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std))

@@ -33,6 +33,45 @@ def median_return_distance(sparse: torch.Tensor) -> torch.Tensor:
 
 # The disk of radius SPARSE_DISTANCE (offsets with dx^2 + dy^2 <= 4.5^2) as the union of three rectangles.
 _DISK = ((9, 5), (7, 7), (5, 9))
+LINE_WINDOW = 4
+"""Half-length in pixels of the row and column segments that :func:`line_scan` looks along."""
+LINE_RATIO = 1.5
+"""Ratio of the two shares in :func:`line_scan` above which the returns lie on scan lines (section 17): 2.2-2.7
+for 16 beams on the shared frames (2.2 for the 64-beam official input), 0.99-1.05 for random samples."""
+LINE_STRETCH = 2
+"""On a line scan the coarse blocks are this many times taller than wide (chosen by cross-validation, section 17)."""
+_PAD = max(4, LINE_WINDOW)  # half the largest box asked of the integral image (the disk's 9 pixels, the segments)
+
+
+class _Boxes:
+    """Counts of returns in boxes around every ``stride``-th pixel of every ``stride``-th row of a (B, 1, H, W)
+    depth map, each from four reads of one integral image of the returns."""
+
+    def __init__(self, sparse: torch.Tensor, stride: int):
+        h, w = sparse.shape[2:]
+        counts = (sparse[:, 0] > 0).to(torch.int32).cumsum(1).cumsum(2)
+        # integral[y, x]: the returns above and left of (y, x) in the frame padded by _PAD + 1 / _PAD, exclusive
+        pad = _PAD
+        integral = counts.new_zeros(sparse.shape[0], h + 2 * pad + 1, w + 2 * pad + 1)
+        integral[:, pad + 1:pad + 1 + h, pad + 1:pad + 1 + w] = counts
+        integral[:, pad + 1 + h:, pad + 1:pad + 1 + w] = counts[:, -1:, :]
+        integral[:, pad + 1:, pad + 1 + w:] = integral[:, pad + 1:, pad + w:pad + 1 + w]
+        self.integral, self.stride, self.first = integral, stride, stride // 2
+        self.rows, self.cols = len(range(stride // 2, h, stride)), len(range(stride // 2, w, stride))
+
+    def _at(self, y: int, x: int) -> torch.Tensor:  # the integral at (y + row, x + col) of every pixel asked
+        s, f = self.stride, self.first
+        return self.integral[:, y + f:y + f + s * (self.rows - 1) + 1:s, x + f:x + f + s * (self.cols - 1) + 1:s]
+
+    def any_in(self, kh: int, kw: int) -> torch.Tensor:
+        """(B, rows, cols) bool: is there a return in the kh x kw box centred on each pixel asked (odd sides)?"""
+        top, left = _PAD - kh // 2, _PAD - kw // 2  # the box's corner in the padded frame
+        return (self._at(top + kh, left + kw) - self._at(top, left + kw) - self._at(top + kh, left)
+                + self._at(top, left)) > 0
+
+
+def _share(near: torch.Tensor) -> torch.Tensor:
+    return near.flatten(1).to(torch.float32).mean(1)
 
 
 def few_returns(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
@@ -42,46 +81,29 @@ def few_returns(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
     of the pixels within 4.5 px of a return? The pixels asked are every ``stride``-th of every ``stride``-th row
     (1 asks all of them). The disk of that radius is the union of 9x5, 7x7 and 5x9 rectangles, and the returns
     in each rectangle are counted from one integral image."""
-    h, w = sparse.shape[2:]
-    pad = max(max(kh, kw) for kh, kw in _DISK) // 2
-    counts = (sparse[:, 0] > 0).to(torch.int32).cumsum(1).cumsum(2)
-    # integral[y, x]: the returns above and left of (y, x) in the frame padded by pad + 1 / pad, exclusive
-    integral = counts.new_zeros(sparse.shape[0], h + 2 * pad + 1, w + 2 * pad + 1)
-    integral[:, pad + 1:pad + 1 + h, pad + 1:pad + 1 + w] = counts
-    integral[:, pad + 1 + h:, pad + 1:pad + 1 + w] = counts[:, -1:, :]
-    integral[:, pad + 1:, pad + 1 + w:] = integral[:, pad + 1:, pad + w:pad + 1 + w]
-    first, n_rows, n_cols = stride // 2, len(range(stride // 2, h, stride)), len(range(stride // 2, w, stride))
-
-    def at(y: int, x: int) -> torch.Tensor:  # the integral at (y + row, x + col) of every pixel asked
-        return integral[:, y + first:y + first + stride * (n_rows - 1) + 1:stride,
-                        x + first:x + first + stride * (n_cols - 1) + 1:stride]
-
-    near = torch.zeros(sparse.shape[0], n_rows, n_cols, dtype=torch.bool, device=sparse.device)
-    for kh, kw in _DISK:
-        top, left = pad - kh // 2, pad - kw // 2  # each rectangle's corner in the padded frame
-        near |= (at(top + kh, left + kw) - at(top, left + kw) - at(top + kh, left) + at(top, left)) > 0
-    return near.flatten(1).to(torch.float32).mean(1) < 0.5
-LINE_WINDOW = 4
-"""Half-length in pixels of the row and column segments that :func:`line_scan` looks along."""
-LINE_RATIO = 1.5
-"""Ratio of the two shares in :func:`line_scan` above which the returns lie on scan lines (section 17): 2.2-2.7
-for 16 beams on the shared frames (2.2 for the 64-beam official input), 0.99-1.05 for random samples."""
-LINE_STRETCH = 2
-"""On a line scan the coarse blocks are this many times taller than wide (chosen by cross-validation, section 17)."""
+    return returns_layout(sparse, stride)[0]
 
 
-def line_scan(sparse: torch.Tensor) -> torch.Tensor:
+def line_scan(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
     """(B,) bool: do the returns of a (B, 1, H, W) depth map lie along scan lines (a spinning LiDAR's rings)?
 
     The share of pixels with a return at most :data:`LINE_WINDOW` rows above or below in their column, against
     the share with one as near in their row: on rings a pixel finds the ring above or below it, and only the
     pixels on a ring find one beside them; scattered returns (random samples, a depth camera's holes) are
-    found as often both ways. True where the first share is over :data:`LINE_RATIO` times the second."""
-    has = (sparse > 0).to(torch.float32)
+    found as often both ways. True where the first share is over :data:`LINE_RATIO` times the second. The
+    pixels asked are as in :func:`few_returns`."""
+    return returns_layout(sparse, stride)[1]
+
+
+def returns_layout(sparse: torch.Tensor, stride: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(few_returns(sparse), line_scan(sparse))`` from one integral image (about a millisecond)."""
+    boxes = _Boxes(sparse, stride)
+    near = boxes.any_in(*_DISK[0])
+    for kh, kw in _DISK[1:]:
+        near |= boxes.any_in(kh, kw)
     span = 2 * LINE_WINDOW + 1
-    along_column = F.max_pool2d(has, (span, 1), stride=1, padding=(LINE_WINDOW, 0)).flatten(1).mean(1)
-    along_row = F.max_pool2d(has, (1, span), stride=1, padding=(0, LINE_WINDOW)).flatten(1).mean(1)
-    return along_column > LINE_RATIO * along_row
+    lines = _share(boxes.any_in(span, 1)) > LINE_RATIO * _share(boxes.any_in(1, span))
+    return _share(near) < 0.5, lines
 
 
 Block = tuple[int, int]

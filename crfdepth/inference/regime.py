@@ -1,19 +1,40 @@
-"""The default model's second regime: frames with few returns go to another model (docs/design.md section 17).
+"""The default model's regimes for few returns: such frames go to other models (docs/design.md section 17).
 
-:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights a
-``sparse_regime``: the hand-set weights on the pixel grid with a coarse first solve
-(:mod:`crfdepth.inference.coarse`). A frame whose median distance to the nearest return exceeds
-:data:`~crfdepth.inference.coarse.SPARSE_DISTANCE` pixels (:func:`~crfdepth.inference.coarse.few_returns`;
-500 or 200 samples, 16 beams) is completed by it,
-a denser one (a 64-beam scan, an RGB-D depth image) by the shipped weights. A batch that mixes both is split
-and its outputs merged frame by frame (:func:`merge_outputs`).
+:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights two
+models with hand-set weights on the pixel grid and a coarse first solve (:mod:`crfdepth.inference.coarse`):
+
+- ``sparse_regime``, the depth unknown: frames whose returns are few and scattered (500 or 200 samples);
+- ``line_regime``, the log unknown: frames whose few returns lie on scan lines (16 beams;
+  :func:`~crfdepth.inference.coarse.line_scan`).
+
+A frame has few returns when its median distance to the nearest return exceeds
+:data:`~crfdepth.inference.coarse.SPARSE_DISTANCE` pixels (:func:`~crfdepth.inference.coarse.few_returns`); a
+denser one (a 64-beam scan, an RGB-D depth image) is completed by the shipped weights. A batch that mixes
+them is split and its outputs merged frame by frame (:func:`merge_outputs`).
 """
 
 from __future__ import annotations
 
 import torch
 
+from crfdepth.inference.coarse import returns_layout
 from crfdepth.output import CRFOutput
+
+REGIMES = ("sparse_regime", "line_regime")
+"""The attributes of a model that hold its regimes for few returns (None: that regime is the model itself)."""
+
+
+def assign(model: torch.nn.Module, sparse: torch.Tensor) -> list[tuple[torch.Tensor, torch.nn.Module]]:
+    """``(rows, m)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch, ``rows`` the (K,)
+    indices of its frames: ``model`` for a frame with many returns, else ``model.line_regime`` where its returns
+    lie on scan lines and ``model.sparse_regime`` where they do not (a regime that is None: ``model``)."""
+    few, lines = returns_layout(sparse)
+    lines = few & lines if model.line_regime is not None else torch.zeros_like(few)
+    choices = ((~few, model), (few & ~lines, model.sparse_regime), (lines, model.line_regime))
+    parts = [(torch.nonzero(rows)[:, 0], model if m is None else m) for rows, m in choices if bool(rows.any())]
+    for _, m in parts:
+        m.progress = model.progress
+    return parts
 
 
 def _take(parts: list[tuple[torch.Tensor, torch.Tensor | None]], batch: int) -> torch.Tensor | None:

@@ -42,10 +42,15 @@ __all__ = ["DEFAULT_WEIGHTS", "LEARNED", "SPARSE_REGIMES", "MAX_ABS_TENSOR", "PO
 WEIGHTS = ("kitti", "paper", "nyu")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
 DEFAULT_WEIGHTS = "kitti"
-SPARSE_REGIMES: dict[str, dict[str, Any]] = {"kitti": {"structure": {"mode": "pixel", "coarse": 6}}}
-"""Shipped set -> the configuration (hand-set weights) of the model that completes its frames with few returns
-(:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>`, docs/design.md section 17)."""
 """The weight set used when none is named and no checkpoint is given."""
+SPARSE_REGIMES: dict[str, dict[str, dict[str, Any]]] = {"kitti": {
+    "scattered": {"structure": {"mode": "pixel", "coarse": 6}},
+    "lines": {"structure": {"mode": "pixel", "coarse": 6, "variable": "log"}},
+}}
+"""Shipped set -> the configurations (hand-set weights) of the models that complete its frames with few returns
+(:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>`, docs/design.md section 17):
+``"scattered"`` (500 samples, a depth camera's sparse pixels) and ``"lines"`` (returns on scan lines: 16 beams;
+the log unknown, chosen by cross-validation)."""
 WEIGHTS_FORMAT = "crfdepth-weights"
 """Value of the ``"format"`` key of a JSON weights file."""
 WEIGHTS_VERSION = 1

@@ -147,6 +147,27 @@ def test_default_model_sends_only_frames_with_few_returns_to_its_sparse_regime()
     assert out.node_depth.numel() == out.depth.numel() and out.terms is None
 
 
+def test_default_model_sends_few_returns_on_scan_lines_to_its_line_regime():
+    model = CRFDepth.from_pretrained()
+    lines, scattered = model.line_regime, model.sparse_regime
+    assert lines.settings.structure.variable == "log" and scattered.settings.structure.variable == "depth"
+    assert lines.settings.structure.coarse == scattered.settings.structure.coarse == 6
+    image, _, K, _ = _scene(h=120, w=200)
+    rings = _rings(every=24)
+    assert bool(few_returns(rings)) and bool(line_scan(rings))
+    with torch.no_grad():
+        assert torch.equal(model(image, rings, K).depth, lines(image, rings, K).depth)
+        # a ring frame and a scattered frame in one batch: each gets its own regime
+        sparse = _scene(h=120, w=200, count=150)[1]
+        assert bool(few_returns(sparse)) and not bool(line_scan(sparse))
+        both = model(torch.cat([image, image]), torch.cat([rings, sparse]), K[0])
+        assert torch.allclose(both.depth[1], scattered(image, sparse, K).depth[0], rtol=1e-5, atol=1e-5)
+        assert torch.allclose(both.depth[0], lines(image, rings, K).depth[0], rtol=1e-5, atol=1e-5)
+    assert CRFDepth.from_pretrained(adaptive=False).line_regime is None
+    model.double()
+    assert all(p.dtype == torch.float64 for p in model.line_regime.parameters())
+
+
 def test_sparse_regime_stays_out_of_the_state_and_moves_with_the_model():
     model = CRFDepth.from_pretrained()
     assert set(model.state_dict()) == set(CRFDepth.from_pretrained(adaptive=False).state_dict())
