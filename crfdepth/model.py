@@ -315,7 +315,8 @@ class CRFDepth(ConstrainedWeights):
     def pipeline(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, return_std: bool) -> CRFOutput:
         """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs of one dtype and device
         (``K`` (B, 3, 3)): what :meth:`forward` and :func:`crfdepth.api.complete_checked` run. With a
-        :attr:`sparse_regime`, frames with few returns go to it (:mod:`crfdepth.inference.regime`)."""
+        :attr:`sparse_regime` or a :attr:`line_regime`, frames with few returns go to them
+        (:mod:`crfdepth.inference.regime`)."""
         if self.sparse_regime is None and self.line_regime is None:
             return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
         K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
