@@ -9,6 +9,8 @@ unknown, no occlusion gate (registered depth has no see-through returns).
 - **Training draws**: each frame gives ``--repeats`` x 3 draws of 200, 500 and 1000 samples of its depth as
   the input, the rest of its depth (the input's pixels removed) as the target; flipped at random; the
   Lightning trainer's module (:mod:`train.module`), L2 loss, Adam at ``--lr``, ``--epochs`` epochs, seed 0.
+  Beside the real frames, ``--rooms`` synthetic rooms (:func:`crfdepth.data.synthetic.rooms.make_room`, seeds
+  1000 onwards) give one draw of each count: the same rooms in every fit, never a held-out scene.
 - **Leave one scene out**: for each scene, weights fitted on the other scenes are scored on it at 500 and
   200 samples (NYU's protocol: the draw's depth all scored, seed 0), beside the shipped KITTI weights
   (``CRFDepth.from_pretrained(adaptive=False)``), the default model (``CRFDepth.from_pretrained()``, whose
@@ -18,7 +20,7 @@ unknown, no occlusion gate (registered depth has no see-through returns).
   this file, shipped as ``--weights nyu``).
 
     python benchmarks/nyu_weights.py [--nyu-root PATH] [--epochs 6] [--repeats 4] [--lr 0.02]
-        [--threads 2] [--write FILE]
+        [--rooms 12] [--threads 2] [--write FILE]
 
 Prints a table and one JSON line.
 """
@@ -56,6 +58,9 @@ SCENES = {"basement": ("nyu_sync", "official_test"), "dining": ("nyu_raw", "labe
 STRUCTURE = {"structure": {"mode": "pixel", "coarse": 6, "variable": "depth"}, "gate": {"enabled": False}}
 """The structure of the NYU weights: the default model's sparse regime (docs/design.md section 17)."""
 TRAIN_SAMPLES = (200, 500, 1000)
+ROOMS = 12
+"""Synthetic rooms beside the real frames in every fit (``--rooms``; section 17 has the count's effect)."""
+ROOM_SEED = 1000
 TEST_SAMPLES = (500, 200)
 
 
@@ -66,6 +71,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--epochs", type=sa.count(1, 1000), default=6)
     parser.add_argument("--repeats", type=sa.count(1, 100), default=4, help="draws of each count per frame")
     parser.add_argument("--lr", type=sa.positive("learning rate"), default=0.02)
+    parser.add_argument("--rooms", type=sa.count(0, 1000), default=ROOMS,
+                        help="synthetic rooms among the training draws (default: %(default)s)")
     parser.add_argument("--threads", type=sa.count(1, sa.MAX_THREADS), default=2, help="torch CPU threads")
     parser.add_argument("--write", type=Path, default=None, metavar="FILE",
                         help="also fit on every scene and write the weights file here")
@@ -92,6 +99,13 @@ def training_draws(frames: list, repeats: int) -> list:
                 draws.append(dataclasses.replace(t, target=torch.where(t.sparse > 0, torch.zeros_like(t.target),
                                                                        t.target)))
     return draws
+
+
+def room_draws(count: int) -> list:
+    """The training draws of ``count`` synthetic rooms: one draw of each count of samples per room."""
+    from crfdepth.data.synthetic.rooms import make_room
+
+    return training_draws([make_room(ROOM_SEED + i) for i in range(count)], 1)
 
 
 def fit(draws: list, args) -> CRFDepth:
@@ -125,10 +139,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     scenes = scene_frames(args.nyu_root)
+    rooms = room_draws(args.rooms)
     others = {"kitti": CRFDepth.from_pretrained(adaptive=False), "default": CRFDepth.from_pretrained()}
     rows = []
     for held, frames in scenes.items():
-        learned = fit(training_draws([s for k, v in scenes.items() if k != held for s in v], args.repeats), args)
+        real = training_draws([s for k, v in scenes.items() if k != held for s in v], args.repeats)
+        learned = fit(real + rooms, args)
         for n in TEST_SAMPLES:
             test = [SparseSamples(n, seed=0)(dataclasses.replace(s, sparse=s.target)) for s in frames]
             row = {"held_out": held, "samples": n, "frames": len(test), "nearest": rmse(None, test),
@@ -143,20 +159,20 @@ def main(argv: Sequence[str] | None = None) -> dict:
         print(f"| {r['held_out']} | {r['samples']} | {r['nearest']:.3f} | {r['kitti']:.3f} | {r['default']:.3f} "
               f"| {r['learned']:.3f} | {r['learned_vs_kitti']:.3f} | {r['learned_vs_nearest']:.3f} |")
     result = {"benchmark": "nyu_weights", "rows": rows, "epochs": args.epochs, "repeats": args.repeats,
-              "lr": args.lr, "structure": STRUCTURE}
+              "lr": args.lr, "rooms": args.rooms, "structure": STRUCTURE}
     if args.write is not None:
-        result["written"] = str(write(scenes, args, rows))
+        result["written"] = str(write(scenes, rooms, args, rows))
     result["seconds"] = time.perf_counter() - start
     print(json.dumps(result))
     return result
 
 
-def write(scenes: dict, args, rows: list) -> Path:
+def write(scenes: dict, rooms: list, args, rows: list) -> Path:
     """Fit on every scene, fit the predictive std to the same draws, write the weights file."""
     from crfdepth.weights import write_weights
     from train.calibrate import fit_predictive_std
 
-    draws = training_draws([s for frames in scenes.values() for s in frames], args.repeats)
+    draws = training_draws([s for frames in scenes.values() for s in frames], args.repeats) + rooms
     model = fit(draws, args)
     std_terms = fit_predictive_std(model, draws)
     values = {"alpha": model.alpha, "beta": model.beta, "gamma": model.gamma, "delta": model.delta,
@@ -165,7 +181,7 @@ def write(scenes: dict, args, rows: list) -> Path:
     config = CRFConfig.build(STRUCTURE, **{k: float(v.detach()) for k, v in values.items()},
                              std_terms={k: float(v) for k, v in std_terms.items()}).groups()
     about = {"recipe": "python benchmarks/nyu_weights.py " + " ".join(
-        f"--{k} {getattr(args, k)}" for k in ("epochs", "repeats", "lr")) + " --write FILE",
+        f"--{k} {getattr(args, k)}" for k in ("epochs", "repeats", "lr", "rooms")) + " --write FILE",
         "trained_on": {k: [s.name for s in v] for k, v in scenes.items()}, "leave_one_scene_out": rows}
     return write_weights(args.write, config, about)
 

@@ -38,7 +38,9 @@ Modules, one job each:
 - :mod:`~crfdepth.data.synthetic.sequence`: :func:`make_sequence`, the street along a
   camera path with true poses and moving cars (:class:`SyntheticSequence`);
 - :mod:`~crfdepth.data.synthetic.dataset`: :class:`SyntheticScenes`, a torch Dataset;
-- :mod:`~crfdepth.data.synthetic.folder`: scenes written as a KITTI ``val_selection_cropped`` folder.
+- :mod:`~crfdepth.data.synthetic.folder`: scenes written as a KITTI ``val_selection_cropped`` folder;
+- :mod:`~crfdepth.data.synthetic.rooms`: indoor rooms at NYU Depth v2's protocol size
+  (:func:`~.rooms.make_room`), for learning indoor weights.
 """
 
 from crfdepth.data.synthetic.camera import KITTI_CROP_WIDTH, KITTI_FOCAL_PX, camera_intrinsics
