@@ -266,7 +266,7 @@ class CRFDepth(ConstrainedWeights):
             super().__setattr__(name, value)
 
     def _apply(self, fn, recurse: bool = True):
-        for regime in (self.sparse_regime, self.line_regime):
+        for regime in (getattr(self, name) for name in REGIMES):
             if regime is not None:
                 regime._apply(fn, recurse)
         return super()._apply(fn, recurse)

@@ -81,7 +81,7 @@ def few_returns(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
     of the pixels within 4.5 px of a return? The pixels asked are every ``stride``-th of every ``stride``-th row
     (1 asks all of them). The disk of that radius is the union of 9x5, 7x7 and 5x9 rectangles, and the returns
     in each rectangle are counted from one integral image."""
-    return returns_layout(sparse, stride)[0]
+    return _few(_Boxes(sparse, stride))
 
 
 def line_scan(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
@@ -92,18 +92,25 @@ def line_scan(sparse: torch.Tensor, stride: int = 3) -> torch.Tensor:
     pixels on a ring find one beside them; scattered returns (random samples, a depth camera's holes) are
     found as often both ways. True where the first share is over :data:`LINE_RATIO` times the second. The
     pixels asked are as in :func:`few_returns`."""
-    return returns_layout(sparse, stride)[1]
+    return _lines(_Boxes(sparse, stride))
 
 
 def returns_layout(sparse: torch.Tensor, stride: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """``(few_returns(sparse), line_scan(sparse))`` from one integral image (about a millisecond)."""
     boxes = _Boxes(sparse, stride)
+    return _few(boxes), _lines(boxes)
+
+
+def _few(boxes: _Boxes) -> torch.Tensor:
     near = boxes.any_in(*_DISK[0])
     for kh, kw in _DISK[1:]:
         near |= boxes.any_in(kh, kw)
+    return _share(near) < 0.5
+
+
+def _lines(boxes: _Boxes) -> torch.Tensor:
     span = 2 * LINE_WINDOW + 1
-    lines = _share(boxes.any_in(span, 1)) > LINE_RATIO * _share(boxes.any_in(1, span))
-    return _share(near) < 0.5, lines
+    return _share(boxes.any_in(span, 1)) > LINE_RATIO * _share(boxes.any_in(1, span))
 
 
 Block = tuple[int, int]
