@@ -13,8 +13,11 @@ unknown, no occlusion gate (registered depth has no see-through returns).
   1000 onwards) give one draw of each count: the same rooms in every fit, never a held-out scene.
 - **Leave one scene out**: for each scene, weights fitted on the other scenes are scored on it at 500 and
   200 samples (NYU's protocol: the draw's depth all scored, seed 0), beside the shipped KITTI weights
-  (``CRFDepth.from_pretrained(adaptive=False)``), the default model (``CRFDepth.from_pretrained()``, whose
-  sparse regime has the hand-set weights) and the nearest fill. RMSE in metres, per image then averaged.
+  (``CRFDepth.from_pretrained(adaptive=False)``), the paper's structure with hand-set weights (``CRFDepth()``:
+  SLIC superpixels and a pixel refinement), the default's hand-set scattered regime
+  (``CRFDepth.from_pretrained().sparse_regime``), the default model with the weights fitted without the scene
+  as its indoor regime (as it would ship without that scene: its routing on real frames) and the nearest fill.
+  RMSE in metres, per image then averaged.
 - ``--write FILE``: then fit on every scene, fit the predictive std to the training draws
   (:func:`train.calibrate.fit_predictive_std`) and write the weights file (``crfdepth/weights/nyu.json`` is
   this file, shipped as ``--weights nyu``).
@@ -140,11 +143,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     start = time.perf_counter()
     scenes = scene_frames(args.nyu_root)
     rooms = room_draws(args.rooms)
-    others = {"kitti": CRFDepth.from_pretrained(adaptive=False), "default": CRFDepth.from_pretrained()}
+    default = CRFDepth.from_pretrained()
+    others = {"kitti": CRFDepth.from_pretrained(adaptive=False), "paper": CRFDepth().eval(),
+              "scattered": default.sparse_regime, "default": default}
     rows = []
     for held, frames in scenes.items():
         real = training_draws([s for k, v in scenes.items() if k != held for s in v], args.repeats)
         learned = fit(real + rooms, args)
+        default.indoor_regime = learned  # the default as it would ship without this scene
         for n in TEST_SAMPLES:
             test = [SparseSamples(n, seed=0)(dataclasses.replace(s, sparse=s.target)) for s in frames]
             row = {"held_out": held, "samples": n, "frames": len(test), "nearest": rmse(None, test),
@@ -152,19 +158,43 @@ def main(argv: Sequence[str] | None = None) -> dict:
             row["learned_vs_kitti"] = row["learned"] / row["kitti"]
             row["learned_vs_nearest"] = row["learned"] / row["nearest"]
             rows.append(row)
-    print("| held-out scene | samples | nearest fill | KITTI weights | default | learned here | learned / KITTI "
-          "| learned / nearest |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| held-out scene | samples | nearest fill | KITTI weights | paper structure | scattered regime "
+          "| learned here | default | learned / KITTI | learned / nearest |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['held_out']} | {r['samples']} | {r['nearest']:.3f} | {r['kitti']:.3f} | {r['default']:.3f} "
-              f"| {r['learned']:.3f} | {r['learned_vs_kitti']:.3f} | {r['learned_vs_nearest']:.3f} |")
-    result = {"benchmark": "nyu_weights", "rows": rows, "epochs": args.epochs, "repeats": args.repeats,
-              "lr": args.lr, "rooms": args.rooms, "structure": STRUCTURE}
+        print(f"| {r['held_out']} | {r['samples']} | {r['nearest']:.3f} | {r['kitti']:.3f} | {r['paper']:.3f} "
+              f"| {r['scattered']:.3f} "
+              f"| {r['learned']:.3f} | {r['default']:.3f} | {r['learned_vs_kitti']:.3f} "
+              f"| {r['learned_vs_nearest']:.3f} |")
+    summary = frame_means(rows)
+    print("\n| samples | frames | nearest fill | KITTI weights | paper structure | default | default / nearest "
+          "| default / paper |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in summary:
+        print(f"| {r['samples']} | {r['frames']} | {r['nearest']:.4f} | {r['kitti']:.4f} | {r['paper']:.4f} "
+              f"| {r['default']:.4f} | {r['default_vs_nearest']:.3f} | {r['default_vs_paper']:.3f} |")
+    result = {"benchmark": "nyu_weights", "rows": rows, "summary": summary, "epochs": args.epochs,
+              "repeats": args.repeats, "lr": args.lr, "rooms": args.rooms, "structure": STRUCTURE}
     if args.write is not None:
         result["written"] = str(write(scenes, rooms, args, rows))
     result["seconds"] = time.perf_counter() - start
     print(json.dumps(result))
     return result
+
+
+def frame_means(rows: list[dict]) -> list[dict]:
+    """For each count of samples, each column's RMSE averaged over every held-out frame (each scene's mean
+    weighted by its frames), with the default's ratios to the nearest fill and to the paper structure."""
+    summary = []
+    for n in TEST_SAMPLES:
+        rs = [r for r in rows if r["samples"] == n]
+        frames = sum(r["frames"] for r in rs)
+        means = {k: sum(r[k] * r["frames"] for r in rs) / frames
+                 for k in ("nearest", "kitti", "paper", "scattered", "learned", "default")}
+        summary.append({"samples": n, "frames": frames, **means,
+                        "default_vs_nearest": means["default"] / means["nearest"],
+                        "default_vs_paper": means["default"] / means["paper"]})
+    return summary
 
 
 def write(scenes: dict, rooms: list, args, rows: list) -> Path:

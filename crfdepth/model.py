@@ -185,7 +185,8 @@ class CRFDepth(ConstrainedWeights):
         return above 4.5 pixels: 500 samples, 16 beams) go to the hand-set weights on the pixel grid with a
         coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`, docs/design.md section 17):
         :attr:`sparse_regime` (the depth unknown) for scattered returns, :attr:`line_regime` (the log unknown,
-        blocks twice as tall) for returns on scan lines. ``overrides`` of the gate, the solver or the std apply to the shipped weights
+        blocks twice as tall) for returns on scan lines, :attr:`indoor_regime` (the ``"nyu"`` weights) for
+        scattered returns whose depths are a room's (90% within 10 m). ``overrides`` of the gate, the solver or the std apply to the shipped weights
         only; one of the structure or the potentials (``mode``, ``variable``, ``alpha`` ...) asks for that one
         model on every frame, as ``adaptive=False`` does.
         """
@@ -195,8 +196,10 @@ class CRFDepth(ConstrainedWeights):
         # An override of the structure or the potentials asks for one model: no regime beside it.
         chosen = {FLAT[key][0] if key in FLAT else key for key in overrides} & {"structure", "potentials"}
         if adaptive and name in SPARSE_REGIMES and not chosen:
-            model.sparse_regime = cls(SPARSE_REGIMES[name]["scattered"]).eval()
-            model.line_regime = cls(SPARSE_REGIMES[name]["lines"]).eval()
+            regimes = SPARSE_REGIMES[name]
+            model.sparse_regime = cls(regimes["scattered"]).eval()
+            model.line_regime = cls(regimes["lines"]).eval()
+            model.indoor_regime = cls.from_pretrained(regimes["indoor"], adaptive=False)
         return model
 
     @classmethod
@@ -258,6 +261,8 @@ class CRFDepth(ConstrainedWeights):
     this model."""
     line_regime: "CRFDepth | None" = None
     """The same for frames whose few returns lie on scan lines (16 beams)."""
+    indoor_regime: "CRFDepth | None" = None
+    """The same for frames whose few scattered returns are near, a room's (the indoor weights)."""
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name in REGIMES:  # kept out of the module tree (state_dict, parameters, train())
@@ -315,9 +320,9 @@ class CRFDepth(ConstrainedWeights):
     def pipeline(self, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor, return_std: bool) -> CRFOutput:
         """The model's pipeline (``crfdepth.inference.PIPELINES``) on checked inputs of one dtype and device
         (``K`` (B, 3, 3)): what :meth:`forward` and :func:`crfdepth.api.complete_checked` run. With a
-        :attr:`sparse_regime` or a :attr:`line_regime`, frames with few returns go to them
+        regime (:attr:`sparse_regime`, :attr:`line_regime`, :attr:`indoor_regime`), frames with few returns go to them
         (:mod:`crfdepth.inference.regime`)."""
-        if self.sparse_regime is None and self.line_regime is None:
+        if all(getattr(self, name) is None for name in REGIMES):
             return PIPELINES[self.settings.structure.mode](self, image, sparse, K, return_std)
         K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
         parts = assign(self, sparse)

@@ -39,7 +39,7 @@ from crfdepth.model import CRFDepth
 
 from .fits import FIT_SOURCE, get_fit, posterior_view
 from .methods import CRF_METHODS, LEARNED_ABLATIONS, PRETRAINED, method_config, predict
-from .protocols import PROTOCOLS, batch, ensure_targets, load_group
+from .protocols import INDOOR_PROTOCOLS, PROTOCOLS, batch, ensure_targets, load_group
 
 DEPTH_BINS_M = (0.0, 10.0, 20.0, 40.0, float("inf"))  # target depth bins of the error breakdown
 
@@ -132,6 +132,9 @@ def evaluate_protocol(key: str, args, fits: dict, log: Callable[[str], None]) ->
             row["weights"] = fits[("recipe", m)]["weights"]
         elif m in PRETRAINED:
             row["config"] = f"CRFDepth.from_pretrained({', '.join(f'{k}={v}' for k, v in PRETRAINED[m].items())})"
+            if m == "default" and key in INDOOR_PROTOCOLS:
+                row["fit"] = ("in-sample: its indoor regime (--weights nyu) was fitted on these frames; "
+                              "benchmarks/nyu_weights.py scores it on held-out scenes")
         elif m in CRF_METHODS:
             row["config"] = _as_json(method_config(m))
         for name, items in per[m]["unc"].items():

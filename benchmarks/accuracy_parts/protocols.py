@@ -86,6 +86,7 @@ for _n in (500, 200):
         f"(n{_n}) NYU Depth v2: 320x240, centre 304x228, {_n} samples of the depth in, all of it as target",
         [("basement", "nyu_sync", "nyu:official_test", {"samples": _n}),
          ("dining", "nyu_raw", "nyu:labeled_crop", {"samples": _n})])
+INDOOR_PROTOCOLS = ("n500", "n200")  # the default sends their frames to its indoor regime, fitted on them
 # (protocol, evaluated group) -> training group of its learned weights ("shipped": the package's file)
 
 

@@ -73,7 +73,8 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--weights", choices=WEIGHTS, default=None,
                        help=f"shipped weight set when no --checkpoint is given: kitti (learned on KITTI, "
                             f"crfdepth/weights/README.md; frames with few returns, such as 500 samples or 16 "
-                            f"beams, go to its sparse regimes, docs/design.md section 17), paper (the hand-set "
+                            f"beams, go to its sparse regimes, and those of a room to the nyu weights, docs/design.md "
+                            f"section 17), paper (the hand-set "
                             f"initial values) or nyu (learned on NYU Depth v2 frames, for sparse indoor depth); "
                             f"default: {DEFAULT_WEIGHTS}")
     model.add_argument("--checkpoint", metavar="CKPT",

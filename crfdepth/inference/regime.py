@@ -5,7 +5,10 @@ models with hand-set weights on the pixel grid and a coarse first solve (:mod:`c
 
 - ``sparse_regime``, the depth unknown: frames whose returns are few and scattered (500 or 200 samples);
 - ``line_regime``, the log unknown: frames whose few returns lie on scan lines (16 beams;
-  :func:`~crfdepth.inference.coarse.line_scan`).
+  :func:`~crfdepth.inference.coarse.line_scan`);
+- ``indoor_regime``, the indoor weights (``--weights nyu``, learned on NYU Depth v2 and synthetic rooms): frames
+  whose few scattered returns are near (:func:`near_returns`): a depth camera's (Kinect, RealSense), or any
+  sensor's in a room.
 
 A frame has few returns when its median distance to the nearest return exceeds
 :data:`~crfdepth.inference.coarse.SPARSE_DISTANCE` pixels (:func:`~crfdepth.inference.coarse.few_returns`); a
@@ -15,22 +18,45 @@ them is split and its outputs merged frame by frame (:func:`merge_outputs`).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from crfdepth.inference.coarse import returns_layout
 from crfdepth.output import CRFOutput
 
-REGIMES = ("sparse_regime", "line_regime")
+REGIMES = ("sparse_regime", "line_regime", "indoor_regime")
 """The attributes of a model that hold its regimes for few returns (None: that regime is the model itself)."""
+INDOOR_RANGE = 10.0
+"""Metres: few scattered returns whose 90th percentile of depth is within this are a room's (docs/design.md
+section 17). A depth camera reads up to about 10 m (NYU's Kinect depth stops there); outdoors a LiDAR's
+returns reach further. On the shared frames the 90th percentile is 4.0-6.3 m on NYU's and 14.5-48.6 m on every
+KITTI input."""
+INDOOR_QUANTILE = 0.9
+"""The quantile of a frame's return depths that :func:`near_returns` compares with :data:`INDOOR_RANGE`."""
+
+
+def near_returns(sparse: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: does ``rows`` hold the frame and are its returns near, their 90th percentile of depth at most
+    :data:`INDOOR_RANGE`? Only the frames in ``rows`` ((B,) bool) are read."""
+    near = torch.zeros_like(rows)
+    for b in torch.nonzero(rows)[:, 0].tolist():
+        depths = sparse[b][sparse[b] > 0]
+        k = max(1, math.ceil(INDOOR_QUANTILE * depths.numel()))
+        near[b] = bool(depths.kthvalue(k).values <= INDOOR_RANGE)
+    return near
 
 
 def assign(model: torch.nn.Module, sparse: torch.Tensor) -> list[tuple[torch.Tensor, torch.nn.Module]]:
     """``(rows, m)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch, ``rows`` the (K,)
     indices of its frames: ``model`` for a frame with many returns, else ``model.line_regime`` where its returns
-    lie on scan lines and ``model.sparse_regime`` where they do not (a regime that is None: ``model``)."""
+    lie on scan lines, ``model.indoor_regime`` where they are scattered and near (:func:`near_returns`) and
+    ``model.sparse_regime`` where they are scattered and not near (a regime that is None: ``model``)."""
     few, lines = returns_layout(sparse)
     lines = few & lines if model.line_regime is not None else torch.zeros_like(few)
-    choices = ((~few, model), (few & ~lines, model.sparse_regime), (lines, model.line_regime))
+    near = near_returns(sparse, few & ~lines) if model.indoor_regime is not None else torch.zeros_like(few)
+    choices = ((~few, model), (few & ~lines & ~near, model.sparse_regime), (near, model.indoor_regime),
+               (lines, model.line_regime))
     parts = [(torch.nonzero(rows)[:, 0], model if m is None else m) for rows, m in choices if bool(rows.any())]
     for _, m in parts:
         m.progress = model.progress

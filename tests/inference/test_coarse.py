@@ -20,11 +20,11 @@ from crfdepth.inference.coarse import (
 from crfdepth.model import CRFDepth
 
 
-def _scene(h=48, w=64, every=None, count=None, seed=0):
-    """A tilted plane (depth 4..8 m) with a vertical colour edge; returns on a regular grid (``every``) or at
-    ``count`` random pixels."""
+def _scene(h=48, w=64, every=None, count=None, seed=0, depths=(4.0, 8.0)):
+    """A tilted plane (depth ``depths``, metres) with a vertical colour edge; returns on a regular grid
+    (``every``) or at ``count`` random pixels."""
     g = torch.Generator().manual_seed(seed)
-    rows = torch.linspace(4.0, 8.0, h)[:, None].expand(h, w)
+    rows = torch.linspace(*depths, h)[:, None].expand(h, w)
     image = torch.rand(1, 3, h, w, generator=g) * 0.05 + 0.4
     image[..., w // 2:] += 0.3
     sparse = torch.zeros(1, 1, h, w)
@@ -133,7 +133,7 @@ def test_default_model_sends_only_frames_with_few_returns_to_its_sparse_regime()
     with pytest.raises(InputError, match="adaptive"):
         CRFDepth.from_pretrained(adaptive="yes")
     fixed, regime = CRFDepth.from_pretrained(adaptive=False), model.sparse_regime
-    dense, sparse_frame = _scene(h=64, w=96, every=2), _scene(h=64, w=96, count=40)
+    dense, sparse_frame = _scene(h=64, w=96, every=2), _scene(h=64, w=96, count=40, depths=(12.0, 40.0))
     assert float(median_return_distance(dense[1])) <= SPARSE_DISTANCE < float(median_return_distance(sparse_frame[1]))
     with torch.no_grad():
         assert torch.equal(model(*dense[:3]).depth, fixed(*dense[:3]).depth)
@@ -158,7 +158,7 @@ def test_default_model_sends_few_returns_on_scan_lines_to_its_line_regime():
     with torch.no_grad():
         assert torch.equal(model(image, rings, K).depth, lines(image, rings, K).depth)
         # a ring frame and a scattered frame in one batch: each gets its own regime
-        sparse = _scene(h=120, w=200, count=150)[1]
+        sparse = _scene(h=120, w=200, count=150, depths=(12.0, 40.0))[1]
         assert bool(few_returns(sparse)) and not bool(line_scan(sparse))
         both = model(torch.cat([image, image]), torch.cat([rings, sparse]), K[0])
         assert torch.allclose(both.depth[1], scattered(image, sparse, K).depth[0], rtol=1e-5, atol=1e-5)

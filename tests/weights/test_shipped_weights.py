@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -111,7 +113,9 @@ def test_load_pretrained_and_from_pretrained_build_the_same_model(name, override
 
 
 def _shipped_torch_file(monkeypatch, tmp_path, state: dict[str, torch.Tensor], config: dict | None = None):
-    """Let the "kitti" set be a crfdepth model file holding ``state`` and ``config`` (the shipped one is JSON)."""
+    """Let the "kitti" set be a crfdepth model file holding ``state`` and ``config`` (the shipped one is JSON);
+    the "nyu" set, the default's indoor regime, is the shipped one."""
+    shutil.copy(files._FOLDER / "nyu.json", tmp_path / "nyu.json")
     monkeypatch.setattr(files, "_FOLDER", tmp_path)
     torch.save({"format": torch_files.MODEL_FORMAT, "version": torch_files.MODEL_VERSION,
                 "config": CRFDepth().config if config is None else config, "state_dict": state},

@@ -4,6 +4,7 @@ structure stored with the weights, from_pretrained checks every stored key."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -116,6 +117,7 @@ def _headed_set(monkeypatch, tmp_path, edit=None) -> tuple[CRFDepth, object]:
         data = json.loads(path.read_text())
         edit(data["state"])
         path.write_text(json.dumps(data))
+    shutil.copy(files._FOLDER / "nyu.json", tmp_path / "nyu.json")  # the default's indoor regime
     monkeypatch.setattr(files, "_FOLDER", tmp_path)
     return model, path
 
