@@ -50,6 +50,8 @@ DEFAULT_STD_TERMS = {"bias": -1.35, "depth": 1.17, "posterior": 0.64, "distance"
 
 MAX_COARSE = 64
 """Largest block side of the coarse solve, pixels (``Structure.coarse``)."""
+MAX_NEAR_INVERSE = 1000.0
+"""Largest ``Structure.near_inverse``, metres."""
 
 DEFAULT_WINDOW = 5
 """Side of the occlusion gate's square neighbourhood, pixels (:mod:`crfdepth.potentials.occlusion`)."""
@@ -126,6 +128,10 @@ class Structure:
     coarse: int = 1
     """Pixel mode: side in pixels of the square blocks of a coarse first solve whose depth is the pixel
     solve's prior (section 17); 1: no coarse solve."""
+    near_inverse: float = 0.0
+    """With the depth unknown and a coarse solve: metres below which the coarse depth comes from a second
+    coarse solve in inverse depth, blended into the first linearly up to three times this depth (section 17);
+    0: one coarse solve."""
 
     def __post_init__(self) -> None:
         for name, choices in (("mode", MODES), ("variable", VARIABLES), ("prior", PRIORS)):
@@ -133,6 +139,12 @@ class Structure:
         check_number("superpixels", self.superpixels, low=1, low_open=False, integer=True)
         check_number("coarse", self.coarse, low=1, high=MAX_COARSE, low_open=False, high_open=False, integer=True)
         check_number("rounds", self.rounds, low=1, low_open=False, integer=True)
+        check_number("near_inverse", self.near_inverse, low=0.0, high=MAX_NEAR_INVERSE, low_open=False,
+                     high_open=False)
+        if self.near_inverse > 0 and (self.coarse == 1 or self.variable != "depth" or self.mode != "pixel"):
+            raise InputError(f"near_inverse: expected 0 unless the pixel grid solves for depth with a coarse solve "
+                             f"(mode 'pixel', variable 'depth', coarse > 1), got {self.near_inverse} with mode "
+                             f"{self.mode!r}, variable {self.variable!r}, coarse {self.coarse}")
 
 
 @dataclass(frozen=True)
@@ -219,7 +231,8 @@ GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "ga
 
 FLAT: dict[str, tuple[str, str]] = {
     **{name: ("structure", name) for name in ("mode", "superpixels", "scale_superpixels", "aggregate", "refine",
-                                              "rounds", "variable", "prior", "head", "coarse")},
+                                              "rounds", "variable", "prior", "head", "coarse",
+                                              "near_inverse")},
     "potentials": ("potentials", "on"),
     **{name: ("potentials", name) for name in ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p",
                                                "confidence", "eps", "refine_prior", "irls", "irls_scale")},

@@ -116,6 +116,11 @@ class CRFDepth(ConstrainedWeights):
       :mod:`crfdepth.potentials.occlusion` (see-through returns lose weight); ``gate_window``
       (odd pixels), ``gate_threshold`` and ``gate_softness`` (1/m, learnable) set it.
     - ``prior``: the fill that is ``x0`` and the warm start, "nearest" or "ip_basic".
+    - ``coarse``: pixel mode: side in pixels of the blocks of a coarse first solve whose painted depth is the
+      pixel solve's prior (docs/design.md section 17); 1: none.
+    - ``near_inverse``: with ``coarse`` > 1 and the depth unknown, metres: nearer than this the coarse depth
+      comes from a second coarse solve in inverse depth, beyond three times it from the first, blended
+      between (section 17); 0: one coarse solve.
     - ``irls``: robust reweighting rounds of the pixel-grid data term after the last solve
       (:mod:`crfdepth.potentials.robust`; 0 = none): each scales a return's data weight by a
       Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.
@@ -184,7 +189,7 @@ class CRFDepth(ConstrainedWeights):
         ``adaptive`` (kitti on the pixel grid): frames with few returns (a median distance to the nearest
         return above 4.5 pixels: 500 samples, 16 beams) go to the hand-set weights on the pixel grid with a
         coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`, docs/design.md section 17):
-        :attr:`sparse_regime` (the depth unknown) for scattered returns, :attr:`line_regime` (the log unknown,
+        :attr:`sparse_regime` (the depth unknown, near blocks in inverse depth) for scattered returns, :attr:`line_regime` (the log unknown,
         blocks twice as tall) for returns on scan lines, :attr:`indoor_regime` (the ``"nyu"`` weights) for
         scattered returns whose depths are a room's (90% within 10 m). ``overrides`` of the gate, the solver or the std apply to the shipped weights
         only; one of the structure or the potentials (``mode``, ``variable``, ``alpha`` ...) asks for that one

@@ -68,8 +68,11 @@ CRF_METHODS = {
     "hand-set": {},  # the recipe's structure (recipe_crf()), the constructor's weights
     "default": {},  # CRFDepth.from_pretrained(): the shipped weights and their sparse regime
     "shipped": {},  # CRFDepth.from_pretrained(adaptive=False): the shipped weights alone, every frame
-    "coarse": {"mode": "pixel", "coarse": 6},  # the sparse regime alone: hand-set, pixel grid, coarse solve
-    # the sparse regime with the other unknowns (section 17: the RMSE / REL trade of the unknown)
+    # the scattered regime alone: hand-set, pixel grid, coarse solve (near blocks from inverse depth)
+    "coarse": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0},
+    # the scattered regime with the depth unknown alone, and with the other unknowns (section 17: the RMSE / REL
+    # trade of the unknown)
+    "coarse+depth": {"mode": "pixel", "coarse": 6},
     "coarse+log": {"mode": "pixel", "coarse": 6, "variable": "log"},
     "coarse+inv": {"mode": "pixel", "coarse": 6, "variable": "inverse"},
     "pixel": {"mode": "pixel"},

@@ -51,13 +51,14 @@ def grid_std(model: torch.nn.Module, depth, sparse, kept, gate, system, distance
 
 
 def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: list[SolveInfo], geometry=None, gate=None,
-                kept=None) -> tuple[torch.Tensor, GridTerms, System]:
-    """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it.
+                kept=None, variable=None) -> tuple[torch.Tensor, GridTerms, System]:
+    """Pixel-level solve(s) of the grid CRF; without ``geometry`` a first pass provides it. ``variable``: the
+    unknown, if not the model's.
 
     Returns the (B, 1, H, W) depth, the last round's potentials and the system they make (``grid_system``).
     """
     structure, on, irls = model.settings.structure, model.settings.potentials.on, model.settings.potentials.irls
-    rounds, v, solver = 1, structure.variable, model.solve_settings
+    rounds, v, solver = 1, variable or structure.variable, model.solve_settings
     kept = sparse if kept is None else kept
     extra = dict(variable=v, gate=gate, factors=None if model.head is None else model.head(image, kept, prior))
     t = None  # a round's terms: the next round computes only those that depend on the geometry
@@ -84,10 +85,22 @@ def pixel_solve(model: torch.nn.Module, image, sparse, K, prior, eps, infos: lis
 def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: list[SolveInfo]) -> torch.Tensor:
     """The depth of the pixel-grid CRF solved on ``block`` = (height, width) blocks (:mod:`crfdepth.inference.coarse`,
     docs/design.md section 17), painted back to the full resolution: the prior and first geometry of the
-    full-resolution solve, as the superpixel mode's painted solution is its refinement's."""
-    coarse_image, coarse_sparse, coarse_K = coarse_frame(image, kept, K, block, model.settings.structure.variable)
+    full-resolution solve, as the superpixel mode's painted solution is its refinement's.
+
+    With ``structure.near_inverse = a`` the coarse grid is solved a second time with inverse depth as the unknown,
+    and a block takes that solution where the first is nearer than ``a`` metres, the first beyond ``3 a``, and
+    a linear blend between: a plane seen in perspective is affine in inverse depth, which the membrane
+    interpolates exactly, while across a near and a far return the depth unknown's mean in metres is the
+    better guess (section 17)."""
+    structure = model.settings.structure
+    coarse_image, coarse_sparse, coarse_K = coarse_frame(image, kept, K, block, structure.variable)
     fill = trusted_nearest_fill(coarse_sparse)
-    depth, _, _ = pixel_solve(model, coarse_image, coarse_sparse, coarse_K, fill, model.scales()[4], infos)
+    solve = (model, coarse_image, coarse_sparse, coarse_K, fill, model.scales()[4], infos)
+    depth, _, _ = pixel_solve(*solve)
+    if structure.near_inverse > 0:
+        near, _, _ = pixel_solve(*solve, variable="inverse")
+        far = ((depth - structure.near_inverse) / (2.0 * structure.near_inverse)).clamp(0.0, 1.0)
+        depth = far * depth + (1.0 - far) * near
     return paint(depth, block, tuple(kept.shape[2:]))
 
 

@@ -3,7 +3,8 @@
 :meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights two
 models with hand-set weights on the pixel grid and a coarse first solve (:mod:`crfdepth.inference.coarse`):
 
-- ``sparse_regime``, the depth unknown: frames whose returns are few and scattered (500 or 200 samples);
+- ``sparse_regime``, the depth unknown with near blocks of the coarse solve in inverse depth (``near_inverse``):
+  frames whose returns are few and scattered (500 or 200 samples);
 - ``line_regime``, the log unknown: frames whose few returns lie on scan lines (16 beams;
   :func:`~crfdepth.inference.coarse.line_scan`);
 - ``indoor_regime``, the indoor weights (``--weights nyu``, learned on NYU Depth v2 and synthetic rooms): frames

@@ -44,13 +44,13 @@ WEIGHTS = ("kitti", "paper", "nyu")
 DEFAULT_WEIGHTS = "kitti"
 """The weight set used when none is named and no checkpoint is given."""
 SPARSE_REGIMES: dict[str, dict[str, dict[str, Any]]] = {"kitti": {
-    "scattered": {"structure": {"mode": "pixel", "coarse": 6}},
+    "scattered": {"structure": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0}},
     "lines": {"structure": {"mode": "pixel", "coarse": 6, "variable": "log"}},
     "indoor": "nyu",
 }}
 """Shipped set -> the configurations (hand-set weights) of the models that complete its frames with few returns
 (:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>`, docs/design.md section 17):
-``"scattered"`` (500 samples, a depth camera's sparse pixels) and ``"lines"`` (returns on scan lines: 16 beams;
+``"scattered"`` (500 samples; near blocks from the inverse-depth unknown, chosen by cross-validation) and ``"lines"`` (returns on scan lines: 16 beams;
 the log unknown, chosen by cross-validation), each a configuration of hand-set weights; ``"indoor"`` (scattered
 returns within a room's depths) a shipped set's name."""
 WEIGHTS_FORMAT = "crfdepth-weights"
