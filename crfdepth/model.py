@@ -332,9 +332,10 @@ class CRFDepth(ConstrainedWeights):
         K = K.expand(sparse.shape[0], 3, 3) if K.dim() == 2 else K
         parts = assign(self, sparse)
         if len(parts) == 1:
-            return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std)
-        return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std))
-                              for rows, model in parts], sparse.shape[0])
+            return PIPELINES["pixel"](parts[0][1], image, sparse, K, return_std, lines=parts[0][2])
+        return merge_outputs([(rows, PIPELINES["pixel"](model, image[rows], sparse[rows], K[rows], return_std,
+                                                        lines=lines)) for rows, model, lines in parts],
+                             sparse.shape[0])
 
     def _checked_inputs(self, image, sparse, K, return_std: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The inputs of :meth:`forward` checked (docs/design.md section 8) and in the dtype of ``sparse``."""

@@ -117,14 +117,16 @@ Block = tuple[int, int]
 """A coarse block's (height, width) in pixels."""
 
 
-def block_shape(side: int, sparse: torch.Tensor) -> Block:
+def block_shape(side: int, sparse: torch.Tensor, lines: bool | None = None) -> Block:
     """The coarse blocks of ``Structure.coarse = side`` for a batch of depth maps: ``side`` square, or
     :data:`LINE_STRETCH` times as tall where every frame is a :func:`line_scan`, so that a block reaches across
     the gap between rings as far as along them; (1, 1), no coarse solve, where the block grid would be smaller
-    than 2 x 2."""
+    than 2 x 2. ``lines``: whether every frame is a line scan, if the caller has read it already."""
     if side <= 1:
         return 1, 1
-    shape = (LINE_STRETCH * side, side) if bool(line_scan(sparse).all()) else (side, side)
+    if lines is None:
+        lines = bool(line_scan(sparse).all())
+    shape = (LINE_STRETCH * side, side) if lines else (side, side)
     if min(-(-size // b) for size, b in zip(sparse.shape[2:], shape)) >= 2:
         return shape
     return (side, side) if min(-(-size // side) for size in sparse.shape[2:]) >= 2 else (1, 1)

@@ -97,23 +97,25 @@ def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: li
     fill = trusted_nearest_fill(coarse_sparse)
     solve = (model, coarse_image, coarse_sparse, coarse_K, fill, model.scales()[4], infos)
     depth, _, _ = pixel_solve(*solve)
-    if structure.near_inverse > 0:
-        near, _, _ = pixel_solve(*solve, variable="inverse")
+    if structure.near_inverse > 0:  # normals and 3D distances from the first solution: one pass, not two
+        near, _, _ = pixel_solve(*solve, geometry=depth, variable="inverse")
         far = ((depth - structure.near_inverse) / (2.0 * structure.near_inverse)).clamp(0.0, 1.0)
         depth = far * depth + (1.0 - far) * near
     return paint(depth, block, tuple(kept.shape[2:]))
 
 
 def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
-                  return_std: bool) -> CRFOutput:
-    """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs."""
+                  return_std: bool, lines: bool | None = None) -> CRFOutput:
+    """:meth:`CRFDepth.forward <crfdepth.model.CRFDepth.forward>` in pixel mode, on checked inputs. ``lines``:
+    whether every frame's returns lie on scan lines, if the caller knows (:func:`crfdepth.inference.regime.assign`
+    has read it); None: read here when there is a coarse solve."""
     bsz, _, h, w = sparse.shape
     stage = Stages(sparse.device, model.progress)
     with stage("fill"):
         gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     infos: list[SolveInfo] = []
     prior, eps, geometry = fill, model.scales()[4], None
-    block = block_shape(model.settings.structure.coarse, kept)
+    block = block_shape(model.settings.structure.coarse, kept, None if kept is not sparse else lines)
     if block != (1, 1):
         with stage("coarse"):
             prior = geometry = coarse_solve(model, image, kept, K, block, infos)

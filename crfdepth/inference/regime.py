@@ -48,18 +48,21 @@ def near_returns(sparse: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     return near
 
 
-def assign(model: torch.nn.Module, sparse: torch.Tensor) -> list[tuple[torch.Tensor, torch.nn.Module]]:
-    """``(rows, m)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch, ``rows`` the (K,)
-    indices of its frames: ``model`` for a frame with many returns, else ``model.line_regime`` where its returns
-    lie on scan lines, ``model.indoor_regime`` where they are scattered and near (:func:`near_returns`) and
-    ``model.sparse_regime`` where they are scattered and not near (a regime that is None: ``model``)."""
+def assign(model: torch.nn.Module, sparse: torch.Tensor) -> list[tuple[torch.Tensor, torch.nn.Module, bool | None]]:
+    """``(rows, m, lines)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch, ``rows`` the
+    (K,) indices of its frames and ``lines`` whether they lie on scan lines (None: not read; frames with many
+    returns): ``model`` for a frame
+    with many returns, else ``model.line_regime`` where its returns lie on scan lines, ``model.indoor_regime``
+    where they are scattered and near (:func:`near_returns`) and ``model.sparse_regime`` where they are
+    scattered and not near (a regime that is None: ``model``)."""
     few, lines = returns_layout(sparse)
     lines = few & lines if model.line_regime is not None else torch.zeros_like(few)
     near = near_returns(sparse, few & ~lines) if model.indoor_regime is not None else torch.zeros_like(few)
-    choices = ((~few, model), (few & ~lines & ~near, model.sparse_regime), (near, model.indoor_regime),
-               (lines, model.line_regime))
-    parts = [(torch.nonzero(rows)[:, 0], model if m is None else m) for rows, m in choices if bool(rows.any())]
-    for _, m in parts:
+    choices = ((~few, model, None), (few & ~lines & ~near, model.sparse_regime, False),
+               (near, model.indoor_regime, False), (lines, model.line_regime, True))
+    parts = [(torch.nonzero(rows)[:, 0], model if m is None else m, on_lines) for rows, m, on_lines in choices
+             if bool(rows.any())]
+    for _, m, _ in parts:
         m.progress = model.progress
     return parts
 

@@ -96,6 +96,8 @@ def test_line_scan_tells_rings_from_scattered_returns():
     assert line_scan(rings.transpose(2, 3)).tolist() == [False]  # vertical lines are not a LiDAR's rings
     assert block_shape(6, rings) == (LINE_STRETCH * 6, 6) and block_shape(6, scattered) == (6, 6)
     assert block_shape(6, torch.cat([rings, scattered])) == (6, 6)  # a mixed batch keeps square blocks
+    # a caller that has read the layout says so, and it is not read again
+    assert block_shape(6, scattered, lines=True) == (LINE_STRETCH * 6, 6) and block_shape(6, rings, lines=False) == (6, 6)
 
 
 @pytest.mark.parametrize("every", [2, 4, 8, 16])
