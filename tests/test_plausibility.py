@@ -135,7 +135,7 @@ def test_a_camera_up_a_mast_passes_the_checks_with_trust_units(monkeypatch, mast
     sparse, K = mast_map
     seen = {}
 
-    def fake_pipeline(model, image, sparse_t, K_t, return_std):
+    def fake_pipeline(model, image, sparse_t, K_t, return_std, **_):
         seen["sparse"] = sparse_t[0, 0].numpy()
         return CRFOutput(torch.ones(1, 1, *sparse.shape), *(None,) * 10)
 
