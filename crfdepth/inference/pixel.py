@@ -115,7 +115,8 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
         gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
     infos: list[SolveInfo] = []
     prior, eps, geometry = fill, model.scales()[4], None
-    block = block_shape(model.settings.structure.coarse, kept, None if kept is not sparse else lines)
+    # the caller read the layout of ``sparse``; with a gate the blocks follow the returns it kept
+    block = block_shape(model.settings.structure.coarse, kept, lines if kept is sparse else None)
     if block != (1, 1):
         with stage("coarse"):
             prior = geometry = coarse_solve(model, image, kept, K, block, infos)

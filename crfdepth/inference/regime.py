@@ -1,7 +1,7 @@
 """The default model's regimes for few returns: such frames go to other models (docs/design.md section 17).
 
-:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights two
-models with hand-set weights on the pixel grid and a coarse first solve (:mod:`crfdepth.inference.coarse`):
+:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights three
+models on the pixel grid with a coarse first solve (:mod:`crfdepth.inference.coarse`), two with hand-set weights:
 
 - ``sparse_regime``, the depth unknown with near blocks of the coarse solve in inverse depth (``near_inverse``):
   frames whose returns are few and scattered (500 or 200 samples);
@@ -49,19 +49,20 @@ def near_returns(sparse: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
 
 
 def assign(model: torch.nn.Module, sparse: torch.Tensor) -> list[tuple[torch.Tensor, torch.nn.Module, bool | None]]:
-    """``(rows, m, lines)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch, ``rows`` the
-    (K,) indices of its frames and ``lines`` whether they lie on scan lines (None: not read; frames with many
-    returns): ``model`` for a frame
-    with many returns, else ``model.line_regime`` where its returns lie on scan lines, ``model.indoor_regime``
-    where they are scattered and near (:func:`near_returns`) and ``model.sparse_regime`` where they are
-    scattered and not near (a regime that is None: ``model``)."""
-    few, lines = returns_layout(sparse)
-    lines = few & lines if model.line_regime is not None else torch.zeros_like(few)
+    """``(rows, m, lines)`` for each model ``m`` that completes some frames of a (B, 1, H, W) batch: ``rows`` the
+    (K,) indices of its frames, ``lines`` whether all of them lie on scan lines (as
+    :func:`~crfdepth.inference.coarse.block_shape` would read it; None for frames with many returns, not read).
+
+    ``model`` takes a frame with many returns, else ``model.line_regime`` where its returns lie on scan lines,
+    ``model.indoor_regime`` where they are scattered and near (:func:`near_returns`) and ``model.sparse_regime``
+    where they are scattered and not near (a regime that is None: ``model``)."""
+    few, read = returns_layout(sparse)
+    lines = few & read if model.line_regime is not None else torch.zeros_like(few)
     near = near_returns(sparse, few & ~lines) if model.indoor_regime is not None else torch.zeros_like(few)
-    choices = ((~few, model, None), (few & ~lines & ~near, model.sparse_regime, False),
-               (near, model.indoor_regime, False), (lines, model.line_regime, True))
-    parts = [(torch.nonzero(rows)[:, 0], model if m is None else m, on_lines) for rows, m, on_lines in choices
-             if bool(rows.any())]
+    choices = ((~few, model), (few & ~lines & ~near, model.sparse_regime), (near, model.indoor_regime),
+               (lines, model.line_regime))
+    parts = [(torch.nonzero(rows)[:, 0], model if m is None else m, bool(read[rows].all()) if i else None)
+             for i, (rows, m) in enumerate(choices) if bool(rows.any())]
     for _, m, _ in parts:
         m.progress = model.progress
     return parts

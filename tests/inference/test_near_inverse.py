@@ -17,6 +17,8 @@ from crfdepth.inference.coarse import coarse_frame, paint
 from crfdepth.inference.pixel import coarse_solve, pixel_solve
 from crfdepth.model import CRFDepth
 
+NEAR = 10.0  # the shipped value (crfdepth/weights/files.py SPARSE_REGIMES)
+
 
 def _street(h=60, w=120, count=120, seed=0):
     """A road seen in perspective (depth 1/(rows) from 4 m at the bottom to 60 m at the top) with a wall on the
@@ -93,8 +95,6 @@ def test_default_scattered_regime_reads_near_pixels_in_inverse_depth():
     assert regime.settings.structure.near_inverse == pytest.approx(NEAR)
     assert CRFDepth.from_pretrained().line_regime.settings.structure.near_inverse == 0.0
 
-
-NEAR = 10.0  # the shipped value (crfdepth/weights/files.py SPARSE_REGIMES)
 
 
 def test_near_inverse_lowers_rel_at_500_kitti_samples_and_keeps_the_rmse(kitti_root):

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -88,14 +90,8 @@ def test_real_frames_go_to_the_regime_of_their_sensor(nyu_root, kitti_root):
         s = raw[i]
         whole = torch.where(s.sparse > 0, s.sparse, s.target)
         for n in (500, 200):
-            t = kitti_table4(n, seed=0)(dataclasses_replace(s, target=whole))
+            t = kitti_table4(n, seed=0)(dataclasses.replace(s, target=whole))
             assert not bool(near_returns(t.sparse[None], torch.ones(1, dtype=torch.bool))), (s.name, n)
-
-
-def dataclasses_replace(sample, **changes):
-    import dataclasses
-
-    return dataclasses.replace(sample, **changes)
 
 
 @pytest.mark.parametrize("samples", [500, 200])
@@ -106,3 +102,24 @@ def test_default_completes_real_indoor_frames_with_the_indoor_weights(nyu_root, 
         with torch.no_grad():
             assert torch.equal(default(s.image[None], s.sparse[None], s.K[None]).depth,
                                nyu(s.image[None], s.sparse[None], s.K[None]).depth)
+
+
+def test_each_part_is_told_the_layout_block_shape_would_read():
+    from crfdepth.inference.coarse import line_scan
+    from crfdepth.inference.regime import assign
+
+    model = CRFDepth.from_pretrained()
+    rings = torch.zeros(1, 1, 120, 200)
+    rings[..., 4::24, :] = 20.0
+    room, street = _scattered([1.5, 2.5, 4.0]), _scattered([5.0, 20.0, 40.0], seed=1)
+    dense = torch.zeros(1, 1, 120, 200)
+    dense[..., ::2, ::2] = 20.0
+    batch = torch.cat([dense, street, room, rings])
+    got = {id(m): (rows.tolist(), lines) for rows, m, lines in assign(model, batch)}
+    assert got == {id(model): ([0], None), id(model.sparse_regime): ([1], False),
+                   id(model.indoor_regime): ([2], False), id(model.line_regime): ([3], True)}
+    # without a line regime the rings go to the scattered regime, which is told they are rings (tall blocks)
+    model.line_regime = None
+    parts = assign(model, torch.cat([rings, rings]))
+    assert [(rows.tolist(), m is model.sparse_regime, lines) for rows, m, lines in parts] == [([0, 1], True, True)]
+    assert bool(line_scan(rings).all())
