@@ -34,6 +34,11 @@ them must be finite:
          "config": {"structure": {"mode": "pixel", ...}, "potentials": {"alpha": 0.41, ...}, ...},
          "about": {"data": ..., "command": ..., "validation": ...}}
 
+Files (b) and (c) of a model with regimes (the default's models for few returns, :mod:`crfdepth.inference.regime`)
+hold them under ``"regimes"`` (:mod:`crfdepth.weights.regimes`): a reloaded default completes those frames as it
+did. An override of the structure or the potentials at loading asks for that one model, without them, as
+``CRFDepth.from_pretrained`` does.
+
     ``CRFDepth(config)`` rebuilds the model (the learned values are float32 values
     written out in full, so the rebuilt parameters equal the trained ones to float32
     rounding of the logit/log, about 1e-7 relative). ``python -m train.export`` turns a
@@ -72,9 +77,11 @@ import torch
 
 from crfdepth.config import POTENTIALS, CRFConfig, flat_view, plain_data
 from crfdepth.errors import InputError
-from crfdepth.model import CRFDepth
+from crfdepth.inference.regime import REGIMES
+from crfdepth.model import CRFDepth, asks_one_model
 from crfdepth.weights.files import DEFAULT_WEIGHTS, pretrained_state, read_checkpoint, write_weights
-from crfdepth.weights.torch_files import MODEL_FORMAT, load_torch_file, some_keys, write_model_file
+from crfdepth.weights.regimes import json_regimes, read_regimes
+from crfdepth.weights.torch_files import MODEL_FORMAT, check_device, load_torch_file, some_keys, write_model_file
 
 __all__ = ["describe", "load_model", "load_pretrained", "own_structure", "read_trainer_checkpoint", "save_model",
            "save_weights"]
@@ -162,12 +169,19 @@ def save_weights(model: CRFDepth, path: str | os.PathLike, about: Mapping[str, A
     """
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
-    learned = model.weights()  # the current (learned) values replace the initial ones
+    config, head = _with_weights(model)
+    regimes = json_regimes({name: _with_weights(regime) for name, regime in model.regimes().items()})
+    return write_weights(path, config, about, state=head, regimes=regimes)
+
+
+def _with_weights(model: CRFDepth) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """``model``'s configuration with its current (learned) values in place of the initial ones, and the
+    tensors that are not constructor arguments (its learned head's)."""
+    learned = model.weights()
     if model.std_head is not None:
         learned["std_terms"] = model.std_head.terms()
-    config = CRFConfig.build(model.settings, **learned).groups()
     head = {k: v for k, v in model.state_dict().items() if k.startswith("head.")}
-    return write_weights(path, config, about, state=head)
+    return CRFConfig.build(model.settings, **learned).groups(), head
 
 
 def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
@@ -191,7 +205,8 @@ def save_model(model: CRFDepth, path: str | os.PathLike) -> Path:
     """
     if not isinstance(model, CRFDepth):
         raise InputError(f"model: expected a CRFDepth, got {type(model).__name__}")
-    file = write_model_file(path, model.config, model.state_dict())
+    regimes = {name: (regime.config, regime.state_dict()) for name, regime in model.regimes().items()}
+    file = write_model_file(path, model.config, model.state_dict(), regimes)
     logger.info("saved CRFDepth (%s mode) to %s", model.settings.structure.mode, file)
     return file
 
@@ -235,6 +250,10 @@ def load_model(path: str | os.PathLike, *, map_location: str | torch.device = "c
     file = Path(path)
     config, state, kind = read_checkpoint(file, map_location)
     model = CRFDepth.from_stored(config, state, overrides=overrides, file=file, kind=kind)
+    if not asks_one_model(overrides or {}):  # as from_pretrained: such overrides ask for one model
+        for name, (regime_config, regime_state) in read_regimes(file, kind, check_device(map_location), REGIMES).items():
+            setattr(model, name, CRFDepth.from_stored(regime_config, regime_state, file=file,
+                                                      kind=f"{kind}'s regimes[{name!r}]").eval())
     logger.info("loaded CRFDepth (%s mode) from %s (%s)", model.settings.structure.mode, file, kind)
     return model.to(torch.device(map_location)).eval()
 

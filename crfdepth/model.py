@@ -40,6 +40,12 @@ from crfdepth.weights import SPARSE_REGIMES, load_state, pretrained_state, weigh
 REFERENCE_AREA = 1216 * 352  # the KITTI benchmark crop, for which ``superpixels`` is given
 
 
+def asks_one_model(overrides: Mapping[str, Any]) -> bool:
+    """Whether ``overrides`` (groups or flat names) set the structure or the potentials: they ask for that one
+    model on every frame, no regime beside it (:meth:`CRFDepth.from_pretrained`, :func:`crfdepth.load_model`)."""
+    return bool({FLAT[key][0] if key in FLAT else key for key in overrides} & {"structure", "potentials"})
+
+
 class CRFDepth(ConstrainedWeights):
     """Gaussian CRF depth completion with learnable potential weights (paper eq. 2).
 
@@ -198,9 +204,7 @@ class CRFDepth(ConstrainedWeights):
         check_flag("adaptive", adaptive)
         config, state = pretrained_state(name)
         model = cls.from_stored(config, state, overrides=overrides, file=weights_path(name)).eval()
-        # An override of the structure or the potentials asks for one model: no regime beside it.
-        chosen = {FLAT[key][0] if key in FLAT else key for key in overrides} & {"structure", "potentials"}
-        if adaptive and name in SPARSE_REGIMES and not chosen:
+        if adaptive and name in SPARSE_REGIMES and not asks_one_model(overrides):
             regimes = SPARSE_REGIMES[name]
             model.sparse_regime = cls(regimes["scattered"]).eval()
             model.line_regime = cls(regimes["lines"]).eval()
@@ -263,11 +267,17 @@ class CRFDepth(ConstrainedWeights):
     """The model that completes frames with few, scattered returns instead of this one (:meth:`from_pretrained`'s
     ``adaptive``; :mod:`crfdepth.inference.regime`); None: this model does. Not a sub-module: its weights are
     hand-set, outside this model's ``state_dict`` and ``parameters()``; :meth:`_apply` moves and casts it with
-    this model."""
+    this model, and :func:`crfdepth.save_model` / :func:`crfdepth.save_weights` write it into the model's file
+    (:mod:`crfdepth.weights.regimes`)."""
     line_regime: "CRFDepth | None" = None
     """The same for frames whose few returns lie on scan lines (16 beams)."""
     indoor_regime: "CRFDepth | None" = None
     """The same for frames whose few scattered returns are near, a room's (the indoor weights)."""
+
+    def regimes(self) -> dict[str, "CRFDepth"]:
+        """The regimes this model has (attribute name -> model), in the order of
+        :data:`~crfdepth.inference.regime.REGIMES`."""
+        return {name: getattr(self, name) for name in REGIMES if getattr(self, name) is not None}
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name in REGIMES:  # kept out of the module tree (state_dict, parameters, train())

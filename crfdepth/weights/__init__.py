@@ -10,7 +10,6 @@ values of ``CRFDepth()``, no file).
 from crfdepth.weights.files import (
     DEFAULT_WEIGHTS,
     LEARNED,
-    SPARSE_REGIMES,
     WEIGHTS,
     WEIGHTS_FORMAT,
     WEIGHTS_VERSION,
@@ -20,6 +19,7 @@ from crfdepth.weights.files import (
     weights_path,
     write_weights,
 )
+from crfdepth.weights.regimes import SPARSE_REGIMES
 from crfdepth.weights.state import load_state
 from crfdepth.weights.torch_files import BARE_STATE_DICT, MODEL_FORMAT, MODEL_VERSION, write_model_file
 

@@ -35,24 +35,14 @@ from crfdepth.errors import InputError
 from crfdepth.io.files import atomic_write_bytes, check_output_file
 from crfdepth.weights.torch_files import check_device, is_config, load_torch_file, unpack_torch_file
 
-__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "SPARSE_REGIMES", "MAX_ABS_TENSOR", "POSITIVE_RANGE", "STD_BIAS_RANGE", "STD_EXPONENT_RANGE",
-           "UNIT_RANGE", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "pretrained_state", "read_checkpoint",
-           "read_weights", "weights_path", "write_weights"]
+__all__ = ["DEFAULT_WEIGHTS", "LEARNED", "MAX_ABS_TENSOR", "POSITIVE_RANGE", "STD_BIAS_RANGE", "STD_EXPONENT_RANGE",
+           "UNIT_RANGE", "WEIGHTS", "WEIGHTS_FORMAT", "WEIGHTS_VERSION", "check_stored", "check_weights_config",
+           "json_lists", "json_state", "pretrained_state", "read_checkpoint", "read_weights", "weights_path", "write_weights"]
 
 WEIGHTS = ("kitti", "paper", "nyu")
 """Names of the shipped weight sets (:func:`crfdepth.load_pretrained`, ``--weights``)."""
 DEFAULT_WEIGHTS = "kitti"
 """The weight set used when none is named and no checkpoint is given."""
-SPARSE_REGIMES: dict[str, dict[str, dict[str, Any]]] = {"kitti": {
-    "scattered": {"structure": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0}},
-    "lines": {"structure": {"mode": "pixel", "coarse": 6, "variable": "log"}},
-    "indoor": "nyu",
-}}
-"""Shipped set -> the configurations (hand-set weights) of the models that complete its frames with few returns
-(:meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>`, docs/design.md section 17):
-``"scattered"`` (500 samples; near blocks from the inverse-depth unknown, chosen by cross-validation) and ``"lines"`` (returns on scan lines: 16 beams;
-the log unknown, chosen by cross-validation), each a configuration of hand-set weights; ``"indoor"`` (scattered
-returns within a room's depths) a shipped set's name."""
 WEIGHTS_FORMAT = "crfdepth-weights"
 """Value of the ``"format"`` key of a JSON weights file."""
 WEIGHTS_VERSION = 1
@@ -161,22 +151,29 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
     config = data.get("config")
     if not isinstance(config, dict):
         raise InputError(f"{file}: expected a \"config\" object (CRFDepth arguments), got {type(config).__name__}")
-    values = flat_view(config)  # grouped (current files) or flat (earlier ones)
-    for key in LEARNED:
-        value = values.get(key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"{file}: config[{key!r}]: expected a finite number, got {value!r}")
-    _check_config_ranges(file, values, "weights file")
+    check_weights_config(file, config)
     data.setdefault("about", {})
     return data
 
 
+def check_weights_config(file: Path, config: Mapping[str, Any], kind: str = "weights file", where: str = "") -> None:
+    """A weights file's configuration (``where``: the path of a regime's, :mod:`crfdepth.weights.regimes`): every
+    learned value a finite number within its range."""
+    values = flat_view(config)  # grouped (current files) or flat (earlier ones)
+    for key in LEARNED:
+        value = values.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"{file}: {where}config[{key!r}]: expected a finite number, got {value!r}")
+    _check_config_ranges(file, values, kind)
+
+
 def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Mapping[str, Any] | None = None,
-                  state: Mapping[str, torch.Tensor] | None = None) -> Path:
+                  state: Mapping[str, torch.Tensor] | None = None, regimes: Mapping[str, Any] | None = None) -> Path:
     """Write a weights file holding ``config`` (with the learned values) and ``about``, atomically.
 
     ``state``: the tensors that are not constructor arguments (the weights of the learned
-    head, :mod:`crfdepth.potentials.head`), stored as nested lists under ``"state"``.
+    head, :mod:`crfdepth.potentials.head`), stored as nested lists under ``"state"``. ``regimes``: the
+    model's regimes as :func:`crfdepth.weights.regimes.json_regimes` writes them, under ``"regimes"``.
 
     Raises:
         InputError: ``path`` is a folder, or ``config`` / ``about`` are not
@@ -187,10 +184,12 @@ def write_weights(path: str | os.PathLike, config: Mapping[str, Any], about: Map
     payload = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "config": dict(config),
                "about": dict(about or {})}
     if state:
-        payload["state"] = {k: v.detach().cpu().float().tolist() for k, v in state.items()}
-    for name in ("about", "config"):
+        payload["state"] = json_lists(state)
+    if regimes:
+        payload["regimes"] = dict(regimes)
+    for name in ("about", "config", "regimes"):
         try:
-            json.dumps(payload[name])
+            json.dumps(payload.get(name))
         except (TypeError, ValueError) as exc:
             raise InputError(f"{name}: expected JSON-serialisable values ({exc})") from None
     text = json.dumps(payload, indent=2) + "\n"
@@ -242,14 +241,21 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     device = check_device(map_location)
     if _is_json(file):
         data = read_weights(file)
-        state = _tensors(file, data.get("state", {}), device)
+        state = json_state(file, data.get("state", {}), device)
         return _upgrade_config(dict(data["config"]), state), state, "weights file"
     config, state, kind = unpack_torch_file(file, load_torch_file(file, device))
+    return (*check_stored(file, config, state, kind), kind)
+
+
+def check_stored(file: Path, config: dict[str, Any], state: dict[str, torch.Tensor], kind: str
+                 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """A torch file's configuration and state dict checked (finite tensors, every weight within its range) and
+    brought up to date (old layouts, options a configuration predates)."""
     _check_finite(file, state)
     state = _upgrade(file, state)
     _check_tensor_ranges(file, state)
     _check_config_ranges(file, flat_view(config), kind)
-    return _upgrade_config(config, state), state, kind
+    return _upgrade_config(config, state), state
 
 
 # --------------------------------------------------------------------------- helpers
@@ -288,7 +294,12 @@ def _upgrade_config(config: dict[str, Any], state: Mapping[str, torch.Tensor]) -
     return config
 
 
-def _tensors(file: Path, value: Any, device: torch.device) -> dict[str, torch.Tensor]:
+def json_lists(state: Mapping[str, torch.Tensor]) -> dict[str, list]:
+    """A weights file's ``"state"``: each tensor as nested lists of float32 values (read back by :func:`json_state`)."""
+    return {k: v.detach().cpu().float().tolist() for k, v in state.items()}
+
+
+def json_state(file: Path, value: Any, device: torch.device) -> dict[str, torch.Tensor]:
     """The ``"state"`` of a weights file (name -> nested lists) as float32 tensors, checked finite."""
     if not is_config(value):
         raise InputError(f"{file}: expected \"state\" to map parameter names to nested lists of numbers, "

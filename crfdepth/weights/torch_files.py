@@ -46,8 +46,10 @@ _LIGHTNING_PREFIX = "model."  # the trainer's LightningModule stores the CRF as 
 # --------------------------------------------------------------------------- writing
 
 
-def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: Mapping[str, torch.Tensor]) -> Path:
-    """Write a crfdepth model file ``{"format", "version", "config", "state_dict"}``, atomically.
+def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: Mapping[str, torch.Tensor],
+                     regimes: Mapping[str, tuple[Mapping[str, Any], Mapping[str, torch.Tensor]]] | None = None) -> Path:
+    """Write a crfdepth model file ``{"format", "version", "config", "state_dict"}``, atomically; ``regimes``
+    (name -> ``(config, state)``, :mod:`crfdepth.weights.regimes`): the same pair of each under ``"regimes"``.
 
     Tuples of ``config`` are stored as lists and tensors are moved to the CPU (their dtype
     is kept), so the file loads with ``torch.load(weights_only=True)``. The file is
@@ -58,14 +60,15 @@ def write_model_file(path: str | os.PathLike, config: Mapping[str, Any], state: 
         FileNotFoundError: the folder of ``path`` does not exist.
     """
     file = check_output_file(path)
-    payload = {
-        "format": MODEL_FORMAT,
-        "version": MODEL_VERSION,
-        "config": plain_data(dict(config)),
-        "state_dict": {k: v.detach().cpu().clone() for k, v in state.items()},
-    }
+    payload = {"format": MODEL_FORMAT, "version": MODEL_VERSION, **_entry(config, state)}
+    if regimes:
+        payload["regimes"] = {name: _entry(*pair) for name, pair in regimes.items()}
     atomic_write(file, lambda temporary: torch.save(payload, temporary))
     return file
+
+
+def _entry(config: Mapping[str, Any], state: Mapping[str, torch.Tensor]) -> dict[str, Any]:
+    return {"config": plain_data(dict(config)), "state_dict": {k: v.detach().cpu().clone() for k, v in state.items()}}
 
 
 # --------------------------------------------------------------------------- reading
