@@ -23,3 +23,19 @@ def leaky_wall(leak_columns=((30, 32), (58, 60))):
         leaked[14:38:4, a:b] = True
     sparse[leaked] = 25.0
     return image, sparse[None, None], K, truth, leaked
+
+
+def table4_frames(kitti_root, samples: int, step: int = 1):
+    """Every ``step``-th raw KITTI frame of ``kitti_root`` as the paper's Table 4 scores it (as
+    ``benchmarks/accuracy_parts/protocols.table4_input`` makes it): ``samples`` pixels of the projected scan in
+    the bottom-centre 912 x 228 as the input, the whole scan (its held-out points included) as the target."""
+    import dataclasses
+
+    from crfdepth.data.factory import build_dataset
+    from crfdepth.data.sampling import kitti_table4
+
+    raw = build_dataset("raw", kitti_root / "raw", holdout="fraction", holdout_fraction=0.2, clean_target=False)
+    for i in range(0, len(raw), step):
+        s = raw[i]
+        whole = torch.where(s.sparse > 0, s.sparse, s.target)
+        yield kitti_table4(samples, seed=0)(dataclasses.replace(s, target=whole))

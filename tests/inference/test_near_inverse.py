@@ -3,19 +3,17 @@ section 17)."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import pytest
 import torch
 
-from crfdepth.data.factory import build_dataset
-from crfdepth.data.sampling import kitti_table4
 from crfdepth.errors import InputError
 from crfdepth.fill.nearest import trusted_nearest_fill
 from crfdepth.inference.coarse import coarse_frame, paint
 from crfdepth.inference.pixel import coarse_solve, pixel_solve
 from crfdepth.model import CRFDepth
+from tests.scenes import table4_frames
 
 NEAR = 10.0  # the shipped value (crfdepth/weights/files.py SPARSE_REGIMES)
 
@@ -98,12 +96,9 @@ def test_default_scattered_regime_reads_near_pixels_in_inverse_depth():
 
 
 def test_near_inverse_lowers_rel_at_500_kitti_samples_and_keeps_the_rmse(kitti_root):
-    raw = build_dataset("raw", kitti_root / "raw", holdout="fraction", holdout_fraction=0.2, clean_target=False)
     plain, near = CRFDepth(mode="pixel", coarse=6), CRFDepth(mode="pixel", coarse=6, near_inverse=NEAR)
     scores = {"plain": [], "near": []}
-    for i in range(0, len(raw), 2):
-        s = raw[i]
-        t = kitti_table4(500, seed=0)(dataclasses.replace(s, target=torch.where(s.sparse > 0, s.sparse, s.target)))
+    for t in table4_frames(kitti_root, 500, step=2):
         valid = t.target > 0
         for name, model in (("plain", plain), ("near", near)):
             with torch.no_grad():

@@ -3,16 +3,14 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
 from crfdepth.data.nyu.layouts import build_nyu_dataset
-from crfdepth.data.sampling import kitti_table4
 from crfdepth.inference.coarse import returns_layout
 from crfdepth.inference.regime import INDOOR_RANGE, near_returns
 from crfdepth.model import CRFDepth
+from tests.scenes import table4_frames
 
 
 def _scattered(depths, count=150, h=120, w=200, seed=0):
@@ -77,21 +75,15 @@ def test_each_frame_of_a_batch_goes_to_its_regime():
 
 
 def test_real_frames_go_to_the_regime_of_their_sensor(nyu_root, kitti_root):
-    from crfdepth.data.factory import build_dataset
-
     nyu = build_nyu_dataset("nyu_sync", nyu_root / "official_test", samples=500, seed=0)
     for s in nyu:
         sparse = s.sparse[None]
         few, lines = returns_layout(sparse)
         assert bool(few) and not bool(lines)
         assert bool(near_returns(sparse, few))
-    raw = build_dataset("raw", kitti_root / "raw", holdout="fraction", holdout_fraction=0.2, clean_target=False)
-    for i in range(0, len(raw), 3):
-        s = raw[i]
-        whole = torch.where(s.sparse > 0, s.sparse, s.target)
-        for n in (500, 200):
-            t = kitti_table4(n, seed=0)(dataclasses.replace(s, target=whole))
-            assert not bool(near_returns(t.sparse[None], torch.ones(1, dtype=torch.bool))), (s.name, n)
+    for n in (500, 200):
+        for t in table4_frames(kitti_root, n, step=3):
+            assert not bool(near_returns(t.sparse[None], torch.ones(1, dtype=torch.bool))), (t.name, n)
 
 
 @pytest.mark.parametrize("samples", [500, 200])
