@@ -132,6 +132,9 @@ class Structure:
     """With the depth unknown and a coarse solve: metres below which the coarse depth comes from a second
     coarse solve in inverse depth, blended into the first linearly up to three times this depth (section 17);
     0: one coarse solve."""
+    coarse_shifts: int = 1
+    """With a coarse solve: 2 solves the coarse grid a second time, shifted by half a block down and right, and
+    averages the two painted depths (cycle spinning, section 17); 1: one grid."""
 
     def __post_init__(self) -> None:
         for name, choices in (("mode", MODES), ("variable", VARIABLES), ("prior", PRIORS)):
@@ -141,6 +144,11 @@ class Structure:
         check_number("rounds", self.rounds, low=1, low_open=False, integer=True)
         check_number("near_inverse", self.near_inverse, low=0.0, high=MAX_NEAR_INVERSE, low_open=False,
                      high_open=False)
+        check_number("coarse_shifts", self.coarse_shifts, low=1, high=2, low_open=False, high_open=False,
+                     integer=True)
+        if self.coarse_shifts > 1 and (self.coarse == 1 or self.mode != "pixel"):
+            raise InputError(f"coarse_shifts: expected 1 unless the pixel grid has a coarse solve (mode 'pixel', "
+                             f"coarse > 1), got {self.coarse_shifts} with mode {self.mode!r}, coarse {self.coarse}")
         if self.near_inverse > 0 and (self.coarse == 1 or self.variable != "depth" or self.mode != "pixel"):
             raise InputError(f"near_inverse: expected 0 unless the pixel grid solves for depth with a coarse solve "
                              f"(mode 'pixel', variable 'depth', coarse > 1), got {self.near_inverse} with mode "
@@ -232,7 +240,7 @@ GROUPS: dict[str, type] = {"structure": Structure, "potentials": Potentials, "ga
 FLAT: dict[str, tuple[str, str]] = {
     **{name: ("structure", name) for name in ("mode", "superpixels", "scale_superpixels", "aggregate", "refine",
                                               "rounds", "variable", "prior", "head", "coarse",
-                                              "near_inverse")},
+                                              "near_inverse", "coarse_shifts")},
     "potentials": ("potentials", "on"),
     **{name: ("potentials", name) for name in ("alpha", "beta", "gamma", "delta", "sigma_d", "sigma_n", "sigma_p",
                                                "confidence", "eps", "refine_prior", "irls", "irls_scale")},

@@ -127,6 +127,8 @@ class CRFDepth(ConstrainedWeights):
     - ``near_inverse``: with ``coarse`` > 1 and the depth unknown, metres: nearer than this the coarse depth
       comes from a second coarse solve in inverse depth, beyond three times it from the first, blended
       between (section 17); 0: one coarse solve.
+    - ``coarse_shifts``: with ``coarse`` > 1, 2: a second coarse grid shifted by half a block, the two painted
+      depths averaged (section 17); 1: one grid.
     - ``irls``: robust reweighting rounds of the pixel-grid data term after the last solve
       (:mod:`crfdepth.potentials.robust`; 0 = none): each scales a return's data weight by a
       Geman-McClure factor of how far *behind* its leave-one-out prediction it lies.

@@ -27,8 +27,10 @@ Methods (every CRF is :class:`crfdepth.model.CRFDepth`, float32, batch size 1):
   frames with few returns their sparse regime (docs/design.md section 17); unlike ``learned`` never re-fitted;
 - ``shipped``: ``CRFDepth.from_pretrained(adaptive=False)``, the shipped weights on every frame (the
   default before the sparse regime), never re-fitted;
-- ``coarse``: that sparse regime alone, ``CRFDepth(mode="pixel", coarse=6)`` (hand-set weights, a coarse
-  solve on 6-pixel blocks first, twice as tall on a line scan);
+- ``coarse``: the scattered sparse regime alone, ``CRFDepth(mode="pixel", coarse=6, near_inverse=10,
+  coarse_shifts=2)`` (hand-set weights, a coarse solve on 6-pixel blocks first, twice as tall on a line scan,
+  near blocks from inverse depth, a second grid shifted by half a block); ``coarse+1grid``: the same with one
+  grid; ``coarse+depth``: one grid, the depth unknown alone;
 - ``coarse+log``, ``coarse+inv``: that regime with the log-depth or the inverse-depth unknown (section 17: the
   unknown trades RMSE for REL);
 - ``pixel``: ``CRFDepth(mode="pixel")``;
@@ -68,8 +70,10 @@ CRF_METHODS = {
     "hand-set": {},  # the recipe's structure (recipe_crf()), the constructor's weights
     "default": {},  # CRFDepth.from_pretrained(): the shipped weights and their sparse regime
     "shipped": {},  # CRFDepth.from_pretrained(adaptive=False): the shipped weights alone, every frame
-    # the scattered regime alone: hand-set, pixel grid, coarse solve (near blocks from inverse depth)
-    "coarse": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0},
+    # the scattered regime alone: hand-set, pixel grid, coarse solve (near blocks from inverse depth, two grids)
+    "coarse": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0, "coarse_shifts": 2},
+    # that regime with one coarse grid (section 17: cycle spinning)
+    "coarse+1grid": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0},
     # the scattered regime with the depth unknown alone, and with the other unknowns (section 17: the RMSE / REL
     # trade of the unknown)
     "coarse+depth": {"mode": "pixel", "coarse": 6},

@@ -132,16 +132,15 @@ def block_shape(side: int, sparse: torch.Tensor, lines: bool | None = None) -> B
     return (side, side) if min(-(-size // side) for size in sparse.shape[2:]) >= 2 else (1, 1)
 
 
-def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: Block, variable: str
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: Block, variable: str,
+                 offset: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(image, sparse, K)`` of the grid of ``block`` = (height, width) blocks: each block's mean colour, the
     mean of its returns (geometric for ``variable="log"``, arithmetic otherwise; 0 without one) and the
-    intrinsics of the coarse pixels. A frame whose size is not a multiple of the block is padded on the right
-    and bottom by its edge pixels (image) and by no returns (depth)."""
-    (h, w), (bh, bw) = kept.shape[2:], block
-    pad = (0, -w % bw, 0, -h % bh)
-    image = F.avg_pool2d(F.pad(image, pad, mode="replicate"), block)
-    kept = F.pad(kept, pad)
+    intrinsics of the coarse pixels. The grid starts ``offset`` = (rows, columns) above and left of the frame
+    (:func:`block_mean`); where the frame does not fill a block, edge pixels stand in (image) and no returns
+    (depth)."""
+    pad = _grid_pad(kept.shape[2:], block, offset)
+    kept = F.pad(kept, pad) if any(pad) else kept
     has = kept > 0
     count = F.avg_pool2d(has.to(kept.dtype), block)
     values = torch.where(has, kept.clamp_min(1e-6).log(), torch.zeros_like(kept)) if variable == "log" else kept
@@ -149,15 +148,39 @@ def coarse_frame(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block
     mean = mean.exp() if variable == "log" else mean
     sparse = torch.where(count > 0, mean, torch.zeros_like(mean))
     coarse_K = K.clone()
-    for axis, b in ((0, bw), (1, bh)):  # pixel centres: fine u -> coarse (u + 0.5) / b - 0.5
+    for axis, b, o in ((0, block[1], offset[1]), (1, block[0], offset[0])):  # fine u -> coarse (u + o + 0.5) / b - 0.5
         coarse_K[:, axis, :2] = K[:, axis, :2] / b
-        coarse_K[:, axis, 2] = (K[:, axis, 2] + 0.5) / b - 0.5
-    return image, sparse, coarse_K
+        coarse_K[:, axis, 2] = (K[:, axis, 2] + o + 0.5) / b - 0.5
+    return block_mean(image, block, offset), sparse, coarse_K
 
 
-def paint(depth: torch.Tensor, block: Block, size: tuple[int, int]) -> torch.Tensor:
+def coarse_frames(image: torch.Tensor, kept: torch.Tensor, K: torch.Tensor, block: Block, variable: str,
+                  shifts: int) -> list[tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], tuple[int, int]]]:
+    """``(coarse_frame(..., offset), offset)`` of the grid and, with ``shifts`` = 2, of the grid that starts half
+    a block up and left of the frame (cycle spinning, docs/design.md section 17)."""
+    offsets = ((0, 0), (block[0] // 2, block[1] // 2))[:shifts]
+    return [(coarse_frame(image, kept, K, block, variable, offset), offset) for offset in offsets]
+
+
+def block_mean(values: torch.Tensor, block: Block, offset: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """The mean of (B, C, H, W) ``values`` over each block of :func:`coarse_frame`'s grid, which starts ``offset`` =
+    (rows, columns) above and left of the frame: the frame is padded by its edge pixels there and on the right
+    and bottom up to a whole block."""
+    pad = _grid_pad(values.shape[2:], block, offset)
+    return F.avg_pool2d(F.pad(values, pad, mode="replicate") if any(pad) else values, block)
+
+
+def _grid_pad(size: tuple[int, int], block: Block, offset: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``F.pad``'s (left, right, top, bottom) that puts a frame of ``size`` on a whole grid of ``block``s that
+    starts ``offset`` above and left of it."""
+    (h, w), (bh, bw), (dy, dx) = size, block, offset
+    return dx, -(w + dx) % bw, dy, -(h + dy) % bh
+
+
+def paint(depth: torch.Tensor, block: Block, size: tuple[int, int], offset: tuple[int, int] = (0, 0)
+          ) -> torch.Tensor:
     """The (B, 1, h, w) depth of ``block`` = (height, width) blocks back at full resolution ``size``, bilinear
-    between block centres."""
+    between block centres; ``offset``: of the grid, as :func:`coarse_frame`'s."""
     h, w = depth.shape[2:]
     return F.interpolate(depth, size=(h * block[0], w * block[1]), mode="bilinear", align_corners=False)[
-        ..., :size[0], :size[1]]
+        ..., offset[0]:offset[0] + size[0], offset[1]:offset[1] + size[1]]

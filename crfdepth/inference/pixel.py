@@ -7,25 +7,41 @@ its current weights (``model.sigma_d``, ``model.scales()`` ...) and ``model.solv
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from crfdepth.fill.nearest import trusted_nearest_fill
-from crfdepth.inference.coarse import Block, block_shape, coarse_frame, paint
+from crfdepth.inference.coarse import Block, block_mean, block_shape, coarse_frames, paint
 from crfdepth.linalg import SolveInfo, System, solve_system
 from crfdepth.output import CRFOutput, Stages
-from crfdepth.potentials.data_term import lidar_evidence
-from crfdepth.potentials.energy import GridTerms, grid_potentials, grid_system, std_in_metres, to_depth, to_unknown
+from crfdepth.potentials.data_term import lidar_evidence, lidar_gate, prior_fill
+from crfdepth.potentials.energy import (
+    GridTerms,
+    grid_potentials,
+    grid_system,
+    rhs_in,
+    std_in_metres,
+    to_depth,
+    to_unknown,
+)
 from crfdepth.potentials.robust import reweight
 from crfdepth.uncertainty.count import pixel_count_uncertainty
 from crfdepth.uncertainty.posterior import posterior_std, system_conditional_variance
 from crfdepth.uncertainty.predictive import grid_std_compiled, std_features
 
 
-def evidence(model: torch.nn.Module, sparse: torch.Tensor, *, with_distance: bool = False) -> tuple:
+def evidence(model: torch.nn.Module, sparse: torch.Tensor, *, with_distance: bool = False, fill: bool = True
+             ) -> tuple:
     """``(gate, kept, fill)`` of :func:`crfdepth.potentials.data_term.lidar_evidence` (docs/design.md section 3b);
-    ``with_distance``: and the distance to the nearest kept return where the fill found it (else None)."""
+    ``with_distance``: and the distance to the nearest kept return where the fill found it (else None).
+    ``fill`` False: no fill (None, and no distance): the caller fills later if it needs to
+    (:func:`crfdepth.potentials.data_term.prior_fill`)."""
     settings = model.settings
     gate = (model.gate_threshold, model.gate_softness) if settings.gate.enabled else None
+    if not fill:
+        gate, kept = lidar_gate(sparse, gate, settings.gate.window)
+        return (gate, kept, None, None) if with_distance else (gate, kept, None)
     return lidar_evidence(sparse, gate, settings.gate.window, settings.structure.prior, with_distance=with_distance)
 
 
@@ -91,17 +107,37 @@ def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: li
     and a block takes that solution where the first is nearer than ``a`` metres, the first beyond ``3 a``, and
     a linear blend between: a plane seen in perspective is affine in inverse depth, which the membrane
     interpolates exactly, while across a near and a far return the depth unknown's mean in metres is the
-    better guess (section 17)."""
+    better guess (section 17).
+
+    With ``structure.coarse_shifts = 2`` a second grid, shifted by half a block down and right, is solved the same
+    way (its normals from the first grid's depth: one pass) and the two painted depths are averaged: the answer
+    no longer depends on where the block grid happens to fall, and for a convex loss the average of two
+    answers is no worse than their mean loss (cycle spinning)."""
+    structure, size = model.settings.structure, tuple(kept.shape[2:])
+    (frame, offset), *shifted = coarse_frames(image, kept, K, block, structure.variable, structure.coarse_shifts)
+    depth = _painted(model, frame, block, offset, size, infos)
+    for frame, offset in shifted:  # its normals and 3D distances from the first grid's depth: one pass
+        depth = 0.5 * (depth + _painted(model, frame, block, offset, size, infos, geometry=depth))
+    return depth
+
+
+def _painted(model: torch.nn.Module, frame: tuple, block: Block, offset: tuple[int, int], size: tuple[int, int],
+             infos: list[SolveInfo], geometry=None) -> torch.Tensor:
+    """The depth of one coarse grid of :func:`coarse_solve`, ``frame`` = :func:`coarse_frame`'s ``(image, sparse,
+    K)`` of the grid starting ``offset`` above and left of the frame, painted at the full resolution ``size``.
+    ``geometry``: a full-resolution depth whose block means give the normals and 3D distances (one pass);
+    None: a first pass finds them."""
     structure = model.settings.structure
-    coarse_image, coarse_sparse, coarse_K = coarse_frame(image, kept, K, block, structure.variable)
-    fill = trusted_nearest_fill(coarse_sparse)
-    solve = (model, coarse_image, coarse_sparse, coarse_K, fill, model.scales()[4], infos)
-    depth, _, _ = pixel_solve(*solve)
-    if structure.near_inverse > 0:  # normals and 3D distances from the first solution: one pass, not two
-        near, _, _ = pixel_solve(*solve, geometry=depth, variable="inverse")
+    solve = (model, *frame, trusted_nearest_fill(frame[1]), model.scales()[4], infos)
+    depth, t, system = pixel_solve(*solve, geometry=None if geometry is None else block_mean(geometry, block, offset))
+    if structure.near_inverse > 0:  # the same system in inverse depth: only its right-hand side changes
+        x, info = solve_system(replace(system, rhs=rhs_in(t, "inverse")), to_unknown(depth[:, 0], "inverse"),
+                               model.solve_settings)
+        infos.append(info)
+        near = to_depth(x, "inverse")[:, None]
         far = ((depth - structure.near_inverse) / (2.0 * structure.near_inverse)).clamp(0.0, 1.0)
         depth = far * depth + (1.0 - far) * near
-    return paint(depth, block, tuple(kept.shape[2:]))
+    return paint(depth, block, size, offset)
 
 
 def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Tensor, K: torch.Tensor,
@@ -112,11 +148,13 @@ def pixel_forward(model: torch.nn.Module, image: torch.Tensor, sparse: torch.Ten
     bsz, _, h, w = sparse.shape
     stage = Stages(sparse.device, model.progress)
     with stage("fill"):
-        gate, kept, fill, distance = evidence(model, sparse, with_distance=True)
+        gate, kept, fill, distance = evidence(model, sparse, with_distance=True, fill=False)
+        # the caller read the layout of ``sparse``; with a gate the blocks follow the returns it kept
+        block = block_shape(model.settings.structure.coarse, kept, lines if kept is sparse else None)
+        if block == (1, 1) or return_std:  # the prior, or the distance the std reads; a coarse solve fills itself
+            fill, distance = prior_fill(kept, model.settings.structure.prior)
     infos: list[SolveInfo] = []
     prior, eps, geometry = fill, model.scales()[4], None
-    # the caller read the layout of ``sparse``; with a gate the blocks follow the returns it kept
-    block = block_shape(model.settings.structure.coarse, kept, lines if kept is sparse else None)
     if block != (1, 1):
         with stage("coarse"):
             prior = geometry = coarse_solve(model, image, kept, K, block, infos)

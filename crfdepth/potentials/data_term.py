@@ -19,7 +19,7 @@ from crfdepth.fill.nearest import trusted_nearest_fill
 from crfdepth.potentials.energy import Variable, to_unknown
 from crfdepth.potentials.occlusion import trusted_gate
 
-__all__ = ["PRIORS", "lidar_evidence", "node_lidar"]
+__all__ = ["PRIORS", "lidar_evidence", "lidar_gate", "node_lidar", "prior_fill"]
 
 """The prior fills ``x0``: nearest LiDAR return (:mod:`crfdepth.fill.nearest`) or IP-Basic (:mod:`crfdepth.fill.ip_basic`)."""
 
@@ -41,16 +41,27 @@ def lidar_evidence(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor]
         warning), ``sparse`` without the returns the gate rejects, and the prior fill of those
         (then the distance, with ``with_distance``).
     """
-    g, kept = None, sparse
-    if gate is not None:
-        g = trusted_gate(sparse, gate[0], gate[1], window).gate  # sparse checked by the model
-        kept = torch.where(g.detach() >= 0.5, sparse, torch.zeros_like(sparse))
-    distance = None
-    if prior == "nearest":
-        fill, distance = trusted_nearest_fill(kept, with_distance=True)
-    else:
-        fill = ip_basic_fill(kept)
+    g, kept = lidar_gate(sparse, gate, window)
+    fill, distance = prior_fill(kept, prior)
     return (g, kept, fill, distance) if with_distance else (g, kept, fill)
+
+
+def lidar_gate(sparse: torch.Tensor, gate: tuple[torch.Tensor, torch.Tensor] | None, window: int
+               ) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """``(gate, kept)`` of :func:`lidar_evidence`: the gate (None without one) and the returns it keeps."""
+    if gate is None:
+        return None, sparse
+    g = trusted_gate(sparse, gate[0], gate[1], window).gate  # sparse checked by the model
+    return g, torch.where(g.detach() >= 0.5, sparse, torch.zeros_like(sparse))
+
+
+def prior_fill(kept: torch.Tensor, prior: Literal["nearest", "ip_basic"]
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The prior fill of the kept returns of :func:`lidar_evidence`, and the distance in pixels from each pixel
+    to the nearest of them where the nearest search found it (else None)."""
+    if prior == "nearest":
+        return trusted_nearest_fill(kept, with_distance=True)
+    return ip_basic_fill(kept), None
 
 
 def node_lidar(sparse: torch.Tensor, gate: torch.Tensor, labels: torch.Tensor, num_nodes: int,

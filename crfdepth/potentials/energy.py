@@ -341,6 +341,14 @@ def _affinities(image: torch.Tensor, K: torch.Tensor, geometry: torch.Tensor | N
     return colour, normal, distance
 
 
+def rhs_in(t: GridTerms, variable: Variable) -> torch.Tensor:
+    """The right-hand side of ``grid_system(t)`` for terms in the depth unknown, with ``variable`` as the unknown
+    instead: the diagonal and the edge weights do not depend on the unknown, only the targets of the unary
+    terms do (the coarse solve's near blocks, docs/design.md section 17)."""
+    _, b = unary_system((t.alpha * t.w, to_unknown(t.z, variable)), (t.eps, to_unknown(t.prior, variable)))
+    return b
+
+
 def grid_system(t: GridTerms) -> System:
     """The pixel-grid system of the potentials of :func:`grid_potentials` (one compiled pass per map where no
     gradient is needed, :func:`crfdepth.potentials.compiled.fused_system`; the same numbers)."""

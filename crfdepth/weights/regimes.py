@@ -24,8 +24,8 @@ from crfdepth.weights.torch_files import is_config, load_torch_file
 __all__ = ["REGIMES_KEY", "SPARSE_REGIMES", "json_regimes", "read_regimes"]
 
 SPARSE_REGIMES: dict[str, dict[str, dict[str, Any]]] = {"kitti": {
-    "scattered": {"structure": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0}},
-    "lines": {"structure": {"mode": "pixel", "coarse": 6, "variable": "log"}},
+    "scattered": {"structure": {"mode": "pixel", "coarse": 6, "near_inverse": 10.0, "coarse_shifts": 2}},
+    "lines": {"structure": {"mode": "pixel", "coarse": 6, "variable": "log", "coarse_shifts": 2}},
     "indoor": "nyu",
 }}
 """Shipped set -> the configurations (hand-set weights) of the models that complete its frames with few returns

@@ -60,11 +60,13 @@ def test_coarse_depth_takes_the_inverse_solution_near_and_the_depth_solution_far
         infos: list = []
         blended = coarse_solve(CRFDepth(mode="pixel", coarse=6, near_inverse=10.0), image, sparse, K, block, infos)
     assert not torch.allclose(depth, inverse, rtol=1e-3)  # the two unknowns interpolate differently
-    # the second solve is the inverse unknown's on the same blocks, normals and distances from the first solution
+    # the second solve is the inverse unknown's on the same blocks with the same system (normals and distances
+    # from the depth unknown's first pass): a solve of the inverse unknown with that geometry
     model = CRFDepth(mode="pixel", coarse=6)
     grid = coarse_frame(image, sparse, K, block, "depth")
     fill = trusted_nearest_fill(grid[1])
-    first, _, _ = pixel_solve(model, *grid, fill, model.scales()[4], [])
+    first, _, _ = pixel_solve(CRFDepth(mode="pixel", coarse=6, potentials=("colour",)), *grid, fill,
+                              model.scales()[4], [])  # the first pass alone
     second, _, _ = pixel_solve(model, *grid, fill, model.scales()[4], [], geometry=first, variable="inverse")
     torch.testing.assert_close(near_all, paint(second, block, tuple(sparse.shape[2:])), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(near_all, inverse, rtol=0.03, atol=0.0)  # its own normals: 1.5% apart here
