@@ -133,8 +133,8 @@ class Structure:
     coarse solve in inverse depth, blended into the first linearly up to three times this depth (section 17);
     0: one coarse solve."""
     coarse_shifts: int = 1
-    """With a coarse solve: 2 solves the coarse grid a second time, shifted by half a block down and right, and
-    averages the two painted depths (cycle spinning, section 17); 1: one grid."""
+    """With a coarse solve: 2 solves it a second time on a grid that starts half a block up and left of the frame,
+    and averages the two painted depths (cycle spinning, section 17); 1: one grid."""
 
     def __post_init__(self) -> None:
         for name, choices in (("mode", MODES), ("variable", VARIABLES), ("prior", PRIORS)):

@@ -196,7 +196,7 @@ class CRFDepth(ConstrainedWeights):
 
         ``adaptive`` (kitti on the pixel grid): frames with few returns (a median distance to the nearest
         return above 4.5 pixels: 500 samples, 16 beams) go to the hand-set weights on the pixel grid with a
-        coarse first solve of 6-pixel blocks (:mod:`crfdepth.inference.regime`, docs/design.md section 17):
+        coarse first solve of 6-pixel blocks on two grids (:mod:`crfdepth.inference.regime`, docs/design.md section 17):
         :attr:`sparse_regime` (the depth unknown, near blocks in inverse depth) for scattered returns, :attr:`line_regime` (the log unknown,
         blocks twice as tall) for returns on scan lines, :attr:`indoor_regime` (the ``"nyu"`` weights) for
         scattered returns whose depths are a room's (90% within 10 m). ``overrides`` of the gate, the solver or the std apply to the shipped weights

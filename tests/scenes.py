@@ -39,3 +39,17 @@ def table4_frames(kitti_root, samples: int, step: int = 1):
         s = raw[i]
         whole = torch.where(s.sparse > 0, s.sparse, s.target)
         yield kitti_table4(samples, seed=0)(dataclasses.replace(s, target=whole))
+
+
+def table4_scores(models: dict, frames) -> dict:
+    """name -> (mean RMSE m, mean REL) of each model of ``models`` over ``frames`` (Table 4 samples,
+    :func:`table4_frames`), per image then averaged."""
+    scores = {name: [] for name in models}
+    for t in frames:
+        valid = t.target > 0
+        for name, model in models.items():
+            with torch.no_grad():
+                depth = model(t.image[None], t.sparse[None], t.K[None]).depth[0]
+            err = depth[valid] - t.target[valid]
+            scores[name].append((float(err.pow(2).mean().sqrt()), float((err.abs() / t.target[valid]).mean())))
+    return {name: tuple(sum(v[j] for v in rows) / len(rows) for j in (0, 1)) for name, rows in scores.items()}

@@ -103,16 +103,16 @@ def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: li
     docs/design.md section 17), painted back to the full resolution: the prior and first geometry of the
     full-resolution solve, as the superpixel mode's painted solution is its refinement's.
 
-    With ``structure.near_inverse = a`` the coarse grid is solved a second time with inverse depth as the unknown,
-    and a block takes that solution where the first is nearer than ``a`` metres, the first beyond ``3 a``, and
-    a linear blend between: a plane seen in perspective is affine in inverse depth, which the membrane
-    interpolates exactly, while across a near and a far return the depth unknown's mean in metres is the
-    better guess (section 17).
+    With ``structure.near_inverse = a`` the coarse grid is solved a second time with inverse depth as the unknown
+    (the same system, another right-hand side: :func:`~crfdepth.potentials.energy.rhs_in`), and a block takes
+    that solution where the first is nearer than ``a`` metres, the first beyond ``3 a``, and a linear blend
+    between: a plane seen in perspective is affine in inverse depth, which the membrane interpolates exactly,
+    while across a near and a far return the depth unknown's mean in metres is the better guess (section 17).
 
-    With ``structure.coarse_shifts = 2`` a second grid, shifted by half a block down and right, is solved the same
-    way (its normals from the first grid's depth: one pass) and the two painted depths are averaged: the answer
-    no longer depends on where the block grid happens to fall, and for a convex loss the average of two
-    answers is no worse than their mean loss (cycle spinning)."""
+    With ``structure.coarse_shifts = 2`` a second grid, starting half a block up and left of the frame, is solved
+    the same way (its normals from the first grid's depth: one pass) and the two painted depths are averaged:
+    the answer no longer depends on where the block grid happens to fall, and for a convex loss the average of
+    two answers is no worse than their mean loss (cycle spinning)."""
     structure, size = model.settings.structure, tuple(kept.shape[2:])
     (frame, offset), *shifted = coarse_frames(image, kept, K, block, structure.variable, structure.coarse_shifts)
     depth = _painted(model, frame, block, offset, size, infos)

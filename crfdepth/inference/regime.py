@@ -1,7 +1,8 @@
 """The default model's regimes for few returns: such frames go to other models (docs/design.md section 17).
 
 :meth:`CRFDepth.from_pretrained <crfdepth.model.CRFDepth.from_pretrained>` gives the shipped weights three
-models on the pixel grid with a coarse first solve (:mod:`crfdepth.inference.coarse`), two with hand-set weights:
+models on the pixel grid with a coarse first solve (:mod:`crfdepth.inference.coarse`), two with hand-set weights
+whose coarse solve runs on two grids half a block apart (``coarse_shifts``):
 
 - ``sparse_regime``, the depth unknown with near blocks of the coarse solve in inverse depth (``near_inverse``):
   frames whose returns are few and scattered (500 or 200 samples);

@@ -15,7 +15,7 @@ from crfdepth.inference.pixel import coarse_solve, pixel_solve
 from crfdepth.linalg import solve_system
 from crfdepth.model import CRFDepth
 from crfdepth.potentials.energy import rhs_in, to_depth, to_unknown
-from tests.scenes import table4_frames
+from tests.scenes import table4_frames, table4_scores
 
 
 def _scene(h=72, w=144, count=150, seed=0):
@@ -121,18 +121,10 @@ def test_the_default_sparse_regimes_use_two_grids():
 
 
 def test_two_grids_lower_rmse_and_rel_on_real_table4_frames(kitti_root):
-    one = CRFDepth(mode="pixel", coarse=6, near_inverse=10.0)
-    two = CRFDepth(mode="pixel", coarse=6, near_inverse=10.0, coarse_shifts=2)
-    scores = {"one": [], "two": []}
-    for samples in (500, 200):
-        for t in table4_frames(kitti_root, samples):
-            valid = t.target > 0
-            for name, model in (("one", one), ("two", two)):
-                with torch.no_grad():
-                    depth = model(t.image[None], t.sparse[None], t.K[None]).depth[0]
-                err = depth[valid] - t.target[valid]
-                scores[name].append((float(err.pow(2).mean().sqrt()), float((err.abs() / t.target[valid]).mean())))
-    mean = {k: [sum(v[j] for v in rows) / len(rows) for j in (0, 1)] for k, rows in scores.items()}
+    models = {"one": CRFDepth(mode="pixel", coarse=6, near_inverse=10.0),
+              "two": CRFDepth(mode="pixel", coarse=6, near_inverse=10.0, coarse_shifts=2)}
+    frames = [t for samples in (500, 200) for t in table4_frames(kitti_root, samples)]
+    mean = table4_scores(models, frames)
     # measured (both sample counts together): RMSE -0.65%, REL -0.46% (section 17 has every scene group)
     assert mean["two"][0] < 0.997 * mean["one"][0]
     assert mean["two"][1] < 0.999 * mean["one"][1]

@@ -13,7 +13,7 @@ from crfdepth.fill.nearest import trusted_nearest_fill
 from crfdepth.inference.coarse import coarse_frame, paint
 from crfdepth.inference.pixel import coarse_solve, pixel_solve
 from crfdepth.model import CRFDepth
-from tests.scenes import table4_frames
+from tests.scenes import table4_frames, table4_scores
 
 NEAR = 10.0  # the shipped value (crfdepth/weights/files.py SPARSE_REGIMES)
 
@@ -98,17 +98,9 @@ def test_default_scattered_regime_reads_near_pixels_in_inverse_depth():
 
 
 def test_near_inverse_lowers_rel_at_500_kitti_samples_and_keeps_the_rmse(kitti_root):
-    plain, near = CRFDepth(mode="pixel", coarse=6), CRFDepth(mode="pixel", coarse=6, near_inverse=NEAR)
-    scores = {"plain": [], "near": []}
-    for t in table4_frames(kitti_root, 500, step=2):
-        valid = t.target > 0
-        for name, model in (("plain", plain), ("near", near)):
-            with torch.no_grad():
-                depth = model(t.image[None], t.sparse[None], t.K[None]).depth[0]
-            err = depth[valid] - t.target[valid]
-            scores[name].append((float(err.pow(2).mean().sqrt()), float((err.abs() / t.target[valid]).mean())))
-    mean = {k: [sum(v[j] for v in rows) / len(rows) for j in (0, 1)] for k, rows in scores.items()}
+    models = {"plain": CRFDepth(mode="pixel", coarse=6), "near": CRFDepth(mode="pixel", coarse=6, near_inverse=NEAR)}
+    mean = table4_scores(models, table4_frames(kitti_root, 500, step=2))
     # measured on all 14 raw frames: RMSE +0.2%, REL -7% (docs/design.md section 17)
     assert mean["near"][1] < 0.96 * mean["plain"][1]
     assert mean["near"][0] < 1.01 * mean["plain"][0]
-    assert all(math.isfinite(x) for rows in scores.values() for v in rows for x in v)
+    assert all(math.isfinite(x) for v in mean.values() for x in v)
