@@ -128,3 +128,17 @@ def test_two_grids_lower_rmse_and_rel_on_real_table4_frames(kitti_root):
     # measured (both sample counts together): RMSE -0.65%, REL -0.46% (section 17 has every scene group)
     assert mean["two"][0] < 0.997 * mean["one"][0]
     assert mean["two"][1] < 0.999 * mean["one"][1]
+
+
+def test_two_grids_keep_gradients_and_batch_frames_independently():
+    image, sparse, K = _scene(h=48, w=96, count=90)
+    other = _scene(h=48, w=96, count=90, seed=1)
+    model = CRFDepth(mode="pixel", coarse=4, near_inverse=10.0, coarse_shifts=2)
+    loss = model(image, sparse, K).depth.mean()
+    loss.backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
+    with torch.no_grad():
+        both = model(torch.cat([image, other[0]]), torch.cat([sparse, other[1]]), torch.cat([K, other[2]])).depth
+        alone = [model(image, sparse, K).depth, model(*other).depth]
+    torch.testing.assert_close(both, torch.cat(alone), rtol=1e-4, atol=1e-4)
