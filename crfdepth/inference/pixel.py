@@ -114,14 +114,14 @@ def coarse_solve(model: torch.nn.Module, image, kept, K, block: Block, infos: li
     the answer no longer depends on where the block grid happens to fall, and for a convex loss the average of
     two answers is no worse than their mean loss (cycle spinning)."""
     structure, size = model.settings.structure, tuple(kept.shape[2:])
-    (frame, offset), *shifted = coarse_frames(image, kept, K, block, structure.variable, structure.coarse_shifts)
-    depth = _painted(model, frame, block, offset, size, infos)
-    for frame, offset in shifted:  # its normals and 3D distances from the first grid's depth: one pass
-        depth = 0.5 * (depth + _painted(model, frame, block, offset, size, infos, geometry=depth))
+    first, *shifted = coarse_frames(image, kept, K, block, structure.variable, structure.coarse_shifts)
+    depth = _painted(model, *first, block, size, infos)
+    if shifted:  # the second grid: its normals and 3D distances from the first grid's depth, one pass
+        depth = 0.5 * (depth + _painted(model, *shifted[0], block, size, infos, geometry=depth))
     return depth
 
 
-def _painted(model: torch.nn.Module, frame: tuple, block: Block, offset: tuple[int, int], size: tuple[int, int],
+def _painted(model: torch.nn.Module, frame: tuple, offset: tuple[int, int], block: Block, size: tuple[int, int],
              infos: list[SolveInfo], geometry=None) -> torch.Tensor:
     """The depth of one coarse grid of :func:`coarse_solve`, ``frame`` = :func:`coarse_frame`'s ``(image, sparse,
     K)`` of the grid starting ``offset`` above and left of the frame, painted at the full resolution ``size``.
